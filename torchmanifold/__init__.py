@@ -1,0 +1,9 @@
+"""torchmanifold: adaptive-manifold filtering for progressive Monte Carlo video rendering.
+
+The filter op lives in :mod:`torchmanifold.ops`, the path tracer in :mod:`torchmanifold.render`,
+the progressive pipeline in :mod:`torchmanifold.pipeline`, EXR/video I/O in :mod:`torchmanifold.io`.
+"""
+from torchmanifold._extension import build_info
+
+__version__ = "0.1.0"
+__all__ = ["build_info"]
