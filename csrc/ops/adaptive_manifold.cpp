@@ -1,0 +1,12 @@
+// Schema of the adaptive-manifold filter op. Kernels register per device in cpu/ (and cuda/);
+// Python registers the fake (shape) kernel, autograd and a pure-PyTorch kernel for other devices.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
+  // values (B, C, H, W) and guide (B, D, H, W), same floating dtype (float32/float64) and device,
+  // contiguous. The guide is already scaled to units where sigma_r applies to every channel.
+  // Returns the filtered values (B, C, H, W), same dtype.
+  m.def(
+      "adaptive_manifold(Tensor values, Tensor guide, float sigma_s, float sigma_r, int tree_height, "
+      "int power_iterations, bool adjust_outliers) -> Tensor");
+}
