@@ -1,0 +1,31 @@
+"""Benchmarks live outside ``testpaths``: ``pytest benchmarks`` (or a file) collects ``bench_*.py`` here.
+
+``--quick`` shrinks every benchmark to a smoke run (small sizes, few frames; what CI may run). Timings are
+recorded, never asserted.
+"""
+import sys
+from pathlib import Path
+
+import pytest
+
+_HERE = str(Path(__file__).resolve().parent)
+if _HERE not in sys.path:  # bench files import baselines.py / harness.py beside them
+    sys.path.insert(0, _HERE)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--quick", action="store_true", default=False,
+                     help="smoke-run the benchmarks at tiny sizes (no numbers worth quoting)")
+
+
+def pytest_collect_file(file_path, parent):
+    if file_path.suffix == ".py" and file_path.name.startswith("bench_") and file_path.parent == Path(_HERE):
+        if str(file_path) in {str(a) for a in parent.config.args}:
+            return None  # named on the command line: pytest collects it already
+        return pytest.Module.from_parent(parent, path=file_path)
+    return None
+
+
+@pytest.fixture(scope="session")
+def quick(request) -> bool:
+    return bool(request.config.getoption("--quick"))
