@@ -20,7 +20,7 @@ def pytest_addoption(parser):
 
 def pytest_collect_file(file_path, parent):
     if file_path.suffix == ".py" and file_path.name.startswith("bench_") and file_path.parent == Path(_HERE):
-        if str(file_path) in {str(a) for a in parent.config.args}:
+        if parent.session.isinitpath(file_path):
             return None  # named on the command line: pytest collects it already
         return pytest.Module.from_parent(parent, path=file_path)
     return None
