@@ -1,0 +1,41 @@
+"""The one place that creates the OpenGL context of the path tracer (headless EGL, GL >= 4.3)."""
+from __future__ import annotations
+
+import importlib.util
+
+import moderngl
+
+_default_ctx: moderngl.Context | None = None
+
+
+def create_context(new: bool = False) -> moderngl.Context:
+    """Create (or reuse) a headless OpenGL 4.3+ context for compute shaders.
+
+    On a CPU machine this is Mesa's llvmpipe through EGL; on an NVIDIA machine the same call gives the
+    GPU. Loading triton after Mesa's libLLVM segfaults the process, so triton (via ``torch._dynamo``)
+    is imported first when it is installed.
+
+    Args:
+        new: create a fresh context instead of the process-wide shared one.
+
+    Returns:
+        A ``moderngl.Context`` with ``version_code >= 430``.
+
+    Raises:
+        RuntimeError: no EGL/OpenGL 4.3 driver (install libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1).
+    """
+    global _default_ctx
+    if not new and _default_ctx is not None:
+        return _default_ctx
+    if importlib.util.find_spec("triton") is not None:
+        import torch._dynamo  # noqa: F401  (loads triton before Mesa's LLVM)
+    try:
+        ctx = moderngl.create_context(standalone=True, backend="egl", require=430)
+    except Exception as exc:
+        raise RuntimeError(
+            f"could not create a headless OpenGL 4.3 context through EGL ({exc}); "
+            "on Debian install libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libopengl0"
+        ) from exc
+    if not new:
+        _default_ctx = ctx
+    return ctx

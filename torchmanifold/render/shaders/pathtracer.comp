@@ -1,0 +1,419 @@
+#version 430
+// Progressive path tracer (smallpt economy): diffuse / mirror / glass, emissive spheres and quads as
+// lights with next-event estimation, Russian roulette, keyframed translation of objects and camera,
+// per-sample time in the shutter interval. One invocation = one pixel of one frame; it loops over its
+// samples and writes SUMS (the host divides by spp), so the host reads back once per render.
+// HAS_MESH is defined by the host (0/1) so mesh-free scenes compile without the BVH code.
+layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
+
+#ifndef HAS_MESH
+#define HAS_MESH 0
+#endif
+
+const float PI = 3.14159265358979;
+const float INF = 1e30;
+const int N_FEAT = 14;  // T Z Mr Mg Mb Nx Ny Nz Dx Dy Dz Sx Sy Sz
+
+// Primitive: type 0 sphere (a.xyz centre, a.w radius), 1 quad (a origin, b edge u, c edge v; front = u x v),
+// 2 mesh (info2.y = BVH root node). info = (type, material, first keyframe, keyframe count),
+// info2 = (is sampled light, bvh root, -, -).
+struct Prim { vec4 a; vec4 b; vec4 c; ivec4 info; ivec4 info2; };
+// Material: colour.rgb + type (0 diffuse, 1 mirror, 2 glass), emission.rgb + index of refraction.
+struct Material { vec4 color_type; vec4 emission_ior; };
+
+layout(std430, binding = 0) readonly buffer Prims { Prim prims[]; };
+layout(std430, binding = 1) readonly buffer Materials { Material mats[]; };
+layout(std430, binding = 2) readonly buffer Keys { vec4 keys[]; };       // (time, offset.xyz)
+layout(std430, binding = 3) readonly buffer CamKeys { vec4 camkeys[]; }; // pairs (time, eye), (target, vfov_deg)
+layout(std430, binding = 4) readonly buffer Lights { int lights[]; };
+layout(std430, binding = 5) readonly buffer Times { float frame_times[]; };
+layout(std430, binding = 6) buffer OutColor { float out_color[]; };       // (T, 3, H, W) sums
+layout(std430, binding = 7) buffer OutEmission { float out_emission[]; }; // (T, 3, H, W) sums
+layout(std430, binding = 8) buffer OutFeat { float out_feat[]; };         // (T, D, H, W) sums
+layout(std430, binding = 9) buffer OutAux { float out_aux[]; };           // (T, 3, H, W): id, motion x, y
+#if HAS_MESH
+layout(std430, binding = 10) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, left|first), (bmax, count)
+layout(std430, binding = 11) readonly buffer Tris { vec4 tris[]; };    // triples v0, v1, v2
+#endif
+
+uniform ivec2 u_size;          // image W, H
+uniform ivec2 u_tile_origin;   // pixel offset of this dispatch
+uniform ivec2 u_tile_size;
+uniform int u_n_prims;
+uniform int u_n_lights;
+uniform int u_n_camkeys;
+uniform int u_spp;             // samples in this dispatch
+uniform uint u_sample_start;   // global index of the first sample of this dispatch
+uniform uint u_seed;
+uniform int u_accumulate;      // 0: overwrite the sums, 1: add to them
+uniform int u_n_feat;          // D
+uniform int u_slot[N_FEAT];    // output channel of each feature, -1 = not written
+uniform int u_max_depth;
+uniform int u_rr_depth;
+uniform float u_shutter;
+uniform vec3 u_background;
+uniform vec3 u_up;
+
+// ---------------------------------------------------------------- RNG (counter based, pcg4d)
+uvec4 pcg4d(uvec4 v) {
+    v = v * 1664525u + 1013904223u;
+    v.x += v.y * v.w; v.y += v.z * v.x; v.z += v.x * v.y; v.w += v.y * v.z;
+    v ^= v >> 16u;
+    v.x += v.y * v.w; v.y += v.z * v.x; v.z += v.x * v.y; v.w += v.y * v.z;
+    return v;
+}
+uvec4 g_key;
+uint g_dim;
+// key = (pixel x, pixel y, sample index, hash(frame time bits, seed)); each draw hashes its dimension in.
+void rng_init(uvec2 pix, uint sample_index, float frame_time) {
+    uvec4 fk = pcg4d(uvec4(floatBitsToUint(frame_time), u_seed, 0x9E3779B9u, 0x85EBCA6Bu));
+    g_key = pcg4d(uvec4(pix.x, pix.y, sample_index, fk.x));
+    g_dim = 0u;
+}
+float rnd() {
+    uvec4 h = pcg4d(uvec4(g_key.x, g_key.y, g_key.z ^ g_dim, g_key.w + g_dim * 0x68E31DA4u));
+    g_dim += 1u;
+    return float(h.x >> 8u) * (1.0 / 16777216.0);
+}
+
+// ---------------------------------------------------------------- motion
+vec3 prim_offset(int i, float t) {
+    int k0 = prims[i].info.z, n = prims[i].info.w;
+    if (n == 0) return vec3(0.0);
+    if (t <= keys[k0].x || n == 1) return keys[k0].yzw;
+    for (int k = k0; k < k0 + n - 1; ++k) {
+        if (t <= keys[k + 1].x) {
+            float s = (t - keys[k].x) / max(keys[k + 1].x - keys[k].x, 1e-12);
+            return mix(keys[k].yzw, keys[k + 1].yzw, s);
+        }
+    }
+    return keys[k0 + n - 1].yzw;
+}
+
+struct Camera { vec3 eye; vec3 fwd; vec3 right; vec3 up; float tan_half; float aspect; };
+Camera camera_at(float t) {
+    int k = 0;
+    float s = 0.0;
+    if (u_n_camkeys > 1 && t > camkeys[0].x) {
+        k = u_n_camkeys - 1;
+        for (int j = 0; j < u_n_camkeys - 1; ++j) {
+            if (t <= camkeys[2 * (j + 1)].x) {
+                s = (t - camkeys[2 * j].x) / max(camkeys[2 * (j + 1)].x - camkeys[2 * j].x, 1e-12);
+                k = j;
+                break;
+            }
+        }
+    }
+    int k1 = min(k + 1, u_n_camkeys - 1);
+    if (k1 == k) s = 0.0;
+    vec3 eye = mix(camkeys[2 * k].yzw, camkeys[2 * k1].yzw, s);
+    vec3 target = mix(camkeys[2 * k + 1].xyz, camkeys[2 * k1 + 1].xyz, s);
+    float fov = mix(camkeys[2 * k + 1].w, camkeys[2 * k1 + 1].w, s);
+    Camera c;
+    c.eye = eye;
+    c.fwd = normalize(target - eye);
+    c.right = normalize(cross(c.fwd, u_up));
+    c.up = cross(c.right, c.fwd);
+    c.tan_half = tan(radians(fov) * 0.5);
+    c.aspect = float(u_size.x) / float(u_size.y);
+    return c;
+}
+// image point (pixels, y down) -> world direction
+vec3 camera_dir(Camera c, vec2 p) {
+    vec2 ndc = vec2(2.0 * p.x / float(u_size.x) - 1.0, 1.0 - 2.0 * p.y / float(u_size.y));
+    return normalize(c.fwd + ndc.x * c.tan_half * c.aspect * c.right + ndc.y * c.tan_half * c.up);
+}
+vec2 camera_project(Camera c, vec3 p) {
+    vec3 v = p - c.eye;
+    float z = max(dot(v, c.fwd), 1e-8);
+    vec2 ndc = vec2(dot(v, c.right) / (z * c.tan_half * c.aspect), dot(v, c.up) / (z * c.tan_half));
+    return vec2((ndc.x + 1.0) * 0.5 * float(u_size.x), (1.0 - ndc.y) * 0.5 * float(u_size.y));
+}
+
+// ---------------------------------------------------------------- intersection
+struct Hit { float t; int prim; vec3 n; };  // n: geometric normal, front side (outward / u x v)
+
+float hit_sphere(vec3 o, vec3 d, vec3 c, float r, float tmin) {
+    vec3 oc = o - c;
+    float b = dot(oc, d);
+    vec3 h = oc - b * d;                      // stable discriminant (no huge b*b - c cancellation)
+    float disc = r * r - dot(h, h);
+    if (disc < 0.0) return INF;
+    float s = sqrt(disc);
+    float t = -b - s;
+    if (t > tmin) return t;
+    t = -b + s;
+    return t > tmin ? t : INF;
+}
+
+float hit_quad(vec3 o, vec3 d, vec3 q, vec3 u, vec3 v, float tmin) {
+    vec3 n = cross(u, v);
+    float den = dot(n, d);
+    if (abs(den) < 1e-12) return INF;
+    float t = dot(n, q - o) / den;
+    if (t <= tmin) return INF;
+    vec3 p = o + t * d - q;
+    vec3 w = n / dot(n, n);
+    float a = dot(w, cross(p, v));
+    float b = dot(w, cross(u, p));
+    return (a >= 0.0 && a <= 1.0 && b >= 0.0 && b <= 1.0) ? t : INF;
+}
+
+#if HAS_MESH
+float hit_tri(vec3 o, vec3 d, vec3 v0, vec3 v1, vec3 v2, float tmin) {
+    vec3 e1 = v1 - v0, e2 = v2 - v0;
+    vec3 pv = cross(d, e2);
+    float det = dot(e1, pv);
+    if (abs(det) < 1e-14) return INF;
+    float inv = 1.0 / det;
+    vec3 tv = o - v0;
+    float a = dot(tv, pv) * inv;
+    if (a < 0.0 || a > 1.0) return INF;
+    vec3 qv = cross(tv, e1);
+    float b = dot(d, qv) * inv;
+    if (b < 0.0 || a + b > 1.0) return INF;
+    float t = dot(e2, qv) * inv;
+    return t > tmin ? t : INF;
+}
+bool hit_box(vec3 o, vec3 inv_d, vec3 bmin, vec3 bmax, float tmax) {
+    vec3 t0 = (bmin - o) * inv_d, t1 = (bmax - o) * inv_d;
+    vec3 lo = min(t0, t1), hi = max(t0, t1);
+    float a = max(max(lo.x, lo.y), max(lo.z, 0.0));
+    float b = min(min(hi.x, hi.y), min(hi.z, tmax));
+    return a <= b;
+}
+// nearest triangle of the mesh whose BVH starts at `root`; returns t, writes the geometric normal
+float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, out vec3 n) {
+    vec3 inv_d = 1.0 / d;
+    int stack[32];
+    int sp = 0;
+    stack[sp++] = root;
+    float best = tmax;
+    n = vec3(0.0, 1.0, 0.0);
+    while (sp > 0) {
+        int ni = stack[--sp];
+        vec4 a = nodes[2 * ni], b = nodes[2 * ni + 1];
+        if (!hit_box(o, inv_d, a.xyz, b.xyz, best)) continue;
+        int count = floatBitsToInt(b.w), first = floatBitsToInt(a.w);
+        if (count > 0) {
+            for (int j = first; j < first + count; ++j) {
+                vec3 v0 = tris[3 * j].xyz, v1 = tris[3 * j + 1].xyz, v2 = tris[3 * j + 2].xyz;
+                float t = hit_tri(o, d, v0, v1, v2, tmin);
+                if (t < best) { best = t; n = cross(v1 - v0, v2 - v0); }
+            }
+        } else if (sp < 31) {           // children: ni + 1 and `first`
+            stack[sp++] = first;
+            stack[sp++] = ni + 1;
+        }
+    }
+    n = normalize(n);
+    return best;
+}
+#endif
+
+bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) {
+    hit.t = tmax;
+    hit.prim = -1;
+    hit.n = vec3(0.0);
+    for (int i = 0; i < u_n_prims; ++i) {
+        Prim p = prims[i];
+        vec3 ro = o - prim_offset(i, time);   // objects only translate: move the ray instead
+        float t = INF;
+        vec3 n = vec3(0.0);
+        if (p.info.x == 0) {
+            t = hit_sphere(ro, d, p.a.xyz, p.a.w, tmin);
+            if (t < hit.t) n = (ro + t * d - p.a.xyz) / p.a.w;
+        } else if (p.info.x == 1) {
+            t = hit_quad(ro, d, p.a.xyz, p.b.xyz, p.c.xyz, tmin);
+            if (t < hit.t) n = normalize(cross(p.b.xyz, p.c.xyz));
+        }
+#if HAS_MESH
+        else {
+            t = hit_mesh(ro, d, p.info2.y, tmin, hit.t, n);
+        }
+#endif
+        if (t < hit.t) { hit.t = t; hit.prim = i; hit.n = n; }
+    }
+    return hit.prim >= 0;
+}
+
+// ---------------------------------------------------------------- sampling helpers
+void onb(vec3 n, out vec3 t, out vec3 b) {   // Duff et al. 2017
+    float s = n.z >= 0.0 ? 1.0 : -1.0;
+    float a = -1.0 / (s + n.z);
+    float c = n.x * n.y * a;
+    t = vec3(1.0 + s * n.x * n.x * a, s * c, -s * n.x);
+    b = vec3(c, s + n.y * n.y * a, -n.y);
+}
+vec3 cosine_dir(vec3 n, float u1, float u2) {
+    float r = sqrt(u1), phi = 2.0 * PI * u2;
+    vec3 t, b;
+    onb(n, t, b);
+    return normalize(r * cos(phi) * t + r * sin(phi) * b + sqrt(max(0.0, 1.0 - u1)) * n);
+}
+// emitted radiance of primitive i toward direction -d (spheres emit outward, quads from the front face)
+vec3 emitted(int i, vec3 n, vec3 d) {
+    vec3 e = mats[prims[i].info.y].emission_ior.rgb;
+    return dot(n, d) < 0.0 ? e : vec3(0.0);
+}
+float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
+
+// next-event estimation: one light chosen uniformly, one point uniform on its area.
+// Returns the radiance contribution (already / pdf) and the unit shadow-ray direction.
+vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
+    int li = lights[min(int(rnd() * float(u_n_lights)), u_n_lights - 1)];
+    Prim lp = prims[li];
+    vec3 off = prim_offset(li, time);
+    float u1 = rnd(), u2 = rnd();
+    vec3 y, ny;
+    float area;
+    if (lp.info.x == 0) {
+        float z = 1.0 - 2.0 * u1, r = sqrt(max(0.0, 1.0 - z * z)), phi = 2.0 * PI * u2;
+        ny = vec3(r * cos(phi), r * sin(phi), z);
+        y = lp.a.xyz + off + lp.a.w * ny;
+        area = 4.0 * PI * lp.a.w * lp.a.w;
+    } else {
+        vec3 c = cross(lp.b.xyz, lp.c.xyz);
+        area = length(c);
+        ny = c / area;
+        y = lp.a.xyz + off + u1 * lp.b.xyz + u2 * lp.c.xyz;
+    }
+    vec3 w = y - p;
+    float dist2 = dot(w, w), dist = sqrt(dist2);
+    sdir = w / dist;
+    float cos_x = dot(n, sdir), cos_y = -dot(ny, sdir);
+    if (cos_x <= 0.0 || cos_y <= 0.0) return vec3(0.0);
+    Hit sh;
+    vec3 o = p + n * ray_eps(p);
+    if (intersect(o, sdir, 0.0, dist * (1.0 - 1e-4), time, sh)) return vec3(0.0);
+    vec3 le = mats[lp.info.y].emission_ior.rgb;
+    return le * (albedo / PI) * cos_x * cos_y / dist2 * area * float(u_n_lights);
+}
+
+// ---------------------------------------------------------------- main
+void main() {
+    ivec2 local = ivec2(gl_GlobalInvocationID.xy);
+    if (local.x >= u_tile_size.x || local.y >= u_tile_size.y) return;
+    ivec2 pix = u_tile_origin + local;
+    if (pix.x >= u_size.x || pix.y >= u_size.y) return;
+    int f = int(gl_GlobalInvocationID.z);
+    float ftime = frame_times[f];
+    int W = u_size.x, H = u_size.y;
+    int plane = W * H, pidx = pix.y * W + pix.x;
+
+    vec3 sum_c = vec3(0.0), sum_e = vec3(0.0);
+    float feat[N_FEAT];
+    for (int k = 0; k < N_FEAT; ++k) feat[k] = 0.0;
+
+    for (int s = 0; s < u_spp; ++s) {
+        rng_init(uvec2(pix), u_sample_start + uint(s), ftime);
+        float time = ftime + (rnd() - 0.5) * u_shutter;
+        vec2 jitter = vec2(rnd(), rnd());
+        Camera cam = camera_at(time);
+        vec3 o = cam.eye;
+        vec3 d = camera_dir(cam, vec2(pix) + jitter);
+        vec3 L = vec3(0.0), beta = vec3(1.0);
+        bool count_light = true;  // emission of sampled lights counts unless NEE already did
+        feat[0] += time;
+        for (int depth = 0; depth < u_max_depth; ++depth) {
+            Hit h;
+            if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
+            Prim p = prims[h.prim];
+            Material m = mats[p.info.y];
+            vec3 x = o + h.t * d;
+            vec3 nf = dot(h.n, d) < 0.0 ? h.n : -h.n;   // facing the incoming ray
+            vec3 le = emitted(h.prim, h.n, d);
+            if (count_light || p.info2.x == 0) L += beta * le;
+            int mtype = int(m.color_type.w);
+            vec3 albedo = m.color_type.rgb;
+            if (depth == 0) {
+                sum_e += le;
+                vec3 a = albedo;
+                vec3 e = m.emission_ior.rgb;
+                if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
+                feat[1] += h.t; feat[2] += a.r; feat[3] += a.g; feat[4] += a.b;
+                feat[5] += nf.x; feat[6] += nf.y; feat[7] += nf.z;
+            }
+            vec3 nd;
+            if (mtype == 0) {                               // diffuse
+                if (u_n_lights > 0) {
+                    vec3 sdir;
+                    L += beta * sample_light(x, nf, albedo, time, sdir);
+                    if (depth == 0) { feat[11] += sdir.x; feat[12] += sdir.y; feat[13] += sdir.z; }
+                }
+                nd = cosine_dir(nf, rnd(), rnd());
+                beta *= albedo;
+                count_light = false;
+            } else if (mtype == 1) {                        // mirror
+                nd = reflect(d, nf);
+                beta *= albedo;
+                count_light = true;
+            } else {                                        // glass (exact dielectric Fresnel)
+                float ior = m.emission_ior.w;
+                bool entering = dot(h.n, d) < 0.0;
+                float eta = entering ? 1.0 / ior : ior;
+                float ci = -dot(d, nf);
+                float s2 = eta * eta * (1.0 - ci * ci);
+                float fr = 1.0;
+                float ct = 0.0;
+                if (s2 < 1.0) {
+                    ct = sqrt(1.0 - s2);
+                    float rs = (eta * ci - ct) / (eta * ci + ct);
+                    float rp = (ci - eta * ct) / (ci + eta * ct);
+                    fr = 0.5 * (rs * rs + rp * rp);
+                }
+                if (rnd() < fr) nd = reflect(d, nf);
+                else nd = normalize(eta * d + (eta * ci - ct) * nf);
+                beta *= albedo;
+                count_light = true;
+            }
+            if (depth == 0) { feat[8] += nd.x; feat[9] += nd.y; feat[10] += nd.z; }
+            o = x + (dot(nd, nf) > 0.0 ? nf : -nf) * ray_eps(x);
+            d = nd;
+            if (depth + 1 >= u_rr_depth) {                 // Russian roulette
+                float q = min(0.95, max(beta.r, max(beta.g, beta.b)));
+                if (q <= 0.0 || rnd() >= q) break;
+                beta /= q;
+            }
+        }
+        sum_c += L;
+    }
+
+    int base3 = f * 3 * plane + pidx;
+    vec3 old_c = vec3(0.0), old_e = vec3(0.0);
+    if (u_accumulate != 0) {
+        old_c = vec3(out_color[base3], out_color[base3 + plane], out_color[base3 + 2 * plane]);
+        old_e = vec3(out_emission[base3], out_emission[base3 + plane], out_emission[base3 + 2 * plane]);
+    }
+    for (int c = 0; c < 3; ++c) {
+        out_color[base3 + c * plane] = old_c[c] + sum_c[c];
+        out_emission[base3 + c * plane] = old_e[c] + sum_e[c];
+    }
+    int basef = f * u_n_feat * plane + pidx;
+    for (int k = 0; k < N_FEAT; ++k) {
+        int sl = u_slot[k];
+        if (sl < 0) continue;
+        int idx = basef + sl * plane;
+        out_feat[idx] = (u_accumulate != 0 ? out_feat[idx] : 0.0) + feat[k];
+    }
+
+    // object id and screen-space motion of the pixel-centre first hit at the frame time (sample-free)
+    if (u_accumulate == 0) {
+        Camera c0 = camera_at(ftime), c1 = camera_at(ftime + 1.0);
+        vec2 centre = vec2(pix) + 0.5;
+        vec3 d0 = camera_dir(c0, centre);
+        Hit h;
+        float id = -1.0;
+        vec3 p1;
+        if (intersect(c0.eye, d0, 0.0, INF, ftime, h)) {
+            id = float(h.prim);
+            p1 = c0.eye + h.t * d0 + prim_offset(h.prim, ftime + 1.0) - prim_offset(h.prim, ftime);
+        } else {
+            p1 = c1.eye + d0 * 1e6;                         // direction at infinity: camera rotation only
+        }
+        vec2 mv = camera_project(c1, p1) - centre;
+        out_aux[base3] = id;
+        out_aux[base3 + plane] = mv.x;
+        out_aux[base3 + 2 * plane] = mv.y;
+    }
+}

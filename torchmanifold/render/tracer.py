@@ -1,0 +1,272 @@
+"""The compute-shader path tracer: scene buffers on the GPU, one dispatch per sample chunk, one readback.
+
+``PathTracer`` is made once and reused every progressive iteration: scene buffers are uploaded in
+``__init__`` and output buffers are kept (and grown) between calls.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Sequence
+
+import moderngl
+import numpy as np
+import torch
+
+from torchmanifold.render.context import create_context
+from torchmanifold.render.frames import RenderResult
+from torchmanifold.render.scene import FEATURE_NAMES, Scene, pack_scene
+
+SHADER_PATH = Path(__file__).parent / "shaders" / "pathtracer.comp"
+GROUP = 8  # local_size_x/y declared in the shader
+
+
+def _check_int(name: str, value, lo: int, hi: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an int, got {type(value).__name__}")
+    if value < lo or (hi is not None and value > hi):
+        raise ValueError(f"{name} must be in [{lo}, {hi if hi is not None else 'inf'}), got {value}")
+    return int(value)
+
+
+class PathTracer:
+    """Render frames of a scene with a GLSL compute path tracer.
+
+    Args:
+        scene: the :class:`~torchmanifold.render.scene.Scene` to render.
+        width, height: image size in pixels.
+        features: feature channel names to output (any order, from ``FEATURE_NAMES``);
+            ``None`` = ``scene.needed_features()``.
+        ctx: a moderngl context with GL >= 4.3 (e.g. a window's); ``None`` = :func:`create_context`.
+        spp_per_dispatch: most samples one dispatch takes (bounds the length of one GPU job).
+
+    Example:
+        >>> tracer = PathTracer(default_scene(), 64, 64)
+        >>> res = tracer.render([0.0, 1.0], spp=1, seed=0)
+        >>> res.color.shape, res.features.shape
+        (torch.Size([2, 3, 64, 64]), torch.Size([2, 14, 64, 64]))
+    """
+
+    def __init__(
+        self,
+        scene: Scene,
+        width: int = 128,
+        height: int = 128,
+        features: Sequence[str] | None = None,
+        ctx: moderngl.Context | None = None,
+        spp_per_dispatch: int = 64,
+    ):
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must be a torchmanifold.render.Scene, got {type(scene).__name__}")
+        self.width = _check_int("width", width, 1, 1 << 14)
+        self.height = _check_int("height", height, 1, 1 << 14)
+        self.spp_per_dispatch = _check_int("spp_per_dispatch", spp_per_dispatch, 1)
+        if features is None:
+            features = scene.needed_features()
+        if isinstance(features, str) or not all(isinstance(f, str) for f in features):
+            raise TypeError(f"features must be a sequence of names from {FEATURE_NAMES}, got {features!r}")
+        features = list(features)
+        bad = [f for f in features if f not in FEATURE_NAMES]
+        if bad or len(set(features)) != len(features):
+            raise ValueError(f"features must be distinct names from {list(FEATURE_NAMES)}, got {features}")
+        self.scene = scene
+        self.feature_names = features
+        self.ctx = ctx if ctx is not None else create_context()
+        if self.ctx.version_code < 430:
+            raise ValueError(f"ctx must support OpenGL 4.3 compute shaders, got version {self.ctx.version_code}")
+
+        packed = pack_scene(scene)
+        self.has_mesh = packed["has_mesh"]
+        self.n_lights = packed["n_lights"]
+        src = SHADER_PATH.read_text().replace(
+            "#version 430\n", f"#version 430\n#define HAS_MESH {int(self.has_mesh)}\n", 1
+        )
+        self.program = self.ctx.compute_shader(src)
+        self._scene_bufs = {
+            0: self.ctx.buffer(packed["prims"].tobytes()),
+            1: self.ctx.buffer(packed["materials"].tobytes()),
+            2: self.ctx.buffer(packed["keys"].tobytes()),
+            3: self.ctx.buffer(packed["camkeys"].tobytes()),
+            4: self.ctx.buffer(packed["lights"].tobytes()),
+        }
+        if self.has_mesh:
+            self._scene_bufs[10] = self.ctx.buffer(packed["nodes"].tobytes())
+            self._scene_bufs[11] = self.ctx.buffer(packed["tris"].tobytes())
+        self._times_buf: moderngl.Buffer | None = None
+        self._out: dict[str, moderngl.Buffer] = {}
+        self._capacity = 0  # frames the output buffers hold
+        self._last: dict | None = None
+
+        slots = [-1] * len(FEATURE_NAMES)
+        for j, name in enumerate(self.feature_names):
+            slots[FEATURE_NAMES.index(name)] = j
+        self._set("u_size", (self.width, self.height))
+        self._set("u_n_prims", len(scene.objects))
+        self._set("u_n_lights", self.n_lights)
+        self._set("u_n_camkeys", len(scene.camera.keys))
+        self._set("u_n_feat", len(self.feature_names))
+        self._set("u_slot", slots)
+        self._set("u_max_depth", scene.max_depth)
+        self._set("u_rr_depth", scene.rr_depth)
+        self._set("u_shutter", float(scene.shutter))
+        self._set("u_background", tuple(float(x) for x in scene.background))
+        self._set("u_up", tuple(float(x) for x in scene.camera.up))
+
+    def _set(self, name: str, value) -> None:
+        if name in self.program:  # the GLSL compiler drops unused uniforms
+            self.program[name].value = value
+
+    @property
+    def buffers(self) -> dict[str, moderngl.Buffer]:
+        """The output storage buffers (for consumers that keep frames on the GPU).
+
+        ``color`` / ``emission``: float32 ``(T, 3, H, W)`` sums over the samples of the last
+        :meth:`dispatch` (divide by its spp); ``features``: float32 ``(T, D, H, W)`` sums;
+        ``aux``: float32 ``(T, 3, H, W)`` = object id, motion x, motion y.
+        """
+        return dict(self._out)
+
+    def _ensure_outputs(self, n_frames: int) -> None:
+        if n_frames <= self._capacity:
+            return
+        plane = self.width * self.height * n_frames * 4
+        for b in self._out.values():
+            b.release()
+        self._out = {
+            "color": self.ctx.buffer(reserve=3 * plane),
+            "emission": self.ctx.buffer(reserve=3 * plane),
+            "features": self.ctx.buffer(reserve=max(len(self.feature_names), 1) * plane),
+            "aux": self.ctx.buffer(reserve=3 * plane),
+        }
+        self._capacity = n_frames
+
+    def dispatch(
+        self,
+        times: Sequence[float] | torch.Tensor,
+        spp: int = 1,
+        seed: int = 0,
+        sample_offset: int = 0,
+        tile: int | tuple[int, int] | None = None,
+    ) -> None:
+        """Render into the output :attr:`buffers` without reading them back (see :meth:`render`)."""
+        times_np = self._check_times(times)
+        spp = _check_int("spp", spp, 1)
+        seed = _check_int("seed", seed, 0, 2**32 - 1)
+        sample_offset = _check_int("sample_offset", sample_offset, 0, 2**32 - 1 - spp)
+        if tile is None:
+            tw, th = self.width, self.height
+        else:
+            tw, th = (tile, tile) if isinstance(tile, int) else tuple(tile)
+            tw, th = _check_int("tile width", tw, 1), _check_int("tile height", th, 1)
+        n = len(times_np)
+        self._ensure_outputs(n)
+        tbytes = times_np.astype(np.float32).tobytes()
+        if self._times_buf is None or self._times_buf.size < len(tbytes):
+            if self._times_buf is not None:
+                self._times_buf.release()
+            self._times_buf = self.ctx.buffer(reserve=max(len(tbytes), 16))
+        self._times_buf.write(tbytes)
+
+        for binding, buf in self._scene_bufs.items():
+            buf.bind_to_storage_buffer(binding)
+        self._times_buf.bind_to_storage_buffer(5)
+        for binding, key in ((6, "color"), (7, "emission"), (8, "features"), (9, "aux")):
+            self._out[key].bind_to_storage_buffer(binding)
+        self._set("u_seed", seed)
+        done = 0
+        while done < spp:
+            chunk = min(self.spp_per_dispatch, spp - done)
+            self._set("u_spp", chunk)
+            self._set("u_sample_start", sample_offset + done)
+            self._set("u_accumulate", int(done > 0))
+            for y0 in range(0, self.height, th):
+                for x0 in range(0, self.width, tw):
+                    self._set("u_tile_origin", (x0, y0))
+                    self._set("u_tile_size", (tw, th))
+                    self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), n)
+            done += chunk
+        self.ctx.memory_barrier()
+        self._last = {"times": times_np, "spp": spp, "seed": seed, "sample_offset": sample_offset}
+
+    def read(self) -> RenderResult:
+        """Read the last :meth:`dispatch` back as a :class:`RenderResult` (one copy per buffer)."""
+        if self._last is None:
+            raise RuntimeError("read: nothing rendered yet; call dispatch() or render() first")
+        n, h, w = len(self._last["times"]), self.height, self.width
+        d = len(self.feature_names)
+        spp = self._last["spp"]
+
+        def grab(key: str, c: int) -> torch.Tensor:
+            arr = np.empty((n, c, h, w), np.float32)
+            if c:
+                self._out[key].read_into(arr, size=arr.nbytes)
+            return torch.from_numpy(arr)
+
+        aux = grab("aux", 3)
+        return RenderResult(
+            color=grab("color", 3).div_(spp),
+            features=grab("features", d).div_(spp),
+            feature_names=list(self.feature_names),
+            object_id=aux[:, 0].round().to(torch.int32),
+            motion=aux[:, 1:3].contiguous(),
+            emission=grab("emission", 3).div_(spp),
+            times=torch.from_numpy(self._last["times"].copy()),
+            spp=spp,
+            sample_offset=self._last["sample_offset"],
+            seed=self._last["seed"],
+        )
+
+    def render(
+        self,
+        times: Sequence[float] | torch.Tensor,
+        spp: int = 1,
+        seed: int = 0,
+        sample_offset: int = 0,
+        tile: int | tuple[int, int] | None = None,
+    ) -> RenderResult:
+        """Render frames at the given times.
+
+        Args:
+            times: T frame times in frame units (floats; in-between frames allowed).
+            spp: samples per pixel; the result is their mean.
+            seed: RNG seed, ``0 <= seed < 2**32``.
+            sample_offset: index of the first sample drawn: samples ``sample_offset ..
+                sample_offset + spp - 1`` of every pixel, so progressive iteration i with
+                ``spp=1, sample_offset=i`` gets fresh independent samples.
+            tile: render in tiles of this many pixels (int or (w, h)); the image is the same for
+                any tiling because the RNG is keyed on (pixel, sample index, frame time, seed).
+
+        Returns:
+            :class:`RenderResult` with ``color (T, 3, H, W)``, ``features (T, D, H, W)`` etc.
+        """
+        self.dispatch(times, spp=spp, seed=seed, sample_offset=sample_offset, tile=tile)
+        return self.read()
+
+    @staticmethod
+    def _check_times(times) -> np.ndarray:
+        if isinstance(times, torch.Tensor):
+            times = times.detach().cpu().double().numpy()
+        if isinstance(times, (int, float)) and not isinstance(times, bool):
+            raise TypeError(f"times must be a sequence of frame times, got a single number {times!r}")
+        try:
+            arr = np.asarray(times, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"times must be a sequence of frame times (floats), got {times!r}") from exc
+        if arr.ndim != 1 or len(arr) == 0 or not np.all(np.isfinite(arr)):
+            raise ValueError(f"times must be a non-empty 1-D sequence of finite floats, got {times!r}")
+        return arr
+
+    def release(self) -> None:
+        """Free the GL objects (the context stays)."""
+        for b in [*self._scene_bufs.values(), *self._out.values()]:
+            b.release()
+        if self._times_buf is not None:
+            self._times_buf.release()
+        self.program.release()
+        self._scene_bufs, self._out, self._times_buf, self._capacity = {}, {}, None, 0
+
+    def __repr__(self) -> str:
+        return (
+            f"PathTracer({self.width}x{self.height}, features={self.feature_names}, "
+            f"objects={len(self.scene.objects)}, lights={self.n_lights}, max_depth={self.scene.max_depth})"
+        )
