@@ -1,0 +1,164 @@
+"""Features, object ids and motion on analytic scenes built inline, and the RNG contract."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from _render_helpers import pixel_dirs, plane_scene_dict
+
+from torchmanifold.render import FEATURE_NAMES, PathTracer, scene_from_dict
+
+W = H = 32
+
+
+def test_plane_features_exact(ctx):
+    dist, fov, albedo = 2.0, 30.0, (0.2, 0.4, 0.6)
+    scene = scene_from_dict(plane_scene_dict(dist, albedo, fov))
+    assert scene.needed_features() == ["Z", "Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Dx", "Dy", "Dz", "Sx", "Sy", "Sz"]
+    tr = PathTracer(scene, W, H, ctx=ctx)
+    res = tr.render([0.0], spp=1, seed=3)
+    assert ctx.error == "GL_NO_ERROR"
+    f = {n: res.feature(n)[0].numpy() for n in res.feature_names}
+
+    # depth = distance along the ray = dist * sqrt(1 + (x tan)^2 + (y tan)^2) at image-plane point (x, y);
+    # one jittered sample lies between the values nearest to and farthest from the image centre
+    t = math.tan(math.radians(fov) / 2)
+    e = 2 * np.arange(W + 1) / W - 1  # pixel edges in NDC (square image)
+    near = np.where(e[:-1] * e[1:] <= 0, 0.0, np.minimum(abs(e[:-1]), abs(e[1:])))
+    far = np.maximum(abs(e[:-1]), abs(e[1:]))
+    lo = dist * np.sqrt(1 + (near[:, None] * t) ** 2 + (near[None, :] * t) ** 2)
+    hi = dist * np.sqrt(1 + (far[:, None] * t) ** 2 + (far[None, :] * t) ** 2)
+    assert np.all(f["Z"] >= lo - 1e-5) and np.all(f["Z"] <= hi + 1e-5)
+    assert np.mean(hi - lo) < 0.01  # the bound is tight
+    for name, val in zip(("Mr", "Mg", "Mb", "Nx", "Ny", "Nz"), (*albedo, 0.0, 0.0, 1.0)):
+        np.testing.assert_allclose(f[name], val, atol=1e-6, err_msg=name)
+    # scattered direction: a unit vector in the upper hemisphere
+    d = np.stack([f["Dx"], f["Dy"], f["Dz"]])
+    np.testing.assert_allclose(np.linalg.norm(d, axis=0), 1.0, atol=1e-4)
+    assert np.all(d[2] > 0)
+    # shadow ray: from the hit point towards the (tiny) lamp at (0.8, 0.8, 1)
+    dirs = pixel_dirs(W, H, fov, (0, 0, -1), (1, 0, 0), (0, 1, 0))
+    hit = dirs * (dist / -dirs[..., 2:]) + np.array([0, 0, dist])
+    s_ref = np.array([0.8005, 0.8005, 1.0]) - hit
+    s_ref /= np.linalg.norm(s_ref, axis=-1, keepdims=True)
+    s = np.stack([f["Sx"], f["Sy"], f["Sz"]], axis=-1)
+    assert np.max(np.abs(s - s_ref)) < 0.03
+    assert torch.all(res.object_id == 0)
+    assert torch.all(res.emission == 0)
+    assert torch.allclose(res.motion, torch.zeros(()), atol=1e-3)
+
+
+def test_emitter_seen_directly_is_its_emission(ctx):
+    d = plane_scene_dict(light=False)
+    d["materials"]["wall"] = {"type": "diffuse", "color": [0, 0, 0], "emission": [1.5, 2.5, 3.5]}
+    tr = PathTracer(scene_from_dict(d), W, H, ctx=ctx)
+    res = tr.render([0.0], spp=4)
+    e = torch.tensor([1.5, 2.5, 3.5]).view(1, 3, 1, 1)
+    torch.testing.assert_close(res.color, e.expand_as(res.color))
+    torch.testing.assert_close(res.emission, e.expand_as(res.color))
+    # emitters report their colour, normalised, as albedo
+    torch.testing.assert_close(res.feature("Mb"), torch.ones(1, H, W))
+    assert ctx.error == "GL_NO_ERROR"
+
+
+def test_time_feature_and_motion(ctx):
+    """A small quad moving in +x at 0.04 units/frame in front of a static wall; camera static."""
+    dist, fov, speed, shutter = 2.0, 30.0, 0.04, 0.5
+    d = plane_scene_dict(dist, fov=fov, light=False, shutter=shutter)
+    d["objects"].append({"type": "quad", "origin": [-0.2, -0.2, 0.5], "u": [0.4, 0, 0], "v": [0, 0.4, 0],
+                         "material": "wall", "motion": [{"time": 0, "offset": [0, 0, 0]},
+                                                        {"time": 10, "offset": [10 * speed, 0, 0]}]})
+    scene = scene_from_dict(d)
+    assert scene.needed_features()[0] == "T"
+    tr = PathTracer(scene, W, H, features=["T", "Z"], ctx=ctx)
+    res = tr.render([2.0, 4.5], spp=16, seed=1)
+    t = res.feature("T")
+    # each sample draws its time uniformly in [t - s/2, t + s/2]: mean of 16 within a few sigma of t
+    sigma = shutter / math.sqrt(12 * 16)
+    for k, ft in enumerate((2.0, 4.5)):
+        assert t[k].min() >= ft - shutter / 2 and t[k].max() <= ft + shutter / 2
+        assert abs(t[k].mean().item() - ft) < 5 * sigma / math.sqrt(W * H) + 1e-4
+    # motion: the moving quad shifts by speed * focal / depth pixels per frame, the wall does not move
+    focal = (W / 2) / math.tan(math.radians(fov) / 2)
+    expected = speed * focal / (dist - 0.5)
+    on_quad = res.object_id == 1
+    assert on_quad.sum() > 20 and (res.object_id == 0).sum() > 20
+    mx, my = res.motion[:, 0], res.motion[:, 1]
+    torch.testing.assert_close(mx[on_quad], torch.full_like(mx[on_quad], expected), atol=1e-3, rtol=1e-3)
+    assert my[on_quad].abs().max() < 1e-3
+    wall = res.object_id == 0
+    assert mx[wall].abs().max() < 1e-3 and my[wall].abs().max() < 1e-3
+    # the quad's pixel-centre footprint follows the keyframes: 0.1 units further at t=4.5 than at 2
+    shift = (on_quad[1].float().nonzero()[:, 1].float().mean() - on_quad[0].float().nonzero()[:, 1].float().mean())
+    assert abs(shift.item() - 2.5 * expected) < 0.6
+
+
+def test_adding_features_keeps_colour(ctx, ):
+    from torchmanifold.render import default_scene
+
+    scene = default_scene()
+    base = PathTracer(scene, 24, 24, features=[], ctx=ctx).render([1.0], spp=2, seed=5)
+    for feats in (["Z"], ["Sz", "T", "Mr"], list(FEATURE_NAMES)):
+        res = PathTracer(scene, 24, 24, features=feats, ctx=ctx).render([1.0], spp=2, seed=5)
+        assert torch.equal(res.color, base.color), feats
+        assert res.features.shape == (1, len(feats), 24, 24) and res.feature_names == feats
+    assert base.features.shape == (1, 0, 24, 24)
+
+
+def test_determinism_tiles_batches_offsets(ctx):
+    from torchmanifold.render import default_scene
+
+    tr = PathTracer(default_scene(), 24, 20, ctx=ctx, spp_per_dispatch=2)
+    a = tr.render([0.0, 3.0], spp=3, seed=7)
+    b = tr.render([0.0, 3.0], spp=3, seed=7)
+    for x, y in ((a.color, b.color), (a.features, b.features), (a.motion, b.motion), (a.object_id, b.object_id)):
+        assert torch.equal(x, y)
+    # another tiling / dispatch shape / chunking of samples gives the same frame
+    for tile in (8, (16, 5), 7):
+        c = tr.render([0.0, 3.0], spp=3, seed=7, tile=tile)
+        assert torch.equal(c.color, a.color) and torch.equal(c.features, a.features), tile
+    one = PathTracer(default_scene(), 24, 20, ctx=ctx, spp_per_dispatch=64).render([0.0, 3.0], spp=3, seed=7)
+    torch.testing.assert_close(one.color, a.color, rtol=1e-6, atol=1e-6)
+    # a frame does not depend on which other frames are in the batch
+    c = tr.render([3.0], spp=3, seed=7)
+    assert torch.equal(c.color[0], a.color[1])
+    # another seed or sample offset: other samples; spp=2 is the mean of offsets 0 and 1
+    assert not torch.equal(tr.render([0.0], spp=1, seed=8).color, tr.render([0.0], spp=1, seed=7).color)
+    s0 = tr.render([0.0], spp=1, seed=7, sample_offset=0)
+    s1 = tr.render([0.0], spp=1, seed=7, sample_offset=1)
+    s01 = tr.render([0.0], spp=2, seed=7, sample_offset=0)
+    assert not torch.equal(s0.color, s1.color)
+    torch.testing.assert_close((s0.color + s1.color) / 2, s01.color, rtol=1e-6, atol=1e-6)
+    assert ctx.error == "GL_NO_ERROR"
+
+
+def test_sample_offsets_are_independent(ctx):
+    """Noise of different sample indices (and of neighbouring pixels) is uncorrelated."""
+    d = plane_scene_dict(light=False, background=[1.0, 1.0, 1.0], max_depth=3, rr_depth=1)
+    tr = PathTracer(scene_from_dict(d), 64, 64, features=["Dx", "Dy"], ctx=ctx)
+    r0, r1 = tr.render([0.0], sample_offset=0), tr.render([0.0], sample_offset=1)
+    for a, b in ((r0.feature("Dx"), r1.feature("Dx")), (r0.feature("Dx"), r0.feature("Dy")),
+                 (r0.feature("Dx")[:, :, 1:], r0.feature("Dx")[:, :, :-1])):
+        a, b = a.flatten().double(), b.flatten().double()
+        corr = torch.corrcoef(torch.stack([a, b]))[0, 1]
+        assert abs(corr) < 4 / math.sqrt(a.numel())  # 4 sigma of the null distribution
+
+
+def test_bad_arguments(ctx):
+    from torchmanifold.render import default_scene
+
+    with pytest.raises(ValueError, match="features"):
+        PathTracer(default_scene(), 8, 8, features=["Q"], ctx=ctx)
+    with pytest.raises(TypeError, match="scene"):
+        PathTracer({"objects": []}, 8, 8, ctx=ctx)
+    with pytest.raises(ValueError, match="width"):
+        PathTracer(default_scene(), 0, 8, ctx=ctx)
+    tr = PathTracer(default_scene(), 8, 8, ctx=ctx)
+    with pytest.raises(ValueError, match="spp"):
+        tr.render([0.0], spp=0)
+    with pytest.raises(TypeError, match="times"):
+        tr.render(1.0)
+    with pytest.raises(ValueError, match="times"):
+        tr.render([float("nan")])
+    with pytest.raises(ValueError, match="seed"):
+        tr.render([0.0], seed=-1)
