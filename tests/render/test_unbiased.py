@@ -1,0 +1,79 @@
+"""Radiance is unbiased: furnace scenes with known answers, and many 1-spp frames vs a long render."""
+import math
+
+import torch
+
+from torchmanifold.render import PathTracer, default_scene, scene_from_dict
+
+
+def _box(albedo, emission, max_depth, rr_depth):
+    """A closed box of six inward-facing diffuse quads that all emit; the camera sits inside."""
+    faces = [  # origin, u, v with u x v pointing into the box [-1, 1]^3
+        ([-1, -1, -1], [0, 0, 2], [2, 0, 0]), ([-1, 1, -1], [2, 0, 0], [0, 0, 2]),
+        ([-1, -1, -1], [2, 0, 0], [0, 2, 0]), ([-1, -1, 1], [0, 2, 0], [2, 0, 0]),
+        ([-1, -1, -1], [0, 2, 0], [0, 0, 2]), ([1, -1, -1], [0, 0, 2], [0, 2, 0]),
+    ]
+    return scene_from_dict({
+        "render": {"max_depth": max_depth, "rr_depth": rr_depth},
+        "camera": {"eye": [0.1, 0.2, 0.3], "target": [0.5, 0.0, -1.0], "fov": 70},
+        "materials": {"m": {"color": [albedo] * 3, "emission": list(emission)}},
+        "objects": [{"type": "quad", "origin": o, "u": u, "v": v, "material": "m"} for o, u, v in faces],
+    })
+
+
+def test_white_sphere_in_uniform_environment_is_invisible(ctx):
+    """Albedo-1 diffuse convex object under uniform light: every sample returns the environment exactly."""
+    bg = [0.5, 0.7, 0.9]
+    scene = scene_from_dict({
+        "render": {"background": bg, "max_depth": 4, "rr_depth": 100},
+        "camera": {"eye": [0, 0, 3], "target": [0, 0, 0], "fov": 40},
+        "materials": {"white": {"color": [1, 1, 1]}},
+        "objects": [{"type": "sphere", "center": [0, 0, 0], "radius": 0.8, "material": "white"}],
+    })
+    assert "Sx" not in scene.needed_features()  # no lights, no shadow rays
+    res = PathTracer(scene, 32, 32, ctx=ctx).render([0.0], spp=2, seed=1)
+    assert (res.object_id == 0).sum() > 200
+    torch.testing.assert_close(res.color, torch.tensor(bg).view(1, 3, 1, 1).expand_as(res.color), atol=2e-6, rtol=0)
+
+
+def test_emissive_furnace_box_with_nee_and_roulette(ctx):
+    """Closed box, albedo a, emission e everywhere: L = e / (1 - a), through NEE + Russian roulette."""
+    a, e = 0.5, (1.0, 2.0, 0.5)
+    scene = _box(a, e, max_depth=64, rr_depth=2)
+    res = PathTracer(scene, 32, 32, features=["Sx", "Mr"], ctx=ctx).render([0.0], spp=8, seed=2)
+    assert ctx.error == "GL_NO_ERROR"
+    torch.testing.assert_close(res.emission, torch.tensor(e).view(1, 3, 1, 1).expand_as(res.emission))
+    expected = torch.tensor(e) / (1 - a)
+    per_pixel = res.color[0].flatten(1)  # (3, N) i.i.d. pixel estimates (8 spp each)
+    mean = per_pixel.double().mean(1)
+    se = per_pixel.double().std(1) / math.sqrt(per_pixel.shape[1])
+    z = (mean - expected.double()) / se
+    assert torch.all(z.abs() < 4.5), (mean, expected, z)
+    # max_depth 2 keeps emission at 2 vertices + NEE from both: e (1 + a + a^2); a truncation is visible
+    short = PathTracer(_box(a, e, max_depth=2, rr_depth=64), 32, 32, ctx=ctx).render([0.0], spp=8, seed=2)
+    torch.testing.assert_close(short.color.mean((0, 2, 3)), torch.tensor(e) * (1 + a + a * a), rtol=0.02, atol=0)
+
+
+def test_mean_of_1spp_frames_matches_long_render(ctx):
+    """Per-region z-test: 1-spp frames (fresh sample offsets, seed 0) vs one 2048-spp render (seed 1)."""
+    w = h = 16
+    n_frames, long_spp, block = 256, 2048, 4
+    tr = PathTracer(default_scene(), w, h, features=[], ctx=ctx)
+    frames = torch.stack([tr.render([0.0], spp=1, seed=0, sample_offset=i).color[0] for i in range(n_frames)])
+    long = tr.render([0.0], spp=long_spp, seed=1).color[0]
+    lum = lambda x: x.double().mean(-3)  # noqa: E731  (colour -> grey)
+
+    def blocks(x):  # (..., H, W) -> (..., H/b, W/b) block means
+        return x.unflatten(-2, (h // block, block)).unflatten(-1, (w // block, block)).mean((-3, -1))
+
+    fb = blocks(lum(frames))  # (n, 4, 4): per-frame block means, i.i.d. over frames
+    m1, se1 = fb.mean(0), fb.std(0) / math.sqrt(n_frames)
+    # the long render's standard error, from the spread of the 1-spp frames scaled to long_spp samples
+    se2 = fb.std(0) / math.sqrt(long_spp)
+    m2 = blocks(lum(long))
+    z = (m1 - m2) / torch.sqrt(se1**2 + se2**2)
+    assert torch.all(z.abs() < 4.5), z
+    assert (z**2).mean() < 3.0, z  # about 1 if unbiased
+    # and the test has power: a 5 % darker long render fails it
+    z_bad = (m1 - 0.95 * m2) / torch.sqrt(se1**2 + se2**2)
+    assert (z_bad.abs() > 4.5).any() or (z_bad**2).mean() >= 3.0
