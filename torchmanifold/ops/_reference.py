@@ -1,0 +1,263 @@
+"""Pure-PyTorch Adaptive Manifolds filter: the reference the C++ kernel must match, and the fallback.
+
+NOTE FOR THE C++ KERNEL (A2): every numbered choice below is fixed. If one changes, this note says so.
+(v1, first version; no changes since.)
+
+Algorithm (Gastal & Oliveira 2012, see docs/adaptive-manifolds.md), per image, tree height H,
+values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
+
+ 1. Work dtype: float64 for float64 input, float32 otherwise (fp16/bf16 accumulate in float32).
+ 2. Sanitising: ``mg`` = pixel's guide channels all finite; ``mv`` = pixel's value channels all finite.
+    Splat mask ``ms = mg & mv``. Non-finite samples are replaced by 0 (``f_s``, ``g0``) and never splat.
+ 3. Exact constants: per image and value channel, ``c = lo + (hi - lo) / 2`` with lo/hi the min/max of
+    f over splat pixels (``c = 0`` if that is not finite or there are none). The filter runs on
+    ``f' = (f_s - c) * ms`` and adds ``c`` back, so constant values come back bit-exact.
+ 4. df = max(1, 2**floor(log2(min(sigma_s / 4, 256 * sigma_r)))); low-res size ceil(H/df) x ceil(W/df).
+    down(x): mean over the existing pixels of each df x df block (partial edge blocks average fewer).
+    up(x): bilinear at pixel centres, source coordinate u = (x + 0.5) / df - 0.5 clamped to
+    [0, size - 1] (PyTorch ``interpolate(scale_factor=df, align_corners=False)`` then crop).
+ 5. h(x; s): a = exp(-sqrt(2) / s); rows forward y[j] = x[j] + a (y[j-1] - x[j]), y[0] = x[0];
+    rows backward y[j] += a (y[j+1] - y[j]); then columns forward and backward the same way.
+ 6. Root manifold (full res): eta_1 = h(mg * g0; sigma_s) / h(mg; sigma_s) (== h(g) when every
+    pixel is valid, as h reproduces constants exactly); 0 where the denominator is 0. The sanitised
+    guide is ``gs = g0`` where mg, else ``eta_1`` (an invalid guide sits on the root manifold).
+ 7. Tree built breadth first, one level at a time, all nodes of a level batched; K = 2**H - 1.
+    For every alive node k with manifold eta_k (root: eta_1 at full res; others at low res,
+    up() to full res):
+      D = |gs - eta_k(x)|^2, w = exp(-D / sigma_r^2) (1/sigma_r^2 clamped to the dtype max).
+      splat  P = down(ms * w * f'), P0 = down(ms * w)
+      blur   P and P0 with the domain-transform recursive filter on the low-res grid, steered by
+             E = eta_k at low res (root: down(eta_1)), s' = sigma_s / df, r' = sigma_r / sqrt(2):
+             between horizontal neighbours j, j+1: a = exp(-sqrt(2)/s' * sqrt(1 + (s'/r')^2 |E[j+1]-E[j]|^2))
+             ((s'/r')^2 clamped to the dtype max), forward y[j] += a[j-1](y[j-1]-y[j]), backward
+             y[j] += a[j](y[j+1]-y[j]); then columns the same with vertical differences of E.
+      slice  S += w * up(blur P), S0 += w * up(blur P0)   (slice weight w also at invalid pixels).
+      min_D = min over alive nodes of D (for the outlier adjustment).
+ 8. Split (non-leaf nodes): cluster of the root = pixels with mg; a child's cluster is its half of the
+    parent's cluster. r = gs - eta_k(x) on the cluster (0 elsewhere), scaled by 1/max|r| (for
+    overflow only; the direction is unchanged). M = sum r r^T (unweighted). Power iteration from the
+    fixed start v = ones(D)/sqrt(D): ``power_iterations`` times u = M v, v = u/|u|. If at any step
+    |u| <= eps(dtype) * trace(M) (or not finite) the node falls back to v = e_k, k = argmax diag(M)
+    (first on ties). cluster- = {v.r < 0}, cluster+ = {v.r >= 0}; children of node k are 2k (-) and 2k+1 (+).
+    theta = 1 - w. Child: T = 1_cluster * theta; num = h(down(T * gs); s'), den = h(down(T); s');
+    eta_child = num / den where den > 0, else the parent manifold at low res (down(eta_1) for the root).
+    A child is pruned (never splats/slices, no children) if sum(T) == 0 over the image or its parent is
+    pruned.
+ 9. out = c + S / S0 where S0 > 0, else f_s (the sanitised input).
+10. Outlier adjustment (optional): alpha = exp(-min_D / (2 sigma_r^2)) (alpha = 1 at pixels with
+    non-finite values), out = f_s + alpha (out - f_s).
+11. Cast back to the input dtype.
+
+Only ``values`` is differentiated (the guide is detached, ``c`` is a constant); the result is linear in
+values (up to the S0 == 0 fallback, which is the identity).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = ["adaptive_manifold_torch", "downsample_factor", "downsample", "upsample", "recursive_lowpass"]
+
+
+def downsample_factor(sigma_s: float, sigma_r: float) -> int:
+    """df = max(1, 2**floor(log2(min(sigma_s / 4, 256 * sigma_r))))."""
+    m = min(sigma_s / 4.0, 256.0 * sigma_r)
+    if m < 2.0:
+        return 1
+    return int(2 ** math.floor(math.log2(m)))
+
+
+def downsample(x: Tensor, df: int) -> Tensor:
+    """Area mean over df x df blocks (existing pixels only). (..., H, W) -> (..., ceil(H/df), ceil(W/df))."""
+    if df == 1:
+        return x
+    H, W = x.shape[-2:]
+    h, w = -(-H // df), -(-W // df)
+    x = F.pad(x, (0, w * df - W, 0, h * df - H))
+    s = x.reshape(*x.shape[:-2], h, df, w, df).sum(dim=(-3, -1))
+    rows = torch.clamp(H - torch.arange(h, device=x.device) * df, max=df).to(x.dtype)
+    cols = torch.clamp(W - torch.arange(w, device=x.device) * df, max=df).to(x.dtype)
+    return s / (rows[:, None] * cols[None, :])
+
+
+def upsample(x: Tensor, df: int, size: tuple[int, int]) -> Tensor:
+    """Bilinear, pixel centres, edge clamped. (..., h, w) -> (..., H, W)."""
+    if df == 1:
+        return x
+    lead = x.shape[:-2]
+    y = F.interpolate(x.reshape(1, -1, *x.shape[-2:]), scale_factor=float(df), mode="bilinear",
+                      align_corners=False, recompute_scale_factor=False)
+    return y[..., : size[0], : size[1]].reshape(*lead, *size)
+
+
+def _scan(x: Tensor, a, dim: int) -> Tensor:
+    """Forward then backward first-order recursion along ``dim``: y[j] += a[j-1] (y[j-1] - y[j]) etc.
+
+    ``a`` is a float (constant coefficient) or a tensor broadcastable to x with size L-1 along ``dim``
+    (coefficient between j and j+1). Out-of-place per step so autograd stays linear in cost.
+    """
+    L = x.shape[dim]
+    if L == 1:
+        return x
+    xs = list(x.movedim(dim, 0).unbind(0))
+    if isinstance(a, Tensor):
+        a_s = list(a.movedim(dim, 0).expand(L - 1, *xs[0].shape).unbind(0))
+    else:
+        a_s = [a] * (L - 1)
+    for j in range(1, L):
+        xs[j] = torch.lerp(xs[j], xs[j - 1], a_s[j - 1])
+    for j in range(L - 2, -1, -1):
+        xs[j] = torch.lerp(xs[j], xs[j + 1], a_s[j])
+    return torch.stack(xs, 0).movedim(0, dim)
+
+
+def recursive_lowpass(x: Tensor, sigma: float) -> Tensor:
+    """h(x; sigma): rows (last dim) forward+backward, then columns. (..., H, W) -> same."""
+    a = math.exp(-math.sqrt(2.0) / sigma)
+    return _scan(_scan(x, a, -1), a, -2)
+
+
+def _domain_transform(x: Tensor, eta: Tensor, sigma_s: float, sigma_r: float) -> Tensor:
+    """Recursive filter of x (..., C, h, w) steered by eta (..., D, h, w): rows then columns."""
+    ratio2 = min((sigma_s / sigma_r) ** 2, torch.finfo(x.dtype).max) if sigma_r > 0 else torch.finfo(x.dtype).max
+    k = -math.sqrt(2.0) / sigma_s
+    dx = (eta[..., :, 1:] - eta[..., :, :-1]).square().sum(-3, keepdim=True)
+    dy = (eta[..., 1:, :] - eta[..., :-1, :]).square().sum(-3, keepdim=True)
+    ax = torch.exp(k * torch.sqrt(1.0 + ratio2 * dx))
+    ay = torch.exp(k * torch.sqrt(1.0 + ratio2 * dy))
+    return _scan(_scan(x, ax, -1), ay, -2)
+
+
+def _dominant_direction(M: Tensor, iterations: int) -> Tensor:
+    """Power iteration on symmetric PSD M (..., D, D) from ones/sqrt(D), with the channel fallback."""
+    D = M.shape[-1]
+    eps = torch.finfo(M.dtype).eps
+    v = torch.full(M.shape[:-1], 1.0 / math.sqrt(D), dtype=M.dtype, device=M.device)
+    trace = torch.diagonal(M, dim1=-2, dim2=-1).sum(-1)
+    collapsed = torch.zeros(M.shape[:-2], dtype=torch.bool, device=M.device)
+    for _ in range(iterations):
+        u = (M @ v.unsqueeze(-1)).squeeze(-1)
+        nrm = torch.linalg.vector_norm(u, dim=-1)
+        bad = ~(nrm > eps * trace) | ~torch.isfinite(nrm)
+        collapsed |= bad
+        v = torch.where(bad.unsqueeze(-1), v, u / torch.where(bad, 1.0, nrm).unsqueeze(-1))
+    axis = torch.diagonal(M, dim1=-2, dim2=-1).argmax(-1)
+    fallback = F.one_hot(axis, D).to(M.dtype)
+    return torch.where(collapsed.unsqueeze(-1), fallback, v)
+
+
+def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
+                            tree_height: int, power_iterations: int, adjust_outliers: bool) -> Tensor:
+    """Adaptive-manifold filter in pure PyTorch (any device), same contract as the C++ op.
+
+    Args:
+        values: (B, C, H, W) floating tensor.
+        guide: (B, D, H, W) floating tensor, already scaled so sigma_r applies to every channel.
+        sigma_s: spatial standard deviation in pixels (> 0).
+        sigma_r: range standard deviation in guide units (> 0).
+        tree_height: H >= 1, 2**H - 1 manifolds.
+        power_iterations: power-iteration steps per split (>= 0).
+        adjust_outliers: apply the outlier adjustment.
+
+    Returns:
+        (B, C, H, W) tensor, dtype of ``values``.
+    """
+    out_dtype = values.dtype
+    wd = torch.float64 if values.dtype == torch.float64 else torch.float32
+    f = values.to(wd)
+    g = guide.detach().to(wd)
+    B, C, H, W = f.shape
+    Dg = g.shape[1]
+    fmax = torch.finfo(wd).max
+    inv_r2 = min(1.0 / (sigma_r * sigma_r), fmax) if sigma_r * sigma_r > 0 else fmax
+    df = downsample_factor(sigma_s, sigma_r)
+    s_low = sigma_s / df
+    r_low = sigma_r / math.sqrt(2.0)
+
+    # 2. sanitise
+    fin_v = torch.isfinite(f)
+    fin_g = torch.isfinite(g)
+    mg = fin_g.all(1)  # (B, H, W)
+    mv = fin_v.all(1)
+    ms = (mg & mv).to(wd)
+    f_s = torch.where(fin_v, f, torch.zeros((), dtype=wd, device=f.device))
+    g0 = torch.where(fin_g, g, torch.zeros((), dtype=wd, device=f.device))
+
+    # 3. per-image, per-channel reference so constants are exact
+    with torch.no_grad():
+        sel = (ms > 0).unsqueeze(1)
+        lo = torch.where(sel, f_s, torch.full((), math.inf, dtype=wd, device=f.device)).amin((2, 3))
+        hi = torch.where(sel, f_s, torch.full((), -math.inf, dtype=wd, device=f.device)).amax((2, 3))
+        c = lo + (hi - lo) / 2
+        c = torch.where(torch.isfinite(c), c, torch.zeros((), dtype=wd, device=f.device))
+        c = c[:, :, None, None]
+    fp = (f_s - c) * ms.unsqueeze(1)
+
+    # 6. root manifold
+    mgf = mg.to(wd).unsqueeze(1)
+    rt = recursive_lowpass(torch.cat([g0 * mgf, mgf], 1), sigma_s)
+    den = rt[:, Dg:]
+    eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
+    gs = torch.where(mg.unsqueeze(1), g0, eta1)
+
+    S = torch.zeros_like(fp)
+    S0 = torch.zeros((B, 1, H, W), dtype=wd, device=f.device)
+    min_d = torch.full((B, H, W), math.inf, dtype=wd, device=f.device)
+
+    # level state: eta_full (n,B,D,H,W), eta_low (n,B,D,h,w), alive (n,B), label (B,H,W)
+    eta_low = downsample(eta1, df).unsqueeze(0)
+    eta_full = eta1.unsqueeze(0)
+    alive = torch.ones((1, B), dtype=torch.bool, device=f.device)
+    label = torch.zeros((B, H, W), dtype=torch.long, device=f.device)
+
+    for level in range(tree_height):
+        n = eta_low.shape[0]
+        aw = alive.to(wd)[:, :, None, None]  # (n,B,1,1)
+        resid = gs.unsqueeze(0) - eta_full  # (n,B,D,H,W)
+        dist = resid.square().sum(2)  # (n,B,H,W)
+        w_raw = torch.exp(-dist * inv_r2)
+        w = w_raw * aw
+        min_d = torch.minimum(min_d, torch.where(alive[:, :, None, None], dist, math.inf).amin(0))
+        ws = w * ms.unsqueeze(0)
+        splat = torch.cat([ws.unsqueeze(2) * fp.unsqueeze(0), ws.unsqueeze(2)], 2)  # (n,B,C+1,H,W)
+        blurred = _domain_transform(downsample(splat, df), eta_low, s_low, r_low)
+        sliced = (w.unsqueeze(2) * upsample(blurred, df, (H, W))).sum(0)  # (B,C+1,H,W)
+        S = S + sliced[:, :C]
+        S0 = S0 + sliced[:, C:]
+        if level == tree_height - 1:
+            break
+        # 8. split every node of this level
+        onehot = (label.unsqueeze(0) == torch.arange(n, device=f.device)[:, None, None, None])
+        onehot = onehot & mg.unsqueeze(0) & alive[:, :, None, None]  # (n,B,H,W)
+        r = resid * onehot.unsqueeze(2).to(wd)
+        scale = r.abs().amax(dim=(2, 3, 4), keepdim=True)
+        rs = r / torch.where(scale > 0, scale, 1.0)
+        rs = rs.flatten(3)  # (n,B,D,N)
+        M = rs @ rs.transpose(-1, -2)  # (n,B,D,D)
+        v = _dominant_direction(M, power_iterations)
+        proj = torch.einsum("nbd,nbdhw->nbhw", v, resid)
+        positive = proj >= 0
+        theta = (1.0 - w_raw) * onehot.to(wd)
+        t_children = torch.stack([theta * (~positive).to(wd), theta * positive.to(wd)], 1).flatten(0, 1)
+        mass = t_children.sum((2, 3))  # (2n,B)
+        alive = alive.repeat_interleave(2, 0) & (mass > 0)
+        acc = recursive_lowpass(
+            downsample(torch.cat([t_children.unsqueeze(2) * gs.unsqueeze(0), t_children.unsqueeze(2)], 2), df),
+            s_low)
+        num, den = acc[:, :, :Dg], acc[:, :, Dg:]
+        parent = eta_low.repeat_interleave(2, 0)
+        eta_low = torch.where(den > 0, num / torch.where(den > 0, den, 1.0), parent)
+        eta_full = upsample(eta_low, df, (H, W))
+        pick = torch.gather(positive, 0, label.unsqueeze(0)).squeeze(0)
+        label = 2 * label + pick.long()
+
+    ok = S0 > 0
+    out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), f_s)
+    if adjust_outliers:
+        alpha = torch.exp(-min_d * (0.5 * inv_r2))
+        alpha = torch.where(mv, alpha, 1.0).unsqueeze(1)
+        out = f_s + alpha * (out - f_s)
+    return out.to(out_dtype)
