@@ -74,13 +74,9 @@ def downsample(x: Tensor, df: int) -> Tensor:
     """Area mean over df x df blocks (existing pixels only). (..., H, W) -> (..., ceil(H/df), ceil(W/df))."""
     if df == 1:
         return x
-    H, W = x.shape[-2:]
-    h, w = -(-H // df), -(-W // df)
-    x = F.pad(x, (0, w * df - W, 0, h * df - H))
-    s = x.reshape(*x.shape[:-2], h, df, w, df).sum(dim=(-3, -1))
-    rows = torch.clamp(H - torch.arange(h, device=x.device) * df, max=df).to(x.dtype)
-    cols = torch.clamp(W - torch.arange(w, device=x.device) * df, max=df).to(x.dtype)
-    return s / (rows[:, None] * cols[None, :])
+    # avg_pool2d with ceil_mode and no padding divides partial edge blocks by their existing pixels
+    y = F.avg_pool2d(x.reshape(1, -1, *x.shape[-2:]), df, df, ceil_mode=True)
+    return y.reshape(*x.shape[:-2], *y.shape[-2:])
 
 
 def upsample(x: Tensor, df: int, size: tuple[int, int]) -> Tensor:
@@ -102,9 +98,10 @@ def _scan(x: Tensor, a, dim: int) -> Tensor:
     L = x.shape[dim]
     if L == 1:
         return x
-    xs = list(x.movedim(dim, 0).unbind(0))
+    # scan axis first and contiguous: every step then works on one contiguous slice
+    xs = list(x.movedim(dim, 0).contiguous().unbind(0))
     if isinstance(a, Tensor):
-        a_s = list(a.movedim(dim, 0).expand(L - 1, *xs[0].shape).unbind(0))
+        a_s = list(a.movedim(dim, 0).contiguous().unbind(0))
     else:
         a_s = [a] * (L - 1)
     for j in range(1, L):
@@ -122,7 +119,8 @@ def recursive_lowpass(x: Tensor, sigma: float) -> Tensor:
 
 def _domain_transform(x: Tensor, eta: Tensor, sigma_s: float, sigma_r: float) -> Tensor:
     """Recursive filter of x (..., C, h, w) steered by eta (..., D, h, w): rows then columns."""
-    ratio2 = min((sigma_s / sigma_r) ** 2, torch.finfo(x.dtype).max) if sigma_r > 0 else torch.finfo(x.dtype).max
+    ratio = sigma_s / sigma_r
+    ratio2 = min(ratio * ratio, torch.finfo(x.dtype).max)  # inf-safe: 0 * max stays 0
     k = -math.sqrt(2.0) / sigma_s
     dx = (eta[..., :, 1:] - eta[..., :, :-1]).square().sum(-3, keepdim=True)
     dy = (eta[..., 1:, :] - eta[..., :-1, :]).square().sum(-3, keepdim=True)
@@ -196,18 +194,21 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
         c = c[:, :, None, None]
     fp = (f_s - c) * ms.unsqueeze(1)
 
-    # 6. root manifold
-    mgf = mg.to(wd).unsqueeze(1)
-    rt = recursive_lowpass(torch.cat([g0 * mgf, mgf], 1), sigma_s)
-    den = rt[:, Dg:]
-    eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
+    # 6. root manifold (h(1) == 1 exactly, so the all-valid case skips the denominator)
+    if bool(mg.all()):
+        eta1 = recursive_lowpass(g0, sigma_s)
+    else:
+        mgf = mg.to(wd).unsqueeze(1)
+        rt = recursive_lowpass(torch.cat([g0 * mgf, mgf], 1), sigma_s)
+        den = rt[:, Dg:]
+        eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
     gs = torch.where(mg.unsqueeze(1), g0, eta1)
 
     S = torch.zeros_like(fp)
     S0 = torch.zeros((B, 1, H, W), dtype=wd, device=f.device)
     min_d = torch.full((B, H, W), math.inf, dtype=wd, device=f.device)
 
-    # level state: eta_full (n,B,D,H,W), eta_low (n,B,D,h,w), alive (n,B), label (B,H,W)
+    # level state: eta_low (n,B,D,h,w), eta_full (n,B,D,H,W), alive (n,B), label (B,H,W)
     eta_low = downsample(eta1, df).unsqueeze(0)
     eta_full = eta1.unsqueeze(0)
     alive = torch.ones((1, B), dtype=torch.bool, device=f.device)
@@ -215,38 +216,37 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
 
     for level in range(tree_height):
         n = eta_low.shape[0]
-        aw = alive.to(wd)[:, :, None, None]  # (n,B,1,1)
         resid = gs.unsqueeze(0) - eta_full  # (n,B,D,H,W)
-        dist = resid.square().sum(2)  # (n,B,H,W)
-        w_raw = torch.exp(-dist * inv_r2)
-        w = w_raw * aw
+        dist = torch.linalg.vecdot(resid, resid, dim=2)  # (n,B,H,W)
+        w_raw = torch.exp(dist * -inv_r2)
+        w = w_raw * alive.to(wd)[:, :, None, None]
         min_d = torch.minimum(min_d, torch.where(alive[:, :, None, None], dist, math.inf).amin(0))
         ws = w * ms.unsqueeze(0)
-        splat = torch.cat([ws.unsqueeze(2) * fp.unsqueeze(0), ws.unsqueeze(2)], 2)  # (n,B,C+1,H,W)
-        blurred = _domain_transform(downsample(splat, df), eta_low, s_low, r_low)
+        low = torch.cat([downsample(ws.unsqueeze(2) * fp.unsqueeze(0), df), downsample(ws.unsqueeze(2), df)], 2)
+        blurred = _domain_transform(low, eta_low, s_low, r_low)  # (n,B,C+1,h,w)
         sliced = (w.unsqueeze(2) * upsample(blurred, df, (H, W))).sum(0)  # (B,C+1,H,W)
         S = S + sliced[:, :C]
         S0 = S0 + sliced[:, C:]
         if level == tree_height - 1:
             break
         # 8. split every node of this level
-        onehot = (label.unsqueeze(0) == torch.arange(n, device=f.device)[:, None, None, None])
-        onehot = onehot & mg.unsqueeze(0) & alive[:, :, None, None]  # (n,B,H,W)
-        r = resid * onehot.unsqueeze(2).to(wd)
-        scale = r.abs().amax(dim=(2, 3, 4), keepdim=True)
-        rs = r / torch.where(scale > 0, scale, 1.0)
-        rs = rs.flatten(3)  # (n,B,D,N)
-        M = rs @ rs.transpose(-1, -2)  # (n,B,D,D)
+        onehot = label.unsqueeze(0) == torch.arange(n, device=f.device)[:, None, None, None]
+        ohf = (onehot & mg.unsqueeze(0) & alive[:, :, None, None]).to(wd)  # (n,B,H,W)
+        r = resid.mul_(ohf.unsqueeze(2))  # in place: resid is not needed any more
+        scale = torch.linalg.vector_norm(r, ord=math.inf, dim=(2, 3, 4), keepdim=True)
+        r = r.div_(torch.where(scale > 0, scale, 1.0)).flatten(3)  # (n,B,D,N)
+        M = r @ r.transpose(-1, -2)  # (n,B,D,D)
         v = _dominant_direction(M, power_iterations)
-        proj = torch.einsum("nbd,nbdhw->nbhw", v, resid)
-        positive = proj >= 0
-        theta = (1.0 - w_raw) * onehot.to(wd)
-        t_children = torch.stack([theta * (~positive).to(wd), theta * positive.to(wd)], 1).flatten(0, 1)
+        # sign of v.r on the cluster (r is 0 elsewhere; those pixels are masked by ohf below)
+        positive = (v.unsqueeze(2) @ r).reshape(n, B, H, W) >= 0
+        theta = (1.0 - w_raw) * ohf
+        pos = positive.to(wd)
+        t_children = torch.stack([theta * (1.0 - pos), theta * pos], 1).flatten(0, 1)  # (2n,B,H,W)
         mass = t_children.sum((2, 3))  # (2n,B)
         alive = alive.repeat_interleave(2, 0) & (mass > 0)
         acc = recursive_lowpass(
-            downsample(torch.cat([t_children.unsqueeze(2) * gs.unsqueeze(0), t_children.unsqueeze(2)], 2), df),
-            s_low)
+            torch.cat([downsample(t_children.unsqueeze(2) * gs.unsqueeze(0), df),
+                       downsample(t_children.unsqueeze(2), df)], 2), s_low)
         num, den = acc[:, :, :Dg], acc[:, :, Dg:]
         parent = eta_low.repeat_interleave(2, 0)
         eta_low = torch.where(den > 0, num / torch.where(den > 0, den, 1.0), parent)
@@ -257,7 +257,7 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
     ok = S0 > 0
     out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), f_s)
     if adjust_outliers:
-        alpha = torch.exp(-min_d * (0.5 * inv_r2))
+        alpha = torch.exp(min_d * (-0.5 * inv_r2))
         alpha = torch.where(mv, alpha, 1.0).unsqueeze(1)
         out = f_s + alpha * (out - f_s)
     return out.to(out_dtype)
