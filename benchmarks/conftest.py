@@ -3,14 +3,29 @@
 ``--quick`` shrinks every benchmark to a smoke run (small sizes, few frames; what CI may run). Timings are
 recorded, never asserted.
 """
+import os
 import sys
 from pathlib import Path
+
+# Threads for every library, fixed before torch loads and recorded in the results. Default 1: on a shared,
+# oversubscribed machine a 2-thread parallel region waits for a descheduled thread at every barrier (kornia
+# gaussian_blur2d 64x64 measured 1 ms or 60-200 ms depending on the neighbours' load); one thread stays comparable.
+THREADS = int(os.environ.setdefault("TORCHMANIFOLD_BENCH_THREADS", "1"))
+os.environ["OMP_NUM_THREADS"] = str(THREADS)
 
 import pytest
 
 _HERE = str(Path(__file__).resolve().parent)
 if _HERE not in sys.path:  # bench files import baselines.py / harness.py beside them
     sys.path.insert(0, _HERE)
+
+
+def pytest_configure(config):
+    import cv2
+    import torch
+
+    torch.set_num_threads(THREADS)
+    cv2.setNumThreads(THREADS)
 
 
 def pytest_addoption(parser):

@@ -1,0 +1,257 @@
+"""Charts and the markdown summary from ``benchmarks/results/*.json``.
+
+    .venv/bin/python benchmarks/charts.py [--quick]
+
+reads methods.json, scaling.json, ablation.json and progressive.json (whichever exist; ``results/quick/`` with
+``--quick``) and writes next to them:
+
+* ``speed_quality_<dataset>.png``: PSNR and FLIP against ms per frame for every method, Pareto front marked;
+* ``scaling.png``: time against pixels, guide channels and tree height;
+* ``progressive.png``: error against iteration for the progressive methods;
+* ``ablation.png``: PSNR per feature set and scene;
+
+and ``docs/benchmarks.md`` (``results/quick/benchmarks.md`` with ``--quick``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+COLOURS = {"raw": "#555555", "gaussian": "#1f77b4", "joint-bilateral": "#2ca02c", "opencv-am": "#ff7f0e",
+           "oidn": "#9467bd", "ours": "#d62728"}
+
+
+def load(folder: Path, name: str):
+    path = folder / f"{name}.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+# ---------------------------------------------------------------------------------------------------- pareto
+def frame_ms(ds: dict, res: dict) -> float:
+    """Cost of one output frame: the method's time (fastest round) plus, for filters of our tracer's frames,
+    the 1-spp render they start from, so filters and plain path tracing compare at equal time."""
+    ms = res["ms_min"]
+    if res["family"] != "raw":
+        ms += ds.get("trace_ms_1spp", 0.0)
+    return ms
+
+
+def pareto(points: list) -> list:
+    """Indices of the (ms, quality) points no other point beats on both (less time, higher quality)."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
+    front, best = [], -math.inf
+    for i in order:
+        if points[i][1] > best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def speed_quality(ds_name: str, ds: dict, out: Path) -> dict:
+    """One dataset's chart; returns {method: on the PSNR Pareto front}."""
+    names = [n for n, r in ds["methods"].items() if r.get("psnr") is not None and math.isfinite(r["psnr"])]
+    metrics = [("psnr", "PSNR, clamped sRGB (dB) - higher is better", 1), ("flip", "FLIP - lower is better", -1)]
+    metrics = [m for m in metrics if any(m[0] in ds["methods"][n] for n in names)]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 4.8), squeeze=False)
+    on_front = {}
+    for ax, (key, label, sign) in zip(axes[0], metrics):
+        timed = [n for n in names if frame_ms(ds, ds["methods"][n]) > 0 and key in ds["methods"][n]]
+        untimed = [n for n in names if n not in timed and key in ds["methods"][n]]
+        pts = [(frame_ms(ds, ds["methods"][n]), sign * ds["methods"][n][key]) for n in timed]
+        front = pareto(pts)
+        for i, n in enumerate(timed):
+            r = ds["methods"][n]
+            ax.scatter(pts[i][0], r[key], color=COLOURS.get(r["family"], "k"), s=46 if i in front else 22,
+                       edgecolor="k" if i in front else "none", zorder=3)
+            ax.annotate(n, (pts[i][0], r[key]), fontsize=7, xytext=(4, 3), textcoords="offset points")
+        fx = [pts[i][0] for i in front]
+        fy = [sign * pts[i][1] for i in front]
+        ax.step(fx, fy, where="post", color="k", lw=1, ls="--", label="Pareto front", zorder=2)
+        for n in untimed:  # frames whose render time is unknown (another renderer): a level, not a point
+            ax.axhline(ds["methods"][n][key], color=COLOURS["raw"], lw=0.8, ls=":")
+            ax.annotate(f"{n} (render time unknown)", (0.01, ds["methods"][n][key]), xycoords=("axes fraction", "data"),
+                        fontsize=7, xytext=(0, 2), textcoords="offset points", color=COLOURS["raw"])
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per frame" + (" (1-spp trace + filter)" if ds.get("trace_ms_1spp") else " (filter only)"))
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        if key == "psnr":
+            on_front = {n: (i in front) for i, n in enumerate(timed)}
+    handles = [plt.Line2D([], [], marker="o", ls="", color=c, label=f) for f, c in COLOURS.items()]
+    handles.append(plt.Line2D([], [], color="k", ls="--", label="Pareto front (ringed)"))
+    axes[0][-1].legend(handles=handles, fontsize=7, loc="best")
+    h, w = ds["size"]
+    fig.suptitle(f"{ds_name}: {len(ds['frames'])} frames {w}x{h}, quality against time per frame")
+    fig.tight_layout()
+    fig.savefig(out / f"speed_quality_{ds_name}.png", dpi=110)
+    plt.close(fig)
+    return on_front
+
+
+# ---------------------------------------------------------------------------------------------------- scaling
+def slope(xs, ys) -> float:
+    """Exponent b of ys ~ xs^b (least squares in log-log): 1 = linear."""
+    x, y = np.log(np.asarray(xs, float)), np.log(np.asarray(ys, float))
+    return float(np.polyfit(x, y, 1)[0]) if len(x) >= 2 else float("nan")
+
+
+def scaling_chart(sc: dict, out: Path) -> dict:
+    axes_spec = [("pixels", "pixels", True), ("channels", "guide channels", False), ("height", "tree height", False)]
+    axes_spec = [a for a in axes_spec if a[0] in sc]
+    fig, axes = plt.subplots(1, len(axes_spec), figsize=(5 * len(axes_spec), 4), squeeze=False)
+    fits = {}
+    for ax, (key, label, log) in zip(axes[0], axes_spec):
+        for name, rows in sc[key].items():
+            xs = [r[key] for r in rows]
+            ys = [r["ms_min"] for r in rows]
+            family = "ours" if name.startswith("ours") else name.split("-s")[0].split("-r")[0]
+            ax.plot(xs, ys, "o-", color=COLOURS.get(family, None), label=name)
+            fits[f"{key}:{name}"] = slope(xs, ys)
+        if log:
+            ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(label)
+        ax.set_ylabel("ms (fastest of 3)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    fig.suptitle("time against size: linear cost shows as a constant slope")
+    fig.tight_layout()
+    fig.savefig(out / "scaling.png", dpi=110)
+    plt.close(fig)
+    return fits
+
+
+# ---------------------------------------------------------------------------------------------------- others
+def progressive_chart(pr: dict, out: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for name, curve in pr["curves"].items():
+        family = "ours" if name.startswith("ours") else ("gaussian" if "gauss" in name else "raw")
+        axes[0].plot(curve["iteration"], curve["psnr"], "o-", ms=3, color=COLOURS.get(family), label=name)
+        axes[1].plot(np.asarray(curve["seconds"]), curve["psnr"], "o-", ms=3, color=COLOURS.get(family), label=name)
+    axes[0].set_xlabel("iteration (spp per frame)")
+    axes[1].set_xlabel("wall time (s)")
+    for ax in axes:
+        ax.set_ylabel("PSNR, clamped sRGB (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(pr.get("title", "progressive rendering: error against iteration"))
+    fig.tight_layout()
+    fig.savefig(out / "progressive.png", dpi=110)
+    plt.close(fig)
+
+
+def ablation_chart(ab: dict, out: Path) -> None:
+    scenes = list(ab["scenes"])
+    sets = list(dict.fromkeys(s for sc in scenes for s in ab["scenes"][sc]["sets"]))
+    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(sets) * len(scenes)), 4))
+    width = 0.8 / len(scenes)
+    for j, sc in enumerate(scenes):
+        vals = [ab["scenes"][sc]["sets"].get(s, {}).get("psnr", np.nan) for s in sets]
+        ax.bar(np.arange(len(sets)) + j * width, vals, width, label=sc)
+    ax.set_xticks(np.arange(len(sets)) + 0.4 - width / 2, sets, rotation=20, ha="right", fontsize=8)
+    lo = np.nanmin([v.get("psnr", np.nan) for sc in scenes for v in ab["scenes"][sc]["sets"].values()])
+    ax.set_ylim(lo - 1, None)
+    ax.set_ylabel("PSNR, clamped sRGB (dB)")
+    ax.legend()
+    ax.grid(alpha=0.3, axis="y")
+    ax.set_title("feature ablation: which guide channels help (ours, tree height 2)")
+    fig.tight_layout()
+    fig.savefig(out / "ablation.png", dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------------- summary
+def _f(x, nd=2):
+    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
+
+
+def summary(folder: Path, rel: str) -> str:
+    methods, sc, ab, pr = (load(folder, n) for n in ("methods", "scaling", "ablation", "progressive"))
+    meta = next((d["meta"] for d in (methods, sc, ab, pr) if d), {})
+    lines = ["# Benchmarks: speed against accuracy", "",
+             "Generated by `benchmarks/run_all.py` (`benchmarks/charts.py` writes this file from "
+             "`benchmarks/results/*.json`). Quality: PSNR on clamped sRGB (the score of `/work/shared/data`), "
+             "relMSE on linear values, FLIP (lower is better), mean over frames. Time: fastest round per frame "
+             "(the machine is shared; medians are in the JSON). Classic filters and ours filter demodulated "
+             "colour (colour / albedo, multiplied back) guided by depth + normal + albedo, each scaled by its sigma; "
+             "OIDN gets the colour with its albedo and normal.", ""]
+    if meta:
+        lines += [f"Machine: {meta.get('cpu')} ({meta.get('cpu_count')} cores, shared), {meta.get('torch_threads')} "
+                  f"torch/OpenCV thread(s) (OIDN runs its own thread pool), torch {meta['versions'].get('torch')}, "
+                  f"commit `{meta.get('git_commit', '')[:10]}`{' (dirty)' if meta.get('git_dirty') else ''}, "
+                  f"{meta.get('date_utc')}, load average {_f((meta.get('load_average') or [None])[0], 1)}.", ""]
+    if methods:
+        for ds_name, ds in methods["datasets"].items():
+            front = speed_quality(ds_name, ds, folder)
+            h, w = ds["size"]
+            lines += [f"## {ds_name} ({len(ds['frames'])} frames, {w}x{h})", "",
+                      f"![speed-quality {ds_name}]({rel}/speed_quality_{ds_name}.png)", ""]
+            if ds.get("trace_ms_1spp"):
+                lines += [f"Our tracer renders one 1-spp frame in {ds['trace_ms_1spp']:.0f} ms; filter times below "
+                          "add to it, and `raw-Nspp` rows are plain path tracing at N spp (their render time).", ""]
+            lines += ["| method | ms/frame (min) | ms/frame (median) | PSNR dB | relMSE | FLIP | Pareto |",
+                      "|---|---|---|---|---|---|---|"]
+            rows = sorted(ds["methods"].items(), key=lambda kv: -(kv[1].get("psnr") or -1e9))
+            for n, r in rows:
+                bad = f" ({100 * r['nonfinite_fraction']:.1f}% NaN/Inf, scored with the input there)" \
+                    if r.get("nonfinite_fraction") else ""
+                lines.append(f"| {n}{bad} | {_f(r['ms_min'], 1)} | {_f(r['ms_median'], 1)} | {_f(r.get('psnr'))} | "
+                             f"{_f(r.get('relmse'), 4)} | {_f(r.get('flip'), 4)} | {'yes' if front.get(n) else ''} |")
+            lines.append("")
+    if pr:
+        progressive_chart(pr, folder)
+        lines += ["## Progressive rendering", "", f"![progressive]({rel}/progressive.png)", ""]
+        lines += [pr.get("note", ""), "", "| curve | " + " | ".join(f"it {i}" for i in pr["report_iterations"]) + " |",
+                  "|---|" + "---|" * len(pr["report_iterations"])]
+        for name, c in pr["curves"].items():
+            vals = [_f(c["psnr"][c["iteration"].index(i)]) if i in c["iteration"] else "—"
+                    for i in pr["report_iterations"]]
+            lines.append(f"| {name} | " + " | ".join(vals) + " |")
+        lines.append("")
+    if sc:
+        fits = scaling_chart(sc["scaling"], folder)
+        lines += ["## Scaling", "", f"![scaling]({rel}/scaling.png)", "",
+                  "Log-log slope of time against each axis (1.0 = linear; small images are dominated by fixed "
+                  "costs, so slopes below 1 are expected at the low end):", "",
+                  "| axis: method | slope |", "|---|---|"]
+        lines += [f"| {k} | {_f(v)} |" for k, v in fits.items()]
+        lines.append("")
+    if ab:
+        ablation_chart(ab, folder)
+        lines += ["## Which features a scene needs (ablation)", "", f"![ablation]({rel}/ablation.png)", "",
+                  ab.get("note", ""), ""]
+        sets = list(dict.fromkeys(s for sc_ in ab["scenes"].values() for s in sc_["sets"]))
+        lines += ["| feature set | " + " | ".join(ab["scenes"]) + " |", "|---|" + "---|" * len(ab["scenes"])]
+        for s in sets:
+            lines.append(f"| {s} | " + " | ".join(_f(ab["scenes"][sc_]["sets"].get(s, {}).get("psnr"))
+                                                  for sc_ in ab["scenes"]) + " |")
+        lines += ["", ab.get("conclusion", ""), ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="read and write results/quick/")
+    args = p.parse_args(argv)
+    folder = RESULTS / "quick" if args.quick else RESULTS
+    if args.quick:
+        (folder / "benchmarks.md").write_text(summary(folder, "."))
+    else:
+        doc = ROOT / "docs" / "benchmarks.md"
+        doc.parent.mkdir(exist_ok=True)
+        doc.write_text(summary(folder, "../benchmarks/results"))
+    print(f"charts in {folder}")
+
+
+if __name__ == "__main__":
+    main()

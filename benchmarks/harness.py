@@ -1,0 +1,275 @@
+"""What every benchmark shares: inputs (the Mitsuba clip, the built-in scene), guides, timing, scores, metadata.
+
+* ``load_mitsuba(frames, crop)`` reads ``/work/shared/data/mitsuba/cbox_glossy_tex`` (another renderer's 1-spp
+  frames with albedo / normal / depth, 4-spp frames, 1024-spp references).
+* ``make_guide(features, names, use, sigmas)`` stacks the chosen feature groups, each divided by its sigma, so one
+  ``sigma_r = 1`` applies to all of them (the guide convention of the filter op).
+* Filters see demodulated colour (colour / albedo, multiplied back after) when the clip has an albedo: the same
+  preprocessing for every classic filter and ours; OIDN gets the raw colour with its albedo and normal.
+* ``metadata()`` is stored in every results JSON: git commit, library versions, threads, CPU.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import statistics
+import subprocess
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from baselines import Clip, Method
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+DATA = Path(os.environ.get("TORCHMANIFOLD_DATA", ROOT.parent / "shared" / "data")) / "mitsuba" / "cbox_glossy_tex"
+
+# Feature groups: channel names in the tracer's vocabulary and the default sigma each is divided by.
+GROUPS = {
+    "colour": (("Lr", "Lg", "Lb"), 0.5),      # log(1 + noisy colour): the self-guided filter's guide
+    "depth": (("Z",), 0.25),
+    "normal": (("Nx", "Ny", "Nz"), 0.3),
+    "albedo": (("Mr", "Mg", "Mb"), 0.1),
+    "reflected": (("Dx", "Dy", "Dz"), 0.3),
+    "shadow": (("Sx", "Sy", "Sz"), 0.3),
+    "time": (("T",), 1.0),
+}
+DEFAULT_FEATURES = ("depth", "normal", "albedo")
+_MITSUBA_NAMES = {"albedo.R": "Mr", "albedo.G": "Mg", "albedo.B": "Mb", "N.X": "Nx", "N.Y": "Ny", "N.Z": "Nz",
+                  "Z": "Z"}
+
+
+# ---------------------------------------------------------------------------------------------------- inputs
+class Dataset:
+    """A clip to denoise: noisy colour, named features, the reference, and plain path tracing at more samples.
+
+    color (T, 3, H, W), features (T, F, H, W) with ``names``, reference (T, 3, H, W); ``spp_frames`` maps
+    spp -> ((T, 3, H, W) frames, render ms per frame or None where unknown), 1 spp included.
+    """
+
+    def __init__(self, name, color, features, names, reference, times, spp_frames):
+        self.name, self.color, self.features, self.names = name, color, features, tuple(names)
+        self.reference, self.times, self.spp_frames = reference, times, spp_frames
+
+    @property
+    def trace_ms(self) -> float:
+        """Render time of one 1-spp frame (0 where the frames came from elsewhere)."""
+        return self.spp_frames[1][1] or 0.0
+
+    def feature(self, names) -> torch.Tensor:
+        return self.features[:, [self.names.index(n) for n in names]]
+
+    @property
+    def albedo(self) -> Optional[torch.Tensor]:
+        return self.feature(("Mr", "Mg", "Mb")) if "Mr" in self.names else None
+
+    @property
+    def normal(self) -> Optional[torch.Tensor]:
+        return self.feature(("Nx", "Ny", "Nz")) if "Nx" in self.names else None
+
+    def groups(self) -> list:
+        """The feature groups this dataset has (colour always)."""
+        return [g for g, (chans, _) in GROUPS.items() if g == "colour" or all(c in self.names for c in chans)]
+
+
+def _stack(d: dict, keys) -> torch.Tensor:
+    return torch.from_numpy(np.stack([d[k] for k in keys]).astype(np.float32))
+
+
+def load_mitsuba(frames=None, crop: Optional[int] = None) -> Dataset:
+    """The Mitsuba 3 clip of ``/work/shared/data`` (12 frames 256x256), optionally a subset and a centre crop."""
+    from torchmanifold.io import exr
+
+    if not DATA.is_dir():
+        raise FileNotFoundError(f"Mitsuba sample data not found at {DATA} (set TORCHMANIFOLD_DATA)")
+    frames = list(range(12)) if frames is None else list(frames)
+    color, feats, ref, four = [], [], [], []
+    for i in frames:
+        d = exr.read_exr(DATA / f"frame_{i:04d}.exr")
+        color.append(_stack(d, "RGB"))
+        feats.append(_stack(d, list(_MITSUBA_NAMES)))
+        ref.append(_stack(exr.read_exr(DATA / f"reference_{i:04d}.exr"), "RGB"))
+        four.append(_stack(exr.read_exr(DATA / f"frame4spp_{i:04d}.exr", channels=["R", "G", "B"]), "RGB"))
+    out = [torch.stack(x) for x in (color, feats, ref, four)]
+    if crop is not None:
+        h, w = out[0].shape[-2:]
+        y0, x0 = (h - crop) // 2, (w - crop) // 2
+        out = [x[..., y0 : y0 + crop, x0 : x0 + crop].contiguous() for x in out]
+    return Dataset("mitsuba", out[0], out[1], list(_MITSUBA_NAMES.values()), out[2],
+                   torch.tensor(frames, dtype=torch.float32), {1: (out[0], None), 4: (out[3], None)})
+
+
+def tracer_available() -> tuple[bool, str]:
+    try:
+        from torchmanifold.render import PathTracer, create_context, default_scene  # noqa: F401
+        return True, ""
+    except Exception as exc:  # the tracer is another developer's part and may not be there yet
+        return False, f"{type(exc).__name__}: {exc}"
+
+
+def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), seed: int = 0) -> Dataset:
+    """The tracer's built-in scene: 1-spp frames with every feature, a ``ref_spp`` reference, and plain path
+    tracing at ``more_spp`` samples, each with its measured render time per frame."""
+    from torchmanifold.render import PathTracer, create_context, default_scene
+
+    tracer = PathTracer(default_scene(), width=size, height=size, ctx=create_context())
+    times = [float(t) for t in range(frames)]
+    tracer.render(times=times[:1], spp=1, seed=seed + 99)  # warm-up: shader compile, buffers
+    spp_frames = {}
+    for i, spp in enumerate((1, *more_spp)):
+        t0 = time.perf_counter()
+        res = tracer.render(times=times, spp=spp, seed=seed + i, sample_offset=0)
+        spp_frames[spp] = (res.color, 1000.0 * (time.perf_counter() - t0) / frames)
+        if spp == 1:
+            noisy = res
+    ref = tracer.render(times=times, spp=ref_spp, seed=seed + 1000, sample_offset=0)
+    return Dataset("builtin", noisy.color, noisy.features, noisy.feature_names, ref.color,
+                   torch.tensor(times), spp_frames)
+
+
+# ---------------------------------------------------------------------------------------------------- guides
+def make_guide(ds: Dataset, use=DEFAULT_FEATURES, sigmas: Optional[dict] = None) -> tuple[torch.Tensor, tuple]:
+    """(T, D, H, W) guide of the chosen feature groups, each divided by its sigma (so sigma_r = 1 fits all)."""
+    sigmas = {**{g: s for g, (_, s) in GROUPS.items()}, **(sigmas or {})}
+    parts, names = [], []
+    for g in use:
+        chans, _ = GROUPS[g]
+        if g == "colour":
+            x = torch.log1p(ds.color.clamp(min=0))
+        elif g == "albedo":
+            x = ds.feature(chans).clamp(0, 1)  # emitters report albedo > 1
+        elif g == "depth":
+            z = ds.feature(chans)
+            x = z / z.flatten(1).median(1).values.clamp(min=1e-6).view(-1, 1, 1, 1)  # relative depth
+        else:
+            x = ds.feature(chans)
+        parts.append(x / sigmas[g])
+        names += list(chans)
+    return torch.cat(parts, 1).contiguous(), tuple(names)
+
+
+def demodulate(ds: Dataset) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    """(irradiance, albedo): colour / albedo where an albedo exists (the filter smooths lighting, not texture)."""
+    alb = ds.albedo
+    if alb is None:
+        return ds.color, None
+    alb = alb.clamp(min=0.02)
+    return ds.color / alb, alb
+
+
+def clip_for(ds: Dataset, use=DEFAULT_FEATURES, sigmas=None, demod: bool = True) -> tuple[Clip, Optional[torch.Tensor]]:
+    """The Clip a method sees and the albedo to multiply back (None when not demodulated)."""
+    guide, names = make_guide(ds, use, sigmas)
+    values, alb = demodulate(ds) if demod else (ds.color, None)
+    clip = Clip(values.contiguous(), guide, ds.times, names,
+                albedo=None if ds.albedo is None else ds.albedo.clamp(0, 1), normal=ds.normal)
+    return clip, alb
+
+
+# ---------------------------------------------------------------------------------------------------- running
+def prepare(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor], sigma_s=8.0, sigma_r=1.0,
+            window: int = 2):
+    """``(one, finish)``: ``one(q)`` runs the method on frame q (the timed part), ``finish(q, out)`` remodulates."""
+    if method.family == "oidn":
+        # OIDN takes the raw colour with its own albedo/normal inputs, not the demodulated irradiance.
+        clip = Clip(ds.color, clip.guide, clip.times, clip.guide_names, clip.albedo, clip.normal)
+        alb = None
+
+    def one(q):
+        if method.temporal:
+            sub, qq = clip.window(q, window)
+            return method(sub, qq, sigma_s, sigma_r)
+        return method(clip, q, sigma_s, sigma_r)
+
+    def finish(q, out):
+        return (out if alb is None else out * alb[q]).float()
+
+    return one, finish
+
+
+def run_method(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor], frames, sigma_s=8.0,
+               sigma_r=1.0, window: int = 2) -> tuple[torch.Tensor, list]:
+    """Denoise ``frames``; returns (outputs (F, 3, H, W), per-frame seconds), after one warm-up call."""
+    one, finish = prepare(method, ds, clip, alb, sigma_s, sigma_r, window)
+    one(frames[0])
+    outs, secs = [], []
+    for q in frames:
+        t0 = time.perf_counter()
+        out = one(q)
+        secs.append(time.perf_counter() - t0)
+        outs.append(finish(q, out))
+    return torch.stack(outs), secs
+
+
+def scores(out: torch.Tensor, ref: torch.Tensor, with_flip: bool = True) -> dict:
+    """Mean PSNR (clamped sRGB, the data README's score), relMSE and FLIP over frames (F, 3, H, W)."""
+    from torchmanifold import metrics
+
+    res = {"psnr": float(metrics.psnr(out, ref)), "relmse": float(metrics.relmse(out, ref))}
+    if with_flip and metrics.flip_available():
+        res["flip"] = float(metrics.flip(out, ref))
+    return res
+
+
+def timing_summary(secs: list) -> dict:
+    ms = sorted(1000.0 * s for s in secs)
+    q = statistics.quantiles(ms, n=4) if len(ms) >= 2 else [ms[0]] * 3
+    return {"ms_median": statistics.median(ms), "ms_min": ms[0], "ms_iqr": q[2] - q[0], "ms_all": ms}
+
+
+# ---------------------------------------------------------------------------------------------------- metadata
+def _version(mod: str) -> Optional[str]:
+    try:
+        from importlib.metadata import version
+        return version(mod)
+    except Exception:  # not installed
+        return None
+
+
+def metadata(quick: bool = False) -> dict:
+    def git(*args):
+        try:
+            return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
+        except Exception:  # no git: still record everything else
+            return ""
+
+    cpu = ""
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except Exception:  # not Linux
+        cpu = platform.processor()
+    import cv2
+
+    return {
+        "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "git_commit": git("rev-parse", "HEAD"),
+        "git_dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+        "quick": quick,
+        "python": platform.python_version(),
+        "versions": {m: _version(m) for m in ("torch", "numpy", "kornia", "opencv-contrib-python-headless", "pyoidn",
+                                                "flip-evaluator", "moderngl", "torchmanifold")},
+        "cv2": cv2.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "cv2_threads": cv2.getNumThreads(),
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        # The machine is shared: the load during the run says how far to trust the timings.
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def write_json(name: str, payload: dict, quick: bool = False) -> Path:
+    """Write results/<name>.json (results/quick/<name>.json for a smoke run, so quick runs never clobber real ones)."""
+    out = RESULTS / "quick" if quick else RESULTS
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / f"{name}.json"
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"meta": metadata(quick), **payload}, indent=1))
+    tmp.replace(path)
+    return path
