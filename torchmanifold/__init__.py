@@ -4,6 +4,11 @@ The filter op lives in :mod:`torchmanifold.ops`, the path tracer in :mod:`torchm
 the progressive pipeline in :mod:`torchmanifold.pipeline`, EXR/video I/O in :mod:`torchmanifold.io`.
 """
 from torchmanifold._extension import build_info
+from torchmanifold.ops import (
+    AdaptiveManifoldFilter,
+    adaptive_manifold_filter,
+    bilateral_brute_force,
+)
 
 __version__ = "0.1.0"
-__all__ = ["build_info"]
+__all__ = ["AdaptiveManifoldFilter", "adaptive_manifold_filter", "bilateral_brute_force", "build_info"]

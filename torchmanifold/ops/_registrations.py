@@ -1,0 +1,93 @@
+"""Python-side registrations for ``torchmanifold::adaptive_manifold`` (run once, only if the op loaded).
+
+- ``register_fake``: shapes/dtypes only, so ``torch.compile(fullgraph=True)`` and ``opcheck`` trace it.
+- ``register_autograd``: gradient w.r.t. ``values``. The filter is linear in values for a fixed guide,
+  so the exact adjoint is the vector-Jacobian product of the pure-PyTorch implementation with the
+  guide detached. It runs as its own private op ``torchmanifold::_adaptive_manifold_backward`` (with a
+  fake and its own autograd, the forward op: the adjoint of the adjoint), so it traces under compile.
+- the pure-PyTorch implementation as the op's kernel for CUDA until a CUDA kernel exists.
+  No CPU kernel is registered here: that is the C++ kernel's job.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchmanifold.ops._reference import adaptive_manifold_torch
+
+OP_NAME = "torchmanifold::adaptive_manifold"
+BACKWARD_NAME = "torchmanifold::_adaptive_manifold_backward"
+
+
+def _check_shapes(values: Tensor, guide: Tensor) -> None:
+    torch._check(values.dim() == 4, lambda: f"values must be (B, C, H, W), got {tuple(values.shape)}")
+    torch._check(guide.dim() == 4, lambda: f"guide must be (B, D, H, W), got {tuple(guide.shape)}")
+    torch._check(values.shape[0] == guide.shape[0] and values.shape[2:] == guide.shape[2:],
+                 lambda: f"values {tuple(values.shape)} and guide {tuple(guide.shape)} differ in B, H or W")
+    torch._check(values.dtype == guide.dtype, lambda: "values and guide must share a dtype")
+
+
+def _vjp(grad: Tensor, values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float, tree_height: int,
+         power_iterations: int, adjust_outliers: bool) -> Tensor:
+    # Linear in values for a fixed guide; the point only decides which samples are finite (splat).
+    guide = guide.detach()
+    primal = values.detach()
+    _, vjp_fn = torch.func.vjp(
+        lambda v: adaptive_manifold_torch(v, guide, sigma_s, sigma_r, tree_height, power_iterations,
+                                          adjust_outliers), primal)
+    return vjp_fn(grad.contiguous())[0]
+
+
+def _register() -> None:
+    if not hasattr(torch.ops.torchmanifold, "adaptive_manifold"):  # pragma: no cover - broken build
+        return
+
+    @torch.library.register_fake(OP_NAME)
+    def _fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
+        _check_shapes(values, guide)
+        return torch.empty_like(values, memory_format=torch.contiguous_format)
+
+    @torch.library.custom_op(BACKWARD_NAME, mutates_args=())
+    def _adaptive_manifold_backward(grad: Tensor, values: Tensor, guide: Tensor, sigma_s: float,
+                                    sigma_r: float, tree_height: int, power_iterations: int,
+                                    adjust_outliers: bool) -> Tensor:
+        """Adjoint of the filter w.r.t. values at ``values``: grad (B, C, H, W) -> (B, C, H, W)."""
+        return _vjp(grad, values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers)
+
+    @_adaptive_manifold_backward.register_fake
+    def _backward_fake(grad, values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
+        _check_shapes(grad, guide)
+        return torch.empty_like(grad, memory_format=torch.contiguous_format)
+
+    def _setup_context(ctx, inputs, output):
+        values, guide, *params = inputs
+        ctx.save_for_backward(values, guide)
+        ctx.params = params
+
+    def _backward(ctx, grad):
+        values, guide = ctx.saved_tensors
+        grad_values = torch.ops.torchmanifold._adaptive_manifold_backward(grad, values, guide, *ctx.params)
+        return grad_values, None, None, None, None, None, None
+
+    torch.library.register_autograd(OP_NAME, _backward, setup_context=_setup_context)
+
+    # adjoint of the adjoint: the VJP is linear in grad and its own VJP is the forward filter
+    def _setup_backward_context(ctx, inputs, output):
+        _, values, guide, *params = inputs
+        ctx.save_for_backward(guide)
+        ctx.params = params
+
+    def _backward_backward(ctx, gg):
+        (guide,) = ctx.saved_tensors
+        gv = torch.ops.torchmanifold.adaptive_manifold(gg.contiguous(), guide, *ctx.params)
+        return gv, None, None, None, None, None, None, None
+
+    _adaptive_manifold_backward.register_autograd(_backward_backward, setup_context=_setup_backward_context)
+
+    @torch.library.register_kernel(OP_NAME, "cuda")
+    def _cuda(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
+        return adaptive_manifold_torch(values, guide, sigma_s, sigma_r, tree_height, power_iterations,
+                                       adjust_outliers)
+
+
+_register()
