@@ -159,6 +159,11 @@ class PathTracer:
             tw, th = (tile, tile) if isinstance(tile, int) else tuple(tile)
             tw, th = _check_int("tile width", tw, 1), _check_int("tile height", th, 1)
         n = len(times_np)
+        with self.ctx:  # make our context current: another GL user (a window, pyrender) may have switched
+            self._dispatch(times_np, spp, seed, sample_offset, tw, th)
+
+    def _dispatch(self, times_np, spp, seed, sample_offset, tw, th) -> None:
+        n = len(times_np)
         self._ensure_outputs(n)
         tbytes = times_np.astype(np.float32).tobytes()
         if self._times_buf is None or self._times_buf.size < len(tbytes):
@@ -202,14 +207,16 @@ class PathTracer:
                 self._out[key].read_into(arr, size=arr.nbytes)
             return torch.from_numpy(arr)
 
-        aux = grab("aux", 3)
+        with self.ctx:
+            aux = grab("aux", 3)
+            color, feats, emission = grab("color", 3), grab("features", d), grab("emission", 3)
         return RenderResult(
-            color=grab("color", 3).div_(spp),
-            features=grab("features", d).div_(spp),
+            color=color.div_(spp),
+            features=feats.div_(spp),
             feature_names=list(self.feature_names),
             object_id=aux[:, 0].round().to(torch.int32),
             motion=aux[:, 1:3].contiguous(),
-            emission=grab("emission", 3).div_(spp),
+            emission=emission.div_(spp),
             times=torch.from_numpy(self._last["times"].copy()),
             spp=spp,
             sample_offset=self._last["sample_offset"],
