@@ -152,9 +152,8 @@ def _ours(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: i
     import torchmanifold
 
     x, g = clip.values[query : query + 1], clip.guide[query : query + 1]
-    return torchmanifold.adaptive_manifold_filter(
-        x, g.to(x.dtype) if x.dtype in (torch.float32, torch.float64) else g.float(), sigma_s, sigma_r,
-        tree_height=tree_height, adjust_outliers=adjust_outliers)[0]
+    return torchmanifold.adaptive_manifold_filter(x, g.to(x.dtype), sigma_s, sigma_r, tree_height=tree_height,
+                                                  adjust_outliers=adjust_outliers)[0]
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,
@@ -162,7 +161,7 @@ def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_
     import torchmanifold
 
     x = clip.values[None]
-    g = clip.guide[None].to(x.dtype) if x.dtype in (torch.float32, torch.float64) else clip.guide[None].float()
+    g = clip.guide[None].to(x.dtype)
     out = torchmanifold.temporal_adaptive_manifold_filter(
         x, g, clip.times.to(torch.float32), clip.times[query : query + 1].to(torch.float32), sigma_s, sigma_r,
         sigma_t=sigma_t, mode=mode, tree_height=tree_height, adjust_outliers=adjust_outliers)

@@ -20,7 +20,7 @@ import torch
 import baselines
 import harness
 
-SIGMA_S, SIGMA_R = 8.0, 1.0  # the guide is pre-scaled per feature (harness.GROUPS), so sigma_r = 1
+SIGMA_S, SIGMA_R = 4.0, 1.0  # the guide is pre-scaled per feature (harness.GROUPS), so sigma_r = 1
 METHODS = baselines.benchmark_methods(sigma_s=SIGMA_S, sigma_r=SIGMA_R)
 _RESULTS: dict = {}
 _SCALING: dict = {}

@@ -4,6 +4,7 @@
   frames with albedo / normal / depth, 4-spp frames, 1024-spp references).
 * ``make_guide(features, names, use, sigmas)`` stacks the chosen feature groups, each divided by its sigma, so one
   ``sigma_r = 1`` applies to all of them (the guide convention of the filter op).
+* The default guide is colour + depth + normal + albedo (``bench_ablation.py`` measures the alternatives).
 * Filters see demodulated colour (colour / albedo, multiplied back after) when the clip has an albedo: the same
   preprocessing for every classic filter and ours; OIDN gets the raw colour with its albedo and normal.
 * ``metadata()`` is stored in every results JSON: git commit, library versions, threads, CPU.
@@ -29,17 +30,18 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 DATA = Path(os.environ.get("TORCHMANIFOLD_DATA", ROOT.parent / "shared" / "data")) / "mitsuba" / "cbox_glossy_tex"
 
-# Feature groups: channel names in the tracer's vocabulary and the default sigma each is divided by.
+# Feature groups: channel names in the tracer's vocabulary and the default sigma each is divided by (picked by a
+# small sweep of ours on Mitsuba frames 2 and 8, 128x128 crop: normal 0.15 vs 0.3 +1.8 dB, albedo 0.2 vs 0.1 +0.7 dB).
 GROUPS = {
     "colour": (("Lr", "Lg", "Lb"), 0.5),      # log(1 + noisy colour): the self-guided filter's guide
-    "depth": (("Z",), 0.25),
-    "normal": (("Nx", "Ny", "Nz"), 0.3),
-    "albedo": (("Mr", "Mg", "Mb"), 0.1),
+    "depth": (("Z",), 0.25),                  # relative to the frame's median depth
+    "normal": (("Nx", "Ny", "Nz"), 0.15),
+    "albedo": (("Mr", "Mg", "Mb"), 0.2),
     "reflected": (("Dx", "Dy", "Dz"), 0.3),
     "shadow": (("Sx", "Sy", "Sz"), 0.3),
     "time": (("T",), 1.0),
 }
-DEFAULT_FEATURES = ("depth", "normal", "albedo")
+DEFAULT_FEATURES = ("colour", "depth", "normal", "albedo")
 _MITSUBA_NAMES = {"albedo.R": "Mr", "albedo.G": "Mg", "albedo.B": "Mb", "N.X": "Nx", "N.Y": "Ny", "N.Z": "Nz",
                   "Z": "Z"}
 
