@@ -6,9 +6,18 @@ the progressive pipeline in :mod:`torchmanifold.pipeline`, EXR/video I/O in :mod
 from torchmanifold._extension import build_info
 from torchmanifold.ops import (
     AdaptiveManifoldFilter,
+    TemporalAdaptiveManifoldFilter,
     adaptive_manifold_filter,
     bilateral_brute_force,
+    temporal_adaptive_manifold_filter,
 )
 
 __version__ = "0.1.0"
-__all__ = ["AdaptiveManifoldFilter", "adaptive_manifold_filter", "bilateral_brute_force", "build_info"]
+__all__ = [
+    "AdaptiveManifoldFilter",
+    "TemporalAdaptiveManifoldFilter",
+    "adaptive_manifold_filter",
+    "bilateral_brute_force",
+    "build_info",
+    "temporal_adaptive_manifold_filter",
+]

@@ -14,6 +14,12 @@ from torchmanifold.ops.adaptive_manifold import (
     has_kernel,
 )
 from torchmanifold.ops.reference import bilateral_brute_force
+from torchmanifold.ops.temporal import (
+    TemporalAdaptiveManifoldFilter,
+    spacetime_adaptive_manifold_torch,
+    temporal_adaptive_manifold_filter,
+    time_weights,
+)
 
 __all__ = [
     "AdaptiveManifoldFilter",
@@ -22,4 +28,8 @@ __all__ = [
     "automatic_tree_height",
     "bilateral_brute_force",
     "has_kernel",
+    "spacetime_adaptive_manifold_torch",
+    "temporal_adaptive_manifold_filter",
+    "TemporalAdaptiveManifoldFilter",
+    "time_weights",
 ]

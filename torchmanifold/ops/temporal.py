@@ -1,0 +1,362 @@
+"""Adaptive-manifold filtering of a window of frames, output at query times.
+
+Two modes, both with Gaussian weights in time tau_t = exp(-(t - q)^2 / 2 sigma_t^2) (sigma_t = 1 frame
+by default):
+
+- ``"window"``: average the frames' values and guides with tau at each query time q (per pixel, over
+  the finite samples), then run the spatial filter on the averages (the C++ op when available).
+  Cheap (one spatial filter per query) and right for a static camera and scene, where frames at the same
+  pixel see the same surface: it is the paper's accumulation of neighbour frames. A moving object
+  leaves a ghost: the averaged values and guides at its old position mix object and background,
+  and the spatial filter keeps the mix.
+- ``"spacetime"``: joint space-time filtering. Time is one more dimension of the Gaussian kernel,
+  centred on the query: every sample (x_j, t, f^_tj) contributes to query pixel i with weight
+  exp(-|x_i - x_j|^2/2 sigma_s^2 - |f^_i(q) - f^_tj|^2/2 sigma_r^2 - (t - q)^2/2 sigma_t^2).
+  The manifolds are built from the query frame's guide f^(q) (linear interpolation of the guides of the
+  frames bracketing q), samples of every frame splat onto them with their own guide's weight times
+  tau_t, the splats of all frames are summed (the time-weighted combination), blurred once and sliced
+  into the query frame. A sample whose guide no longer matches the query frame's content at that
+  place (an object that moved away, a disocclusion) lands on no nearby manifold and does not smear.
+  Use it when things move (camera or objects); it costs T splats per query and runs in pure PyTorch.
+
+With T = 1 and the query at the frame, ``"spacetime"`` is exactly the spatial filter.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Sequence
+
+import torch
+from torch import Tensor, nn
+
+from torchmanifold.ops._reference import (
+    _domain_transform,
+    _dominant_direction,
+    downsample,
+    downsample_factor,
+    recursive_lowpass,
+    upsample,
+)
+from torchmanifold.ops.adaptive_manifold import (
+    _BACKENDS,
+    _FLOATS,
+    _check_int,
+    _check_sigma,
+    _guide_scales,
+    adaptive_manifold_filter,
+    automatic_tree_height,
+)
+
+__all__ = ["temporal_adaptive_manifold_filter", "TemporalAdaptiveManifoldFilter", "spacetime_adaptive_manifold_torch"]
+
+_MODES = ("window", "spacetime")
+
+
+def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor,
+                                      sigma_s: float, sigma_r: float, tree_height: int, power_iterations: int,
+                                      adjust_outliers: bool) -> Tensor:
+    """Joint space-time adaptive-manifold filter into one query frame (pure PyTorch).
+
+    Follows the numbered steps of :mod:`torchmanifold.ops._reference` with the manifolds built from
+    ``query_guide`` and every frame splatting with its own guide's weight times its time weight.
+
+    Args:
+        values: (B, T, C, H, W) frames' values.
+        guide: (B, T, D, H, W) frames' guides (scaled).
+        weights: (T,) non-negative time weights of the frames for this query.
+        query_guide: (B, D, H, W) guide of the query frame; the manifolds follow it.
+        sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers: as the spatial filter.
+
+    Returns:
+        (B, C, H, W), dtype of ``values``.
+    """
+    out_dtype = values.dtype
+    wd = torch.float64 if values.dtype == torch.float64 else torch.float32
+    dev = values.device
+    f = values.to(wd)
+    g = guide.detach().to(wd)
+    gq = query_guide.detach().to(wd)
+    tau = weights.detach().to(dev, wd)
+    B, T, C, H, W = f.shape
+    Dg = g.shape[2]
+    fmax = torch.finfo(wd).max
+    inv_r2 = min(1.0 / (sigma_r * sigma_r), fmax) if sigma_r * sigma_r > 0 else fmax
+    df = downsample_factor(sigma_s, sigma_r)
+    s_low, r_low = sigma_s / df, sigma_r / math.sqrt(2.0)
+    zero = torch.zeros((), dtype=wd, device=dev)
+
+    fin_v = torch.isfinite(f)
+    fin_g = torch.isfinite(g)
+    ms = (fin_g.all(2) & fin_v.all(2)).to(wd) * tau[None, :, None, None]  # (B,T,H,W) splat weight
+    f_s = torch.where(fin_v, f, zero)
+    g0 = torch.where(fin_g, g, zero)
+    fin_q = torch.isfinite(gq)
+    mq = fin_q.all(1)
+    q0 = torch.where(fin_q, gq, zero)
+
+    # exact constants: one reference per image and channel over every splatting sample
+    with torch.no_grad():
+        sel = (ms > 0).unsqueeze(2)
+        lo = torch.where(sel, f_s, math.inf).amin((1, 3, 4))
+        hi = torch.where(sel, f_s, -math.inf).amax((1, 3, 4))
+        c = lo + (hi - lo) / 2
+        c = torch.where(torch.isfinite(c), c, zero)[:, :, None, None]  # (B,C,1,1)
+    fp = (f_s - c.unsqueeze(1)) * (ms > 0).to(wd).unsqueeze(2)
+    # fallback where nothing slices: the time-weighted average of the finite samples at the pixel
+    wv = fin_v.to(wd) * tau[None, :, None, None, None]
+    wsum = wv.sum(1)
+    fb = torch.where(wsum > 0, (wv * f_s).sum(1) / torch.where(wsum > 0, wsum, 1.0), zero)
+    has_sample = (wsum > 0).all(1)  # (B,H,W)
+
+    if bool(mq.all()):
+        eta1 = recursive_lowpass(q0, sigma_s)
+    else:
+        mqf = mq.to(wd).unsqueeze(1)
+        rt = recursive_lowpass(torch.cat([q0 * mqf, mqf], 1), sigma_s)
+        den = rt[:, Dg:]
+        eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
+    gs = torch.where(mq.unsqueeze(1), q0, eta1)
+
+    S = torch.zeros((B, C, H, W), dtype=wd, device=dev)
+    S0 = torch.zeros((B, 1, H, W), dtype=wd, device=dev)
+    min_d = torch.full((B, H, W), math.inf, dtype=wd, device=dev)
+    eta_low = downsample(eta1, df).unsqueeze(0)
+    eta_full = eta1.unsqueeze(0)
+    alive = torch.ones((1, B), dtype=torch.bool, device=dev)
+    label = torch.zeros((B, H, W), dtype=torch.long, device=dev)
+    frames = [t for t in range(T) if float(tau[t]) > 0]
+
+    for level in range(tree_height):
+        n = eta_low.shape[0]
+        aw = alive.to(wd)[:, :, None, None]
+        resid = gs.unsqueeze(0) - eta_full
+        dist = torch.linalg.vecdot(resid, resid, dim=2)
+        w_raw = torch.exp(dist * -inv_r2)
+        w = w_raw * aw
+        min_d = torch.minimum(min_d, torch.where(alive[:, :, None, None], dist, math.inf).amin(0))
+        low = None
+        for t in frames:  # every frame splats with its own guide onto the query frame's manifolds
+            rt_ = g0[:, t].unsqueeze(0) - eta_full
+            ws = torch.exp(torch.linalg.vecdot(rt_, rt_, dim=2) * -inv_r2) * aw * ms[:, t].unsqueeze(0)
+            part = torch.cat([downsample(ws.unsqueeze(2) * fp[:, t].unsqueeze(0), df),
+                              downsample(ws.unsqueeze(2), df)], 2)
+            low = part if low is None else low + part
+        if low is None:
+            break
+        blurred = _domain_transform(low, eta_low, s_low, r_low)
+        sliced = (w.unsqueeze(2) * upsample(blurred, df, (H, W))).sum(0)
+        S = S + sliced[:, :C]
+        S0 = S0 + sliced[:, C:]
+        if level == tree_height - 1:
+            break
+        onehot = label.unsqueeze(0) == torch.arange(n, device=dev)[:, None, None, None]
+        ohf = (onehot & mq.unsqueeze(0) & alive[:, :, None, None]).to(wd)
+        r = resid.mul_(ohf.unsqueeze(2))
+        scale = torch.linalg.vector_norm(r, ord=math.inf, dim=(2, 3, 4), keepdim=True)
+        r = r.div_(torch.where(scale > 0, scale, 1.0)).flatten(3)
+        v = _dominant_direction(r @ r.transpose(-1, -2), power_iterations)
+        positive = (v.unsqueeze(2) @ r).reshape(n, B, H, W) >= 0
+        theta = (1.0 - w_raw) * ohf
+        pos = positive.to(wd)
+        t_children = torch.stack([theta * (1.0 - pos), theta * pos], 1).flatten(0, 1)
+        alive = alive.repeat_interleave(2, 0) & (t_children.sum((2, 3)) > 0)
+        acc = recursive_lowpass(
+            torch.cat([downsample(t_children.unsqueeze(2) * gs.unsqueeze(0), df),
+                       downsample(t_children.unsqueeze(2), df)], 2), s_low)
+        num, den = acc[:, :, :Dg], acc[:, :, Dg:]
+        eta_low = torch.where(den > 0, num / torch.where(den > 0, den, 1.0), eta_low.repeat_interleave(2, 0))
+        eta_full = upsample(eta_low, df, (H, W))
+        label = 2 * label + torch.gather(positive, 0, label.unsqueeze(0)).squeeze(0).long()
+
+    ok = S0 > 0
+    out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), fb)
+    if adjust_outliers:
+        alpha = torch.exp(min_d * (-0.5 * inv_r2))
+        alpha = torch.where(has_sample, alpha, 1.0).unsqueeze(1)
+        out = fb + alpha * (out - fb)
+    return out.to(out_dtype)
+
+
+def _times(name: str, times, device) -> Tensor:
+    if isinstance(times, numbers.Real) and not isinstance(times, bool):
+        times = [float(times)]
+    if isinstance(times, Tensor):
+        t = times.detach().to("cpu", torch.float64)
+    elif isinstance(times, Sequence) and not isinstance(times, str):
+        if not all(isinstance(x, numbers.Real) and not isinstance(x, bool) for x in times):
+            raise TypeError(f"{name} must be a sequence of numbers or a 1-D tensor")
+        t = torch.tensor([float(x) for x in times], dtype=torch.float64)
+    else:
+        raise TypeError(f"{name} must be a sequence of numbers or a 1-D tensor, got {type(times).__name__}")
+    if t.dim() != 1 or t.numel() == 0:
+        raise ValueError(f"{name} must be a non-empty 1-D sequence of times, got shape {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} must be finite, got {t.tolist()}")
+    return t
+
+
+def time_weights(frame_times: Tensor, query_times: Tensor, sigma_t: float) -> Tensor:
+    """Gaussian weights (Q, T) exp(-(t - q)^2 / 2 sigma_t^2), rescaled so each row's largest is 1.
+
+    The rescaling (a common factor per query) keeps far-away queries from underflowing to all zeros.
+    """
+    d2 = (query_times[:, None] - frame_times[None, :]).square()
+    return torch.exp(-(d2 - d2.amin(1, keepdim=True)) / (2.0 * sigma_t * sigma_t))
+
+
+def _interpolated_guide(guide: Tensor, frame_times: Tensor, q: float) -> Tensor:
+    """Guide at time q: linear between the frames bracketing q (clamped at the ends). -> (B, D, H, W)."""
+    ft = frame_times.tolist()
+    below = [i for i, t in enumerate(ft) if t <= q]
+    above = [i for i, t in enumerate(ft) if t >= q]
+    if not below or not above:
+        i = min(range(len(ft)), key=lambda k: (abs(ft[k] - q), k))
+        return guide[:, i]
+    i0 = max(below, key=lambda k: (ft[k], -k))
+    i1 = min(above, key=lambda k: (ft[k], k))
+    if ft[i1] == ft[i0]:
+        return guide[:, i0]
+    s = (q - ft[i0]) / (ft[i1] - ft[i0])
+    return torch.lerp(guide[:, i0], guide[:, i1], s)
+
+
+def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times, query_times, sigma_s: float,
+                                      sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
+                                      tree_height: int | None = 2,
+                                      guide_sigmas: Sequence[float] | Tensor | None = None,
+                                      adjust_outliers: bool = False, power_iterations: int = 10,
+                                      backend: str = "auto") -> Tensor:
+    r"""Filter a window of frames at query times with Gaussian weights in time.
+
+    See the module docstring for when to use ``"window"`` (static content, fast, the C++ op) or
+    ``"spacetime"`` (moving content: no ghosts; pure PyTorch, T splats per query).
+
+    Args:
+        values: (B, T, C, H, W) frames' values.
+        guide: (B, T, D, H, W) frames' guides, same dtype and device.
+        frame_times: (T,) time of every frame (a sequence or tensor, any order).
+        query_times: (Q,) times to output (a number, sequence or tensor); may fall between frames.
+        sigma_s, sigma_r: spatial (pixels) and range (guide units) standard deviations.
+        sigma_t: temporal standard deviation in the units of the times (> 0; default 1 frame).
+        mode: ``"window"`` or ``"spacetime"``.
+        tree_height, guide_sigmas, adjust_outliers, power_iterations: as
+            :func:`~torchmanifold.ops.adaptive_manifold_filter`.
+        backend: for ``"window"`` as the spatial filter; ``"spacetime"`` accepts ``"auto"`` or ``"torch"``.
+
+    Returns:
+        (B, Q, C, H, W) filtered frames at the query times, dtype of ``values``.
+
+    Raises:
+        TypeError, ValueError: bad shapes, dtypes, devices, times, sigmas, mode or backend.
+
+    Example:
+        >>> v, g = torch.rand(1, 3, 3, 16, 16), torch.rand(1, 3, 4, 16, 16)
+        >>> temporal_adaptive_manifold_filter(v, g, [0, 1, 2], [1.0, 1.5], 4.0, 0.3).shape
+        torch.Size([1, 2, 3, 16, 16])
+    """
+    if not isinstance(values, Tensor) or not isinstance(guide, Tensor):
+        raise TypeError(f"values and guide must be torch.Tensors, got {type(values).__name__} and "
+                        f"{type(guide).__name__}")
+    if values.dim() != 5:
+        raise ValueError(f"values must be (B, T, C, H, W), got shape {tuple(values.shape)}")
+    if guide.dim() != 5:
+        raise ValueError(f"guide must be (B, T, D, H, W), got shape {tuple(guide.shape)}")
+    if values.shape[:2] != guide.shape[:2] or values.shape[3:] != guide.shape[3:]:
+        raise ValueError(f"values {tuple(values.shape)} and guide {tuple(guide.shape)} must share B, T, H, W")
+    if values.dtype not in _FLOATS:
+        raise TypeError(f"values must be float16, bfloat16, float32 or float64, got {values.dtype}")
+    if guide.dtype != values.dtype:
+        raise ValueError(f"guide must have the dtype of values ({values.dtype}), got {guide.dtype}")
+    if guide.device != values.device:
+        raise ValueError(f"guide must be on the device of values ({values.device}), got {guide.device}")
+    ft = _times("frame_times", frame_times, values.device)
+    qt = _times("query_times", query_times, values.device)
+    if ft.numel() != values.shape[1]:
+        raise ValueError(f"frame_times must have one time per frame (T={values.shape[1]}), got {ft.numel()}")
+    sigma_s = _check_sigma("sigma_s", sigma_s)
+    sigma_r = _check_sigma("sigma_r", sigma_r)
+    sigma_t = _check_sigma("sigma_t", sigma_t)
+    if mode not in _MODES:
+        raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
+    if backend not in _BACKENDS:
+        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+    if mode == "spacetime" and backend == "cpp":
+        raise ValueError("backend='cpp' is not available for mode='spacetime' (pure PyTorch); use 'auto' or 'torch'")
+    if tree_height is None:
+        tree_height = automatic_tree_height(sigma_s, sigma_r)
+    tree_height = _check_int("tree_height", tree_height, 1)
+    power_iterations = _check_int("power_iterations", power_iterations, 0)
+
+    B, T, C, H, W = values.shape
+    work = torch.float64 if values.dtype == torch.float64 else torch.float32
+    v, g = values.to(work), guide.to(work)
+    if guide_sigmas is not None:
+        g = g * _guide_scales(guide_sigmas, sigma_r, g.shape[2]).to(g.device, work)[:, None, None]
+    tw = time_weights(ft, qt, sigma_t).to(v.device, work)  # (Q, T)
+
+    if mode == "window":
+        fin_v, fin_g = torch.isfinite(v), torch.isfinite(g)
+        wv = fin_v.to(work) * tw[None, :, :, None, None, None]  # (B,Q,T,C,H,W) finite samples only
+        wg = fin_g.to(work) * tw[None, :, :, None, None, None]
+        vz = torch.where(fin_v, v, 0.0).unsqueeze(1)
+        gz = torch.where(fin_g, g, 0.0).unsqueeze(1)
+        # no finite sample at a pixel -> NaN, which the spatial filter ignores (never spreads)
+        va = (wv * vz).sum(2) / wv.sum(2)
+        ga = (wg * gz).sum(2) / wg.sum(2)
+        out = adaptive_manifold_filter(va.flatten(0, 1), ga.flatten(0, 1), sigma_s, sigma_r, tree_height,
+                                       None, adjust_outliers, power_iterations, backend)
+        out = out.reshape(B, -1, C, H, W)
+    else:
+        outs = []
+        for qi, q in enumerate(qt.tolist()):
+            gq = _interpolated_guide(g, ft, q)
+            outs.append(spacetime_adaptive_manifold_torch(v, g, tw[qi], gq, sigma_s, sigma_r, tree_height,
+                                                          power_iterations, adjust_outliers))
+        out = torch.stack(outs, 1)
+    return out.to(values.dtype)
+
+
+class TemporalAdaptiveManifoldFilter(nn.Module):
+    r"""Module form of :func:`temporal_adaptive_manifold_filter`; stores the hyper-parameters.
+
+    Shape:
+        - values: (B, T, C, H, W), guide: (B, T, D, H, W), frame_times: (T,), query_times: (Q,)
+        - output: (B, Q, C, H, W)
+
+    Example:
+        >>> f = TemporalAdaptiveManifoldFilter(4.0, 0.3, mode="spacetime")
+        >>> f(torch.rand(1, 3, 3, 16, 16), torch.rand(1, 3, 4, 16, 16), [0, 1, 2], [1]).shape
+        torch.Size([1, 1, 3, 16, 16])
+    """
+
+    def __init__(self, sigma_s: float, sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
+                 tree_height: int | None = 2, guide_sigmas: Sequence[float] | Tensor | None = None,
+                 adjust_outliers: bool = False, power_iterations: int = 10, backend: str = "auto") -> None:
+        super().__init__()
+        self.sigma_s = _check_sigma("sigma_s", sigma_s)
+        self.sigma_r = _check_sigma("sigma_r", sigma_r)
+        self.sigma_t = _check_sigma("sigma_t", sigma_t)
+        if mode not in _MODES:
+            raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
+        self.mode = mode
+        self.tree_height = None if tree_height is None else _check_int("tree_height", tree_height, 1)
+        self.guide_sigmas = (guide_sigmas.detach().clone() if isinstance(guide_sigmas, Tensor)
+                             else None if guide_sigmas is None else tuple(float(s) for s in guide_sigmas))
+        self.adjust_outliers = bool(adjust_outliers)
+        self.power_iterations = _check_int("power_iterations", power_iterations, 0)
+        if backend not in _BACKENDS:
+            raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+        self.backend = backend
+
+    def forward(self, values: Tensor, guide: Tensor, frame_times, query_times) -> Tensor:
+        return temporal_adaptive_manifold_filter(values, guide, frame_times, query_times, self.sigma_s,
+                                                 self.sigma_r, self.sigma_t, self.mode, self.tree_height,
+                                                 self.guide_sigmas, self.adjust_outliers,
+                                                 self.power_iterations, self.backend)
+
+    def extra_repr(self) -> str:
+        sig = None if self.guide_sigmas is None else tuple(float(s) for s in self.guide_sigmas)
+        return (f"sigma_s={self.sigma_s}, sigma_r={self.sigma_r}, sigma_t={self.sigma_t}, mode={self.mode!r}, "
+                f"tree_height={self.tree_height}, guide_sigmas={sig}, adjust_outliers={self.adjust_outliers}, "
+                f"power_iterations={self.power_iterations}, backend={self.backend!r}")
