@@ -1,0 +1,145 @@
+// Resampling between the full-resolution image and the low-resolution grid the manifolds live
+// on: area (box) downsampling by df and bilinear upsampling at pixel centres
+// (align_corners=False, edges clamped), computed a full-resolution row at a time.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+namespace torchmanifold {
+namespace cpu {
+
+// df = max(1, 2^floor(log2(min(sigma_s / 4, 256 sigma_r)))): sigma_s/df lands in [4, 8).
+inline int64_t downsample_factor(double sigma_s, double sigma_r) {
+  const double m = std::min(sigma_s / 4.0, 256.0 * sigma_r);
+  if (!(m >= 2.0)) return 1;
+  const int e = std::min(30, static_cast<int>(std::floor(std::log2(m))));
+  return int64_t(1) << e;
+}
+
+// exp(x) for x <= 0 without a libm call, so the weight loops vectorise: x = n ln2 + r,
+// |r| <= ln2/2, Taylor polynomial in r, times 2^n built in the exponent bits. Relative error
+// ~1e-7 (float) / ~1e-16 (double); underflows to exactly 0 below the smallest normal.
+inline float exp_nonpositive(float x) {
+  x = x < -87.0f ? -87.5f : x;
+  const float shifter = 12582912.0f;  // 1.5 * 2^23: rounds to nearest integer in the low bits
+  const float t = x * 1.44269504088896341f + shifter;
+  const float n = t - shifter;
+  const float r = (x - n * 0.693145751953125f) - n * 1.42860682030941723212e-6f;
+  float p = 1.0f / 5040.0f;
+  p = p * r + 1.0f / 720.0f;
+  p = p * r + 1.0f / 120.0f;
+  p = p * r + 1.0f / 24.0f;
+  p = p * r + 1.0f / 6.0f;
+  p = p * r + 0.5f;
+  p = p * r + 1.0f;
+  p = p * r + 1.0f;
+  int32_t ti;
+  std::memcpy(&ti, &t, sizeof ti);
+  const int32_t bits = (ti - 0x4B400000 + 127) << 23;  // (n + 127) << 23
+  float scale;
+  std::memcpy(&scale, &bits, sizeof scale);
+  return x < -87.0f ? 0.0f : p * scale;
+}
+
+inline double exp_nonpositive(double x) {
+  x = x < -708.0 ? -708.5 : x;
+  const double shifter = 6755399441055744.0;  // 1.5 * 2^52
+  const double t = x * 1.4426950408889634074 + shifter;
+  const double n = t - shifter;
+  const double r = (x - n * 0.6931471805598903) - n * 5.497923018708371e-14;
+  double p = 1.0 / 6227020800.0;
+  p = p * r + 1.0 / 479001600.0;
+  p = p * r + 1.0 / 39916800.0;
+  p = p * r + 1.0 / 3628800.0;
+  p = p * r + 1.0 / 362880.0;
+  p = p * r + 1.0 / 40320.0;
+  p = p * r + 1.0 / 5040.0;
+  p = p * r + 1.0 / 720.0;
+  p = p * r + 1.0 / 120.0;
+  p = p * r + 1.0 / 24.0;
+  p = p * r + 1.0 / 6.0;
+  p = p * r + 0.5;
+  p = p * r + 1.0;
+  p = p * r + 1.0;
+  int64_t ti;
+  std::memcpy(&ti, &t, sizeof ti);
+  const int64_t bits = (ti - 0x4338000000000000LL + 1023) << 52;
+  double scale;
+  std::memcpy(&scale, &bits, sizeof scale);
+  return x < -708.0 ? 0.0 : p * scale;
+}
+
+// Bilinear taps for one axis: output index o reads (1-f) * in[i0] + f * in[i1].
+// Source coordinate u = (o + 0.5) / df - 0.5 clamped to [0, in - 1], i.e. torch's
+// interpolate(scale_factor=df, align_corners=False) cropped to the full-res size.
+template <typename T>
+struct Taps {
+  std::vector<int64_t> i0, i1;
+  std::vector<T> f;
+
+  Taps(int64_t out, int64_t in, int64_t df) : i0(out), i1(out), f(out) {
+    const T scale = T(1) / static_cast<T>(df);
+    for (int64_t o = 0; o < out; ++o) {
+      T src = scale * (static_cast<T>(o) + T(0.5)) - T(0.5);
+      if (src < T(0)) src = T(0);
+      int64_t a = static_cast<int64_t>(src);
+      if (a > in - 1) a = in - 1;
+      i0[o] = a;
+      i1[o] = a < in - 1 ? a + 1 : a;
+      f[o] = a < in - 1 ? src - static_cast<T>(a) : T(0);
+    }
+  }
+};
+
+// Upsample `planes` low-res (hl, wl) planes at full-res row `i` into out (planes, w).
+// tmp must hold planes * wl values.
+template <typename T>
+inline void upsample_row(const T* low, int64_t planes, int64_t hl, int64_t wl, int64_t i,
+                         int64_t w, const Taps<T>& ty, const Taps<T>& tx, T* tmp, T* out) {
+  const int64_t y0 = ty.i0[i], y1 = ty.i1[i];
+  const T fy = ty.f[i], gy = T(1) - fy;
+  const int64_t lp = hl * wl;
+  for (int64_t p = 0; p < planes; ++p) {
+    const T* r0 = low + p * lp + y0 * wl;
+    const T* r1 = low + p * lp + y1 * wl;
+    T* t = tmp + p * wl;
+    for (int64_t j = 0; j < wl; ++j) t[j] = gy * r0[j] + fy * r1[j];
+  }
+  const int64_t* x0 = tx.i0.data();
+  const int64_t* x1 = tx.i1.data();
+  const T* fx = tx.f.data();
+  for (int64_t p = 0; p < planes; ++p) {
+    const T* t = tmp + p * wl;
+    T* o = out + p * w;
+    for (int64_t j = 0; j < w; ++j) o[j] = (T(1) - fx[j]) * t[x0[j]] + fx[j] * t[x1[j]];
+  }
+}
+
+// acc[bj] += sum of x[j] over the block's columns j in [bj*df, min(w, (bj+1)*df)).
+template <typename T>
+inline void block_sum_row(const T* x, int64_t w, int64_t df, int64_t wl, T* acc) {
+  for (int64_t bj = 0; bj < wl; ++bj) {
+    const int64_t j0 = bj * df, j1 = std::min(w, j0 + df);
+    T s = T(0);
+    for (int64_t j = j0; j < j1; ++j) s += x[j];
+    acc[bj] += s;
+  }
+}
+
+// acc[bj] += sum of a[j] * b[j] over the block's columns.
+template <typename T>
+inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t wl, T* acc) {
+  for (int64_t bj = 0; bj < wl; ++bj) {
+    const int64_t j0 = bj * df, j1 = std::min(w, j0 + df);
+    T s = T(0);
+    for (int64_t j = j0; j < j1; ++j) s += a[j] * b[j];
+    acc[bj] += s;
+  }
+}
+
+}  // namespace cpu
+}  // namespace torchmanifold

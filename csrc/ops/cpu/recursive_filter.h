@@ -1,0 +1,154 @@
+// First-order recursive filters on planar images, in place:
+//  * lowpass_*: h(x; sigma) with one constant coefficient a = exp(-sqrt2 / sigma), the low-pass
+//    that builds the manifolds (it reproduces constants exactly);
+//  * domain_transform_*: the edge-aware blur whose coefficient between two neighbours depends on
+//    how far apart the manifold is there (one coefficient array shared by every channel).
+// Each filters rows (forward then backward), then columns (forward then backward).
+// Work is split over lines (rows) or column strips; every output element is computed by the same
+// sequence of operations whatever the split, so results do not depend on the thread count.
+#pragma once
+
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+namespace torchmanifold {
+namespace cpu {
+
+// Column strips are this wide: unit-stride inner loops that vectorise, a strip of a 1000-row
+// plane stays in L2 for the backward sweep.
+constexpr int64_t kStrip = 64;
+
+inline int64_t grain_for(int64_t work_per_item) {
+  return std::max<int64_t>(1, 32768 / std::max<int64_t>(1, work_per_item));
+}
+
+// ---- constant-coefficient low-pass h ---------------------------------------------------------
+
+template <typename T>
+inline void lowpass_row(T* y, int64_t n, T a) {
+  for (int64_t j = 1; j < n; ++j) y[j] += a * (y[j - 1] - y[j]);
+  for (int64_t j = n - 2; j >= 0; --j) y[j] += a * (y[j + 1] - y[j]);
+}
+
+// Columns j in [j0, j1) of one (h, w) plane.
+template <typename T>
+inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a) {
+  for (int64_t i = 1; i < h; ++i) {
+    T* y = p + i * w;
+    const T* prev = y - w;
+    for (int64_t j = j0; j < j1; ++j) y[j] += a * (prev[j] - y[j]);
+  }
+  for (int64_t i = h - 2; i >= 0; --i) {
+    T* y = p + i * w;
+    const T* next = y + w;
+    for (int64_t j = j0; j < j1; ++j) y[j] += a * (next[j] - y[j]);
+  }
+}
+
+// h on `planes` contiguous (h, w) planes, in place.
+template <typename T>
+void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma) {
+  const T a = static_cast<T>(std::exp(-std::sqrt(2.0) / sigma));
+  if (w > 1) {
+    at::parallel_for(0, planes * h, grain_for(4 * w), [&](int64_t b, int64_t e) {
+      for (int64_t line = b; line < e; ++line) lowpass_row(data + line * w, w, a);
+    });
+  }
+  if (h > 1) {
+    const int64_t strips = (w + kStrip - 1) / kStrip;
+    at::parallel_for(0, planes * strips, grain_for(4 * h * kStrip), [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t) {
+        const int64_t plane = t / strips, s = t % strips;
+        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
+        lowpass_cols(data + plane * h * w, h, w, j0, j1, a);
+      }
+    });
+  }
+}
+
+// ---- domain transform -----------------------------------------------------------------------
+
+// Coefficients steered by a manifold eta (d planes of (h, w)):
+//   ah[i*w + j] links (i, j) and (i, j+1); av[i*w + j] links (i, j) and (i+1, j);
+//   a = exp(-sqrt2/ss * sqrt(1 + (ss/sr)^2 |d eta|^2)).
+template <typename T>
+void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w, double ss,
+                                   double sr, T* ah, T* av) {
+  const int64_t plane = h * w;
+  const T k = static_cast<T>((ss / sr) * (ss / sr));
+  const T c = static_cast<T>(-std::sqrt(2.0) / ss);
+  at::parallel_for(0, h, grain_for(4 * w * (d + 1)), [&](int64_t b, int64_t e) {
+    for (int64_t i = b; i < e; ++i) {
+      T* rh = ah + i * w;
+      T* rv = av + i * w;
+      const bool has_next = i + 1 < h;
+      for (int64_t j = 0; j < w; ++j) {
+        rh[j] = T(0);
+        rv[j] = T(0);
+      }
+      for (int64_t ch = 0; ch < d; ++ch) {
+        const T* row = eta + ch * plane + i * w;
+        for (int64_t j = 0; j + 1 < w; ++j) {
+          const T dx = row[j + 1] - row[j];
+          rh[j] += dx * dx;
+        }
+        if (has_next) {
+          const T* nrow = row + w;
+          for (int64_t j = 0; j < w; ++j) {
+            const T dy = nrow[j] - row[j];
+            rv[j] += dy * dy;
+          }
+        }
+      }
+      for (int64_t j = 0; j < w; ++j) {
+        rh[j] = std::exp(c * std::sqrt(T(1) + k * rh[j]));
+        rv[j] = std::exp(c * std::sqrt(T(1) + k * rv[j]));
+      }
+    }
+  });
+}
+
+// Blur `planes` (h, w) planes in place with coefficients from domain_transform_coefficients.
+template <typename T>
+void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, const T* ah,
+                             const T* av) {
+  if (w > 1) {
+    at::parallel_for(0, planes * h, grain_for(6 * w), [&](int64_t b, int64_t e) {
+      for (int64_t line = b; line < e; ++line) {
+        const int64_t i = line % h;
+        T* y = data + line * w;
+        const T* a = ah + i * w;
+        for (int64_t j = 1; j < w; ++j) y[j] += a[j - 1] * (y[j - 1] - y[j]);
+        for (int64_t j = w - 2; j >= 0; --j) y[j] += a[j] * (y[j + 1] - y[j]);
+      }
+    });
+  }
+  if (h > 1) {
+    const int64_t strips = (w + kStrip - 1) / kStrip;
+    at::parallel_for(0, planes * strips, grain_for(6 * h * kStrip), [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t) {
+        const int64_t plane = t / strips, s = t % strips;
+        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
+        T* p = data + plane * h * w;
+        for (int64_t i = 1; i < h; ++i) {
+          T* y = p + i * w;
+          const T* prev = y - w;
+          const T* a = av + (i - 1) * w;
+          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (prev[j] - y[j]);
+        }
+        for (int64_t i = h - 2; i >= 0; --i) {
+          T* y = p + i * w;
+          const T* next = y + w;
+          const T* a = av + i * w;
+          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (next[j] - y[j]);
+        }
+      }
+    });
+  }
+}
+
+}  // namespace cpu
+}  // namespace torchmanifold

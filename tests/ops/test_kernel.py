@@ -1,0 +1,215 @@
+"""The C++ CPU kernel of ``torchmanifold::adaptive_manifold`` against the pure-PyTorch reference.
+
+The reference (torchmanifold/ops/_reference.py) is a second, independent implementation of the
+same fixed algorithm; the kernel must agree with it to rounding (float64) and to float32 noise.
+Also: thread-count invariance, OpenMP really used, hazards, errors.
+"""
+import itertools
+import os
+
+import pytest
+import torch
+
+import torchmanifold
+from torchmanifold.ops import adaptive_manifold_torch
+
+op = torch.ops.torchmanifold.adaptive_manifold
+
+
+def _rel_err(a, b):
+    return ((a - b).abs().max() / b.abs().max().clamp_min(1e-30)).item()
+
+
+def _inputs(B, C, D, H, W, dtype, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    # Smooth-ish values and guide with edges, so the tree really splits into clusters.
+    f = torch.rand(B, C, H, W, generator=gen, dtype=torch.float64)
+    g = torch.rand(B, D, H, W, generator=gen, dtype=torch.float64)
+    g[..., : H // 2, :] += 1.0
+    return f.to(dtype), g.to(dtype)
+
+
+SHAPES = [  # (B, C, D, H, W)
+    (1, 1, 1, 1, 1),
+    (1, 3, 3, 23, 31),
+    (2, 1, 1, 17, 9),
+    (1, 7, 17, 20, 21),
+    (1, 3, 64, 9, 13),
+    (2, 3, 3, 1, 19),
+]
+SIGMAS = [(8.0, 0.3), (3.0, 0.1), (20.0, 0.6)]
+
+
+@pytest.mark.parametrize("shape", SHAPES, ids=lambda s: "x".join(map(str, s)))
+@pytest.mark.parametrize("sigmas", SIGMAS, ids=lambda s: f"s{s[0]}r{s[1]}")
+def test_matches_reference_float64(shape, sigmas):
+    f, g = _inputs(*shape, torch.float64)
+    for height, adjust in itertools.product([1, 2, 3, 4], [False, True]):
+        if shape[0] * shape[1] * shape[3] * shape[4] * (2**height) > 40000:
+            continue  # keep the python reference quick
+        a = op(f, g, sigmas[0], sigmas[1], height, 3, adjust)
+        b = adaptive_manifold_torch(f, g, sigmas[0], sigmas[1], height, 3, adjust)
+        assert a.shape == f.shape and a.dtype == torch.float64
+        assert _rel_err(a, b) < 1e-10, (height, adjust)
+
+
+@pytest.mark.parametrize("height", [1, 2, 3])
+@pytest.mark.parametrize("D", [1, 3, 17])
+def test_matches_reference_float32(height, D):
+    f, g = _inputs(2, 3, D, 24, 29, torch.float32, seed=D)
+    a = op(f, g, 10.0, 0.4, height, 3, True)
+    b = adaptive_manifold_torch(f, g, 10.0, 0.4, height, 3, True)
+    assert a.dtype == torch.float32
+    assert _rel_err(a, b) < 1e-5
+
+
+@pytest.mark.parametrize("iterations", [0, 1, 10])
+def test_power_iterations_match(iterations):
+    f, g = _inputs(1, 3, 5, 21, 22, torch.float64, seed=3)
+    a = op(f, g, 6.0, 0.2, 3, iterations, False)
+    b = adaptive_manifold_torch(f, g, 6.0, 0.2, 3, iterations, False)
+    assert _rel_err(a, b) < 1e-10
+
+
+def test_batch_equals_images_one_by_one():
+    f, g = _inputs(3, 3, 4, 19, 25, torch.float64, seed=5)
+    whole = op(f, g, 8.0, 0.3, 3, 3, True)
+    for b in range(3):
+        single = op(f[b : b + 1], g[b : b + 1], 8.0, 0.3, 3, 3, True)
+        assert torch.equal(whole[b : b + 1], single)
+
+
+def test_noncontiguous_inputs():
+    f, g = _inputs(1, 3, 4, 21, 18, torch.float64, seed=6)
+    ft = f.transpose(2, 3).contiguous().transpose(2, 3)  # same values, other strides
+    gt = g.transpose(2, 3).contiguous().transpose(2, 3)
+    assert not ft.is_contiguous()
+    assert torch.equal(op(ft, gt, 8.0, 0.3, 2, 3, False), op(f, g, 8.0, 0.3, 2, 3, False))
+
+
+@pytest.fixture
+def threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_thread_count_invariance(threads, dtype):
+    f, g = _inputs(1, 3, 17, 131, 157, dtype, seed=7)
+    g[0, 0, 40:60, 50:70] = float("nan")  # exercise the sanitising path too
+    results = []
+    for n in (1, 2, 3):
+        torch.set_num_threads(n)
+        results.append(op(f, g, 12.0, 0.3, 3, 3, True))
+    assert torch.equal(results[0], results[1])
+    assert torch.equal(results[0], results[2])
+
+
+def test_built_with_openmp_and_runs_parallel(threads):
+    assert torchmanifold.build_info()["openmp"] is True
+    if os.cpu_count() < 2:
+        pytest.skip("needs 2 cores")
+    torch.set_num_threads(2)
+    f, g = _inputs(1, 3, 17, 400, 400, torch.float32, seed=8)
+    op(f, g, 16.0, 0.4, 2, 3, False)  # warm the thread pool
+
+    def cpu_ticks():
+        ticks = {}
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+                ticks[tid] = int(fields[11]) + int(fields[12])  # utime + stime
+            except OSError:
+                pass
+        return ticks
+
+    before = cpu_ticks()
+    for _ in range(3):
+        op(f, g, 16.0, 0.4, 3, 3, False)
+    after = cpu_ticks()
+    busy = [t for t in after if after[t] - before.get(t, 0) > 0]
+    assert len(busy) >= 2, "the op ran on one thread only"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_hazards_give_finite_output_and_match(dtype):
+    f, g = _inputs(1, 3, 4, 30, 33, dtype, seed=9)
+    cases = {}
+    fv = f.clone()
+    fv[0, 1, 5, 5] = float("nan")
+    fv[0, 0, 7, 9] = float("inf")
+    cases["nonfinite values"] = (fv, g, 0.3)
+    gv = g.clone()
+    gv[0, 2, 10, 10] = float("nan")
+    gv[0, 0, 3, 3] = -float("inf")
+    cases["nonfinite guide"] = (f, gv, 0.3)
+    cases["constant guide"] = (f, torch.full_like(g, 0.5), 0.3)
+    cases["zero guide"] = (f, torch.zeros_like(g), 0.3)
+    cases["tiny sigma_r"] = (f, g, 1e-4)
+    cases["128-channel guide"] = (f, torch.rand(1, 128, 30, 33, dtype=dtype), 0.2)
+    for name, (fi, gi, sr) in cases.items():
+        for adjust in (False, True):
+            a = op(fi, gi, 8.0, sr, 3, 3, adjust)
+            assert torch.isfinite(a).all(), name
+            b = adaptive_manifold_torch(fi, gi, 8.0, sr, 3, 3, adjust)
+            tol = 1e-10 if dtype == torch.float64 else 1e-5
+            assert _rel_err(a, b) < tol, name
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_constant_values_exact(dtype):
+    gen = torch.Generator().manual_seed(10)
+    g = torch.randn(2, 6, 27, 31, generator=gen).to(dtype) * 3
+    f = torch.empty(2, 3, 27, 31, dtype=dtype)
+    f[:, 0], f[:, 1], f[:, 2] = 0.1, -7.25, 1e6
+    for height, adjust in [(1, False), (3, True), (4, False)]:
+        assert torch.equal(op(f, g, 9.0, 0.2, height, 3, adjust), f)
+
+
+def test_far_from_every_manifold_returns_input():
+    # Every pixel so far from every manifold that all weights underflow: S0 == 0 -> input.
+    f, _ = _inputs(1, 3, 1, 12, 12, torch.float64, seed=11)
+    g = torch.zeros(1, 1, 12, 12, dtype=torch.float64)
+    g[..., ::2, :] = 1e3
+    g[..., 1::2, :] = -1e3
+    out = op(f, g, 4.0, 1e-3, 1, 3, False)
+    assert torch.isfinite(out).all()
+    assert torch.equal(out, adaptive_manifold_torch(f, g, 4.0, 1e-3, 1, 3, False))
+
+
+def _good():
+    return torch.rand(1, 3, 8, 8), torch.rand(1, 2, 8, 8)
+
+
+@pytest.mark.parametrize(
+    "mutate, exc, words",
+    [
+        (lambda a: {**a, "values": a["values"][0]}, ValueError, "values"),
+        (lambda a: {**a, "guide": a["guide"][0]}, ValueError, "guide"),
+        (lambda a: {**a, "guide": torch.rand(1, 2, 8, 9)}, ValueError, "guide"),
+        (lambda a: {**a, "guide": torch.rand(1, 0, 8, 8)}, ValueError, "guide"),
+        (lambda a: {**a, "values": a["values"].double()}, TypeError, "guide"),
+        (lambda a: {**a, "values": a["values"].int(), "guide": a["guide"].int()}, TypeError, "values"),
+        (lambda a: {**a, "sigma_s": 0.0}, ValueError, "sigma_s"),
+        (lambda a: {**a, "sigma_s": float("nan")}, ValueError, "sigma_s"),
+        (lambda a: {**a, "sigma_r": -1.0}, ValueError, "sigma_r"),
+        (lambda a: {**a, "sigma_r": float("inf")}, ValueError, "sigma_r"),
+        (lambda a: {**a, "tree_height": 0}, ValueError, "tree_height"),
+        (lambda a: {**a, "power_iterations": -1}, ValueError, "power_iterations"),
+    ],
+)
+def test_bad_input(mutate, exc, words):
+    f, g = _good()
+    args = dict(values=f, guide=g, sigma_s=4.0, sigma_r=0.3, tree_height=2, power_iterations=3,
+                adjust_outliers=False)
+    args = mutate(args)
+    with pytest.raises(exc, match=words):
+        op(args["values"], args["guide"], args["sigma_s"], args["sigma_r"], args["tree_height"],
+           args["power_iterations"], args["adjust_outliers"])
+
+
+def test_empty_image():
+    out = op(torch.rand(1, 3, 0, 5), torch.rand(1, 2, 0, 5), 4.0, 0.3, 2, 3, False)
+    assert out.shape == (1, 3, 0, 5)
