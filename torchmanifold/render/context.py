@@ -39,3 +39,13 @@ def create_context(new: bool = False) -> moderngl.Context:
     if not new:
         _default_ctx = ctx
     return ctx
+
+
+def make_current(ctx: moderngl.Context) -> None:
+    """Make ``ctx`` the current GL context of this thread and leave it current.
+
+    Another GL user (pyrender, a second context, a window) may have switched contexts. moderngl's
+    ``with ctx:`` would restore the previous (possibly no) context on exit, which breaks every later
+    plain moderngl call, so only the enter half is used.
+    """
+    ctx.__enter__()

@@ -13,7 +13,7 @@ import moderngl
 import numpy as np
 import torch
 
-from torchmanifold.render.context import create_context
+from torchmanifold.render.context import create_context, make_current
 from torchmanifold.render.frames import RenderResult
 from torchmanifold.render.scene import FEATURE_NAMES, Scene, pack_scene
 
@@ -75,6 +75,7 @@ class PathTracer:
         if self.ctx.version_code < 430:
             raise ValueError(f"ctx must support OpenGL 4.3 compute shaders, got version {self.ctx.version_code}")
 
+        make_current(self.ctx)
         packed = pack_scene(scene)
         self.has_mesh = packed["has_mesh"]
         self.n_lights = packed["n_lights"]
@@ -159,8 +160,8 @@ class PathTracer:
             tw, th = (tile, tile) if isinstance(tile, int) else tuple(tile)
             tw, th = _check_int("tile width", tw, 1), _check_int("tile height", th, 1)
         n = len(times_np)
-        with self.ctx:  # make our context current: another GL user (a window, pyrender) may have switched
-            self._dispatch(times_np, spp, seed, sample_offset, tw, th)
+        make_current(self.ctx)
+        self._dispatch(times_np, spp, seed, sample_offset, tw, th)
 
     def _dispatch(self, times_np, spp, seed, sample_offset, tw, th) -> None:
         n = len(times_np)
@@ -207,9 +208,9 @@ class PathTracer:
                 self._out[key].read_into(arr, size=arr.nbytes)
             return torch.from_numpy(arr)
 
-        with self.ctx:
-            aux = grab("aux", 3)
-            color, feats, emission = grab("color", 3), grab("features", d), grab("emission", 3)
+        make_current(self.ctx)
+        aux = grab("aux", 3)
+        color, feats, emission = grab("color", 3), grab("features", d), grab("emission", 3)
         return RenderResult(
             color=color.div_(spp),
             features=feats.div_(spp),
@@ -265,6 +266,7 @@ class PathTracer:
 
     def release(self) -> None:
         """Free the GL objects (the context stays)."""
+        make_current(self.ctx)
         for b in [*self._scene_bufs.values(), *self._out.values()]:
             b.release()
         if self._times_buf is not None:
