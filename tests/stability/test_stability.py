@@ -88,3 +88,5 @@ def test_every_family_is_registered():
     families = {m.family for m in METHODS}
     assert {"gaussian", "joint-bilateral", "opencv-am", "oidn", "ours"} <= families
     assert any(m.temporal and m.params.get("mode") == "spacetime" for m in METHODS)
+    missing = [f"{m.name}: {m.why}" for m in METHODS if m.family == "ours" and not m.available]
+    assert not missing, "our filter must be importable for the suite: " + "; ".join(missing)
