@@ -43,7 +43,7 @@ def scenes(quick):
     if harness.DATA.is_dir():
         out["mitsuba"] = harness.load_mitsuba([5, 6] if quick else [0, 3, 6, 9], crop=64 if quick else None)
     if harness.tracer_available()[0]:
-        out["builtin"] = harness.render_builtin(*((32, 2, 16) if quick else (64, 4, 256)), more_spp=())
+        out["builtin"] = harness.builtin_dataset(quick)
     return out
 
 

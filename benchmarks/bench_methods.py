@@ -35,11 +35,7 @@ def datasets(quick):
         out["mitsuba"] = ds
     ok, _ = harness.tracer_available()
     if ok:
-        t0 = time.perf_counter()
-        size, frames, ref_spp, more = (32, 2, 16, (2, 4)) if quick else (64, 4, 256, (2, 4, 8, 16))
-        ds = harness.render_builtin(size, frames, ref_spp, more)
-        ds.render_s = time.perf_counter() - t0
-        out["builtin"] = ds
+        out["builtin"] = harness.builtin_dataset(quick)
     return out
 
 

@@ -114,9 +114,41 @@ def tracer_available() -> tuple[bool, str]:
         return False, f"{type(exc).__name__}: {exc}"
 
 
+def builtin_dataset(quick: bool) -> Dataset:
+    """The built-in scene at the size every benchmark file uses (so they share the render cache)."""
+    size, frames, ref_spp, more = (32, 2, 16, (2, 4)) if quick else (64, 4, 256, (2, 4, 8, 16))
+    return render_builtin(size, frames, ref_spp, more)
+
+
+def _render_key(*args) -> str:
+    """Cache key: the arguments and the tracer's sources (a changed shader or scene renders again)."""
+    import hashlib
+
+    h = hashlib.sha256(repr(args).encode())
+    for path in sorted((ROOT / "torchmanifold" / "render").rglob("*")):
+        if path.is_file() and path.suffix in (".py", ".comp", ".glsl", ".toml"):
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), seed: int = 0) -> Dataset:
     """The tracer's built-in scene: 1-spp frames with every feature, a ``ref_spp`` reference, and plain path
-    tracing at ``more_spp`` samples, each with its measured render time per frame."""
+    tracing at ``more_spp`` samples, each with its measured render time per frame.
+
+    Cached in ``results/cache/`` (never committed) so the benchmark files of one run render it once."""
+    cache = RESULTS / "cache" / f"builtin-{_render_key(size, frames, ref_spp, tuple(more_spp), seed)}.pt"
+    if cache.exists():
+        d = torch.load(cache)
+        return Dataset("builtin", d["color"], d["features"], d["names"], d["reference"], d["times"], d["spp"])
+    ds = _render_builtin(size, frames, ref_spp, more_spp, seed)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    (cache.parent / ".gitignore").write_text("*\n")
+    torch.save({"color": ds.color, "features": ds.features, "names": ds.names, "reference": ds.reference,
+                "times": ds.times, "spp": ds.spp_frames}, cache)
+    return ds
+
+
+def _render_builtin(size, frames, ref_spp, more_spp, seed) -> Dataset:
     from torchmanifold.render import PathTracer, create_context, default_scene
 
     tracer = PathTracer(default_scene(), width=size, height=size, ctx=create_context())
