@@ -1,0 +1,110 @@
+"""The 2D layer of the demo: panel labels, stats, the error-vs-iteration plot and the help screen.
+
+Drawn with PIL into one RGBA image the size of the window (no imgui needed, works headless), then
+uploaded as a texture and blended over the panels.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+#: Line colours of the three methods in the plot (and their labels).
+CURVE_COLOURS = {"raw": (170, 170, 170), "gaussian": (90, 160, 255), "ours": (255, 150, 40)}
+TEXT = (235, 235, 235, 255)
+DIM = (150, 150, 150, 255)
+
+
+@lru_cache(maxsize=8)
+def font(size: int = 13) -> ImageFont.ImageFont:
+    return ImageFont.load_default(size=size)
+
+
+def draw_plot(
+    draw: ImageDraw.ImageDraw,
+    rect: tuple[int, int, int, int],
+    curves: dict[str, list[tuple[int, float]]],
+    title: str = "PSNR (dB, clamped sRGB) vs iteration",
+) -> None:
+    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h)."""
+    x0, y0, w, h = rect
+    draw.rectangle((x0, y0, x0 + w, y0 + h), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
+    draw.text((x0 + 6, y0 + 3), title, font=font(12), fill=TEXT)
+    pts = [p for c in curves.values() for p in c if np.isfinite(p[1])]
+    left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
+    if not pts:
+        draw.text((left, top + 10), "no reference: no error curve", font=font(12), fill=DIM)
+        return
+    max_it = max(2, max(p[0] for p in pts))
+    lo, hi = min(p[1] for p in pts), max(p[1] for p in pts)
+    lo, hi = np.floor(lo - 0.5), np.ceil(hi + 0.5)
+
+    def to_px(it: float, val: float) -> tuple[float, float]:
+        # log x so the fast early gains and the slow tail are both readable
+        fx = np.log1p(it - 1) / np.log1p(max_it - 1) if max_it > 1 else 0.0
+        return left + fx * (right - left), bottom - (val - lo) / (hi - lo) * (bottom - top)
+
+    draw.line((left, top, left, bottom, right, bottom), fill=(120, 120, 130, 255))
+    for val in np.linspace(lo, hi, 4):
+        _, py = to_px(1, val)
+        draw.line((left - 3, py, left, py), fill=(120, 120, 130, 255))
+        draw.text((x0 + 4, py - 6), f"{val:.0f}", font=font(11), fill=DIM)
+    for it in sorted({1, max_it} | {2**k for k in range(1, 12) if 2**k < max_it}):
+        px, _ = to_px(it, lo)
+        draw.line((px, bottom, px, bottom + 3), fill=(120, 120, 130, 255))
+        draw.text((px - 4, bottom + 4), str(it), font=font(11), fill=DIM)
+    legend_x = left + 6
+    for name, curve in curves.items():
+        colour = CURVE_COLOURS.get(name, (255, 255, 255))
+        good = [p for p in curve if np.isfinite(p[1])]
+        if len(good) >= 2:
+            draw.line([to_px(*p) for p in good], fill=colour + (255,), width=2)
+        elif good:
+            px, py = to_px(*good[0])
+            draw.ellipse((px - 2, py - 2, px + 2, py + 2), fill=colour + (255,))
+        label = f"{name} {good[-1][1]:.1f}" if good else name
+        draw.text((legend_x, top + 2), label, font=font(11), fill=colour + (255,))
+        legend_x += font(11).getbbox(label)[2] + 12
+
+
+def render_overlay(
+    size: tuple[int, int],
+    labels: list[tuple[tuple[int, int], str, int]],
+    plot_rect: tuple[int, int, int, int],
+    curves: dict[str, list[tuple[int, float]]],
+    text_rect: tuple[int, int, int, int],
+    text_lines: list[str],
+    help_lines: list[str] | None = None,
+) -> np.ndarray:
+    """The whole overlay as an RGBA8 array ``(H, W, 4)``, top row first.
+
+    Args:
+        size: window size (width, height).
+        labels: ((x, y), text, max width) panel titles.
+        plot_rect, curves: where and what to plot (see :func:`draw_plot`).
+        text_rect, text_lines: the stats block.
+        help_lines: when given, a translucent help screen over everything.
+    """
+    width, height = size
+    img = Image.new("RGBA", (width, height), (0, 0, 0, 0))
+    draw = ImageDraw.Draw(img)
+    for (x, y), text, max_width in labels:
+        while len(text) > 1 and font(13).getbbox(text)[2] > max_width - 4:
+            text = text[:-1]
+        draw.text((x + 2, y + 3), text, font=font(13), fill=TEXT)
+    draw_plot(draw, plot_rect, curves)
+    tx, ty, tw, th = text_rect
+    draw.rectangle((tx, ty, tx + tw, ty + th), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
+    for i, line in enumerate(text_lines):
+        while len(line) > 1 and font(12).getbbox(line)[2] > tw - 10:
+            line = line[:-1]
+        draw.text((tx + 6, ty + 4 + 15 * i), line, font=font(12), fill=TEXT if i else (255, 210, 120, 255))
+    if help_lines:
+        draw.rectangle((0, 0, width, height), fill=(0, 0, 0, 200))
+        columns = 2 if len(help_lines) > (height - 20) // 16 else 1
+        per_col = -(-len(help_lines) // columns)
+        for i, line in enumerate(help_lines):
+            col, row = divmod(i, per_col)
+            draw.text((16 + col * width // 2, 10 + 16 * row), line, font=font(13), fill=TEXT)
+    return np.asarray(img, dtype=np.uint8)

@@ -1,0 +1,201 @@
+"""The demo window, headless (EGL) and under Xvfb: panels, overlay, screenshot, controls."""
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from demo import controls
+from demo.app import create_app, validate_args
+from demo.panels import SLOTS
+from _demo_helpers import SMALL, crop, srgb_u8, upscale
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_screenshot_written_with_window_size(headless_run):
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    w, h = app.layout.window_size
+    assert img.shape == (h, w, 3)
+    assert app.frames_drawn == 3 and app.progression.iteration == 3
+    assert app.progression.spp == 3
+
+
+def test_panels_differ_from_each_other(headless_run):
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    panels = [crop(img, app.layout.panel_rect(i)) for i in range(4)]
+    for a, b in itertools.combinations(range(4), 2):
+        assert np.abs(panels[a] - panels[b]).mean() > 3.0, f"panels {a} and {b} look the same"
+    for p in panels:
+        assert p.std() > 5.0  # not blank
+
+
+def test_filtered_panel_closer_to_reference_than_raw(headless_run):
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    prog = app.progression
+    k = prog.frame_times.index(app.show_time)
+    ref = upscale(srgb_u8(prog.reference[k].permute(1, 2, 0).numpy()), app.layout.scale)
+    err = {s: ((crop(img, app.layout.panel_rect(i)) - ref) ** 2).mean() for i, s in enumerate(SLOTS)}
+    assert err["ours"] < err["raw"], err
+    # The clip-wide curves agree: ours above raw at every iteration so far.
+    for (_, raw), (_, ours) in zip(prog.history["raw"], prog.history["ours"]):
+        assert ours > raw
+
+
+def test_panels_show_the_progression_state(headless_run):
+    """The GL path (packed float upload, shader tone map) against numpy doing the same on the tensors."""
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    prog, t = app.progression, app.show_time
+    for i, tensor in enumerate((prog.raw(t), prog.gaussian(t), prog.ours(t))):
+        want = upscale(srgb_u8(tensor.permute(1, 2, 0).numpy()), app.layout.scale)
+        diff = np.abs(crop(img, app.layout.panel_rect(i)) - want)
+        assert np.percentile(diff, 99) <= 2.0, f"panel {i}: max diff {diff.max()}"
+
+
+def test_overlay_has_plot_and_text(headless_run):
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)
+    plot = crop(img, app.layout.plot_rect())
+    # the three curves in their colours (see demo.overlay.CURVE_COLOURS)
+    for colour in [(170, 170, 170), (90, 160, 255), (255, 150, 40)]:
+        assert (np.abs(plot - np.array(colour)).sum(-1) < 30).sum() > 10, colour
+    text = crop(img, app.layout.text_rect())
+    assert (text.max(-1) > 200).sum() > 200  # light text on the dark box
+
+
+def step_frame(app):
+    """One frame as the main loop does it: clear, render."""
+    app.wnd.clear(*app.clear_color)
+    app.wnd.use()
+    app.on_render(0.0, 0.0)
+    return app.read_frame()
+
+
+@pytest.fixture(scope="module")
+def live_app():
+    app = create_app(SMALL + ["--headless", "--reference-spp", "8", "--width", "32", "--height", "32"])
+    step_frame(app)
+    yield app
+    app.wnd.destroy()
+
+
+@pytest.mark.parametrize("action, field, direction", [
+    ("sigma_s_up", "sigma_s", 1), ("sigma_s_down", "sigma_s", -1),
+    ("sigma_r_up", "sigma_r", 1), ("sigma_r_down", "sigma_r", -1),
+    ("a_up", "a", 1), ("a_down", "a", -1),
+    ("window_up", "time_window", 1), ("window_down", "time_window", -1),
+    ("height_up", "tree_height", 1), ("height_down", "tree_height", -1),
+])
+def test_parameter_keys_change_and_restart(live_app, action, field, direction):
+    app = live_app
+    step_frame(app)
+    before = getattr(app.progression.params, field)
+    app.apply_action(action)
+    after = getattr(app.progression.params, field)
+    assert (after - before) * direction > 0
+    assert app.progression.iteration == 0  # the running buffer was built with the old value
+    step_frame(app)
+    assert app.progression.iteration == 1
+
+
+def test_feature_set_switch_changes_guide(live_app):
+    app = live_app
+    seen = set()
+    for _ in range(len(controls.FEATURE_SETS)):
+        app.apply_action("feature_set")
+        step_frame(app)
+        seen.add(tuple(app.progression.guide_channels()))
+    assert () in seen and len(seen) >= 3  # colour-guided and several feature guides
+
+
+def test_feature_view_replaces_raw_panel(live_app):
+    app = live_app
+    app.feature_view = None
+    before = crop(step_frame(app), app.layout.panel_rect(0))
+    app.apply_action("feature_view")
+    assert app.feature_view == "Z"
+    frame = step_frame(app)
+    z = app.progression.feature_view(app.show_time, "Z")
+    want = upscale(z.permute(1, 2, 0).numpy() * 255.0, app.layout.scale)
+    got = crop(frame, app.layout.panel_rect(0))
+    assert np.abs(got - want).max() <= 1.5
+    assert np.abs(got - before).mean() > 3.0
+    app.feature_view = None
+
+
+def test_scrub_shows_in_between_frame(live_app):
+    app = live_app
+    app.apply_action("scrub_forward")
+    assert app.show_time == 0.25 and not app.playing
+    frame = step_frame(app)
+    prog = app.progression
+    assert 0.25 in prog.tracks
+    ours = prog.ours(0.25)
+    assert ours.isfinite().all() and ours.mean() > 0
+    # no reference exists in between: the heat map panel is left empty
+    assert crop(frame, app.layout.panel_rect(3)).std(axis=(0, 1)).max() < 1.0
+    app.apply_action("scrub_back")
+    assert app.show_time == 0.0
+
+
+def test_play_pause_restart_help(live_app):
+    app = live_app
+    app.apply_action("play")
+    assert app.playing
+    app.apply_action("play")
+    assert not app.playing
+    app.apply_action("pause_progression")
+    it = app.progression.iteration
+    step_frame(app)
+    assert app.progression.iteration == it
+    app.apply_action("pause_progression")
+    app.apply_action("restart")
+    assert app.progression.iteration == 0
+    plain = step_frame(app)
+    app.apply_action("help")
+    with_help = step_frame(app)
+    app.apply_action("help")
+    assert with_help.mean() < plain.mean()  # the help screen darkens the window
+    with pytest.raises(ValueError, match="action"):
+        app.apply_action("nonsense")
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--width", "2"], "--width"),
+    (["--clip", "0"], "--clip"),
+    (["--a", "1.5"], "a: expected"),
+    (["--feature-set", "nope"], "feature_set"),
+    (["--headless", "--screenshot", "x.png"], "--frames"),
+])
+def test_bad_options_name_the_option(argv, match):
+    import argparse
+
+    from demo.app import add_demo_arguments
+
+    parser = argparse.ArgumentParser()
+    add_demo_arguments(parser)
+    with pytest.raises(ValueError, match=match):
+        validate_args(parser.parse_args(argv))
+
+
+def test_real_window_under_xvfb(tmp_path):
+    shot = tmp_path / "xvfb.png"
+    cmd = ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-m", "demo",
+           "--width", "32", "--height", "32", "--clip", "1", "--reference-spp", "0",
+           "--frames", "2", "--screenshot", str(shot)]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(np.float64)
+    assert img.std() > 10.0  # not blank
+    assert img[22:86, 4:68].std() > 10.0  # the raw panel has an image in it

@@ -1,0 +1,92 @@
+"""The demo's progressive loop on the real tracer and filter: schedule, determinism, in-between times."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from demo.progression import FEATURE_SETS, FilterParams, Progression
+
+
+@pytest.fixture(scope="module")
+def tracer():
+    from torchmanifold.render import PathTracer, create_context, default_scene
+
+    return PathTracer(default_scene(), width=32, height=32, ctx=create_context())
+
+
+def test_bandwidth_follows_the_recurrence():
+    p = FilterParams(sigma_s=12.0, sigma_r=0.4, a=0.6)
+    s2, r2 = p.sigma_s**2, p.sigma_r**2
+    for i in range(1, 40):
+        s, r = p.bandwidth(i)
+        assert s == pytest.approx(max(1.0, math.sqrt(s2)), rel=1e-9)
+        assert r == pytest.approx(math.sqrt(r2), rel=1e-9)
+        s2, r2 = s2 * (i + p.a) / (i + 1), r2 * (i + p.a) / (i + 1)
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    (dict(sigma_s=0.5), "sigma_s"), (dict(sigma_r=0.0), "sigma_r"), (dict(a=1.0), "a"),
+    (dict(time_window=-1), "time_window"), (dict(tree_height=0), "tree_height"),
+    (dict(feature_set="x"), "feature_set"), (dict(clamp=-1.0), "clamp"),
+])
+def test_bad_params_name_the_field(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        FilterParams(**kwargs)
+
+
+def test_bad_frame_times_and_reference(tracer):
+    with pytest.raises(ValueError, match="frame_times"):
+        Progression(tracer, [1.0, 0.0])
+    with pytest.raises(ValueError, match="reference"):
+        Progression(tracer, [0.0], reference=torch.zeros(1, 3, 8, 8))
+
+
+def test_same_seed_same_result_other_seed_differs(tracer):
+    def run(seed):
+        prog = Progression(tracer, [0.0, 1.0], seed=seed)
+        for _ in range(2):
+            prog.step()
+        return prog.ours(1.0), prog.raw(1.0)
+
+    a, b, c = run(3), run(3), run(4)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    assert not torch.equal(a[0], c[0])
+
+
+def test_time_window_weights(tracer):
+    prog = Progression(tracer, [0.0, 1.0, 2.0, 3.0], FilterParams(time_window=1))
+    idx, w = prog._window(1.0)
+    assert idx == [0, 1, 2] and w.sum().item() == pytest.approx(1.0)
+    assert w[0] == pytest.approx(w[2].item()) and w[1] > w[0]
+    idx, w = prog._window(1.5)
+    assert idx == [1, 2] and w[0] == pytest.approx(w[1].item())
+    prog.restart(FilterParams(time_window=0))
+    assert prog._window(2.0)[0] == [2]
+    assert prog._window(2.25)[0] == [2]  # no frame inside: the nearest one
+
+
+def test_every_feature_set_filters(tracer):
+    prog = Progression(tracer, [0.0])
+    for name in FEATURE_SETS:
+        prog.restart(prog.params.with_(feature_set=name))
+        prog.step()
+        assert set(prog.guide_channels()) <= set(prog.feature_names)
+        out = prog.ours(0.0)
+        assert out.shape == (3, 32, 32) and out.isfinite().all()
+
+
+def test_in_between_time_joins_late_and_keeps_up(tracer):
+    prog = Progression(tracer, [0.0, 1.0], FilterParams(time_window=1))
+    prog.step()
+    prog.step()
+    mid = prog.ours(0.5)  # joins at iteration 2 with the filtered raw average
+    assert prog.tracks[0.5].count == 2 and mid.isfinite().all()
+    prog.step()
+    assert prog.tracks[0.5].count == 3
+    # an in-between frame of a slow clip looks like its neighbours, not like black or noise
+    both = 0.5 * (prog.ours(0.0) + prog.ours(1.0))
+    assert (prog.ours(0.5) - both).abs().mean() < 0.5 * both.abs().mean()
+    with pytest.raises(ValueError, match="t:"):
+        prog.track(5.0)
