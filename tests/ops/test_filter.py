@@ -1,0 +1,214 @@
+"""adaptive_manifold_filter / AdaptiveManifoldFilter: smoke, cardinality, exceptions, noncontiguous,
+module == function, backends, guide scaling, automatic height, gradients of the pure-PyTorch path."""
+import math
+
+import pytest
+import torch
+
+import torchmanifold
+from torchmanifold.ops import (
+    AdaptiveManifoldFilter,
+    adaptive_manifold_filter,
+    adaptive_manifold_torch,
+    automatic_tree_height,
+)
+from torchmanifold.ops._reference import downsample, downsample_factor, upsample
+
+
+def _rand(B, C, D, H, W, dtype=torch.float32, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    v = torch.rand(B, C, H, W, generator=gen, dtype=torch.float64)
+    g = torch.rand(B, D, H, W, generator=gen, dtype=torch.float64)
+    g[..., : H // 2, :] += 0.7  # an edge so the tree splits
+    return v.to(dtype), g.to(dtype)
+
+
+def test_smoke():
+    v, g = _rand(1, 3, 4, 24, 20)
+    out = torchmanifold.adaptive_manifold_filter(v, g, 6.0, 0.3)
+    assert out.shape == v.shape and out.dtype == v.dtype and torch.isfinite(out).all()
+    # it filters: closer to the local mean than the input is
+    assert (out - v).abs().mean() > 1e-3
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1, 1, 1), (2, 3, 5, 17, 9), (1, 4, 2, 1, 23), (3, 2, 64, 11, 13),
+                                   (1, 3, 3, 33, 47)], ids=lambda s: "x".join(map(str, s)))
+@pytest.mark.parametrize("height", [1, 2, 3])
+def test_cardinality(shape, height):
+    B, C, D, H, W = shape
+    v, g = _rand(B, C, D, H, W)
+    out = adaptive_manifold_filter(v, g, 5.0, 0.25, tree_height=height)
+    assert out.shape == (B, C, H, W)
+    assert torch.isfinite(out).all()
+
+
+def test_unbatched_matches_batched():
+    v, g = _rand(1, 3, 4, 19, 21)
+    a = adaptive_manifold_filter(v[0], g[0], 6.0, 0.3)
+    b = adaptive_manifold_filter(v, g, 6.0, 0.3)
+    assert a.shape == v.shape[1:]
+    torch.testing.assert_close(a, b[0], rtol=0, atol=0)
+
+
+def test_batch_items_independent():
+    v, g = _rand(3, 2, 3, 16, 18)
+    whole = adaptive_manifold_filter(v, g, 5.0, 0.3, backend="torch")
+    for b in range(3):
+        one = adaptive_manifold_filter(v[b:b + 1], g[b:b + 1], 5.0, 0.3, backend="torch")
+        torch.testing.assert_close(whole[b:b + 1], one, rtol=1e-6, atol=1e-6)
+
+
+def test_noncontiguous():
+    v, g = _rand(2, 3, 5, 20, 22, dtype=torch.float64)
+    ref = adaptive_manifold_filter(v, g, 5.0, 0.3)
+    v_nc = v.transpose(2, 3).contiguous().transpose(2, 3)
+    g_nc = g.to(memory_format=torch.channels_last)
+    assert not v_nc.is_contiguous() and not g_nc.is_contiguous()
+    for backend in ("auto", "torch"):
+        out = adaptive_manifold_filter(v_nc, g_nc, 5.0, 0.3, backend=backend)
+        torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-10)
+
+
+def test_module_equals_function():
+    v, g = _rand(2, 3, 4, 16, 16)
+    m = AdaptiveManifoldFilter(7.0, 0.2, tree_height=3, guide_sigmas=[0.1, 0.2, 0.3, 0.4],
+                               adjust_outliers=True, power_iterations=4)
+    f = adaptive_manifold_filter(v, g, 7.0, 0.2, tree_height=3, guide_sigmas=[0.1, 0.2, 0.3, 0.4],
+                                 adjust_outliers=True, power_iterations=4)
+    torch.testing.assert_close(m(v, g), f, rtol=0, atol=0)
+    r = repr(m)
+    for words in ("sigma_s=7.0", "sigma_r=0.2", "tree_height=3", "adjust_outliers=True", "power_iterations=4",
+                  "guide_sigmas=(0.1, 0.2, 0.3, 0.4)", "backend='auto'"):
+        assert words in r
+
+
+def test_module_tensor_guide_sigmas():
+    v, g = _rand(1, 2, 3, 12, 12)
+    sig = torch.tensor([0.5, 1.0, 2.0])
+    m = AdaptiveManifoldFilter(4.0, 0.3, guide_sigmas=sig)
+    torch.testing.assert_close(m(v, g), adaptive_manifold_filter(v, g, 4.0, 0.3, guide_sigmas=[0.5, 1.0, 2.0]))
+
+
+def test_guide_sigmas_scale_the_guide():
+    v, g = _rand(1, 3, 3, 20, 20, dtype=torch.float64)
+    sig = [0.1, 0.5, 2.0]
+    scaled = g * (0.3 / torch.tensor(sig, dtype=torch.float64))[:, None, None]
+    a = adaptive_manifold_filter(v, g, 6.0, 0.3, guide_sigmas=sig)
+    b = adaptive_manifold_filter(v, scaled, 6.0, 0.3)
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # sigma_c == sigma_r leaves the guide as is
+    torch.testing.assert_close(adaptive_manifold_filter(v, g, 6.0, 0.3, guide_sigmas=[0.3, 0.3, 0.3]),
+                               adaptive_manifold_filter(v, g, 6.0, 0.3), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("ss,sr,expected", [(16, 0.4, 2), (16, 0.2, 3), (32, 0.1, 4), (8, 0.2, 2), (2, 0.9, 2),
+                                            (64, 0.05, 5), (1, 3.0, 2)])
+def test_automatic_tree_height(ss, sr, expected):
+    assert automatic_tree_height(ss, sr) == expected
+    assert expected == max(2, math.ceil((math.floor(math.log2(ss)) - 1) * (1 - sr)))
+
+
+def test_tree_height_none_uses_automatic_height():
+    v, g = _rand(1, 3, 3, 24, 24)
+    torch.testing.assert_close(adaptive_manifold_filter(v, g, 16.0, 0.2, tree_height=None),
+                               adaptive_manifold_filter(v, g, 16.0, 0.2, tree_height=3), rtol=0, atol=0)
+
+
+def test_backends_agree():
+    v, g = _rand(2, 3, 6, 21, 26, dtype=torch.float64)
+    for height in (1, 2, 3):
+        a = adaptive_manifold_filter(v, g, 6.0, 0.25, height, adjust_outliers=True, backend="auto")
+        b = adaptive_manifold_filter(v, g, 6.0, 0.25, height, adjust_outliers=True, backend="torch")
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_deterministic():
+    v, g = _rand(1, 3, 17, 32, 32)
+    for backend in ("auto", "torch"):
+        a = adaptive_manifold_filter(v, g, 8.0, 0.3, 3, backend=backend)
+        b = adaptive_manifold_filter(v, g, 8.0, 0.3, 3, backend=backend)
+        assert torch.equal(a, b)
+
+
+def test_downsample_factor_and_resampling():
+    assert downsample_factor(16, 0.4) == 4 and downsample_factor(8, 0.2) == 2
+    assert downsample_factor(3, 0.4) == 1 and downsample_factor(64, 0.001) == 1 and downsample_factor(40, 1) == 8
+    x = torch.rand(2, 3, 11, 13, dtype=torch.float64)
+    d = downsample(x, 4)
+    assert d.shape == (2, 3, 3, 4)
+    torch.testing.assert_close(d[..., 2, 3], x[..., 8:, 12:].mean((-2, -1)))  # partial corner block
+    torch.testing.assert_close(d[..., 1, 1], x[..., 4:8, 4:8].mean((-2, -1)))
+    # bilinear at pixel centres, edge clamped, checked against a direct formula
+    up = upsample(d, 4, (11, 13))
+    yy = ((torch.arange(11) + 0.5) / 4 - 0.5).clamp(0, 2)
+    xx = ((torch.arange(13) + 0.5) / 4 - 0.5).clamp(0, 3)
+    y0, x0 = yy.floor().long(), xx.floor().long()
+    y1, x1 = (y0 + 1).clamp(max=2), (x0 + 1).clamp(max=3)
+    fy, fx = (yy - y0).double()[:, None], (xx - x0).double()[None, :]
+    ref = (d[..., y0[:, None], x0] * (1 - fy) * (1 - fx) + d[..., y0[:, None], x1] * (1 - fy) * fx
+           + d[..., y1[:, None], x0] * fy * (1 - fx) + d[..., y1[:, None], x1] * fy * fx)
+    torch.testing.assert_close(up, ref)
+
+
+def test_gradcheck_torch_backend():
+    v, g = _rand(1, 2, 3, 6, 7, dtype=torch.float64)
+    v.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: adaptive_manifold_filter(x, g, 3.0, 0.3, 2, adjust_outliers=True,
+                                                                       backend="torch"), (v,))
+
+
+def test_linear_in_values():
+    v1, g = _rand(1, 3, 4, 14, 15, dtype=torch.float64, seed=1)
+    v2, _ = _rand(1, 3, 4, 14, 15, dtype=torch.float64, seed=2)
+    f = lambda x: adaptive_manifold_torch(x, g, 5.0, 0.3, 3, 10, True)  # noqa: E731
+    torch.testing.assert_close(f(2.0 * v1 - 0.5 * v2), 2.0 * f(v1) - 0.5 * f(v2), rtol=1e-9, atol=1e-9)
+
+
+BAD = [
+    (lambda v, g: ([1.0], g, 4.0, 0.3), {}, TypeError, "values must be a torch.Tensor"),
+    (lambda v, g: (v, None, 4.0, 0.3), {}, TypeError, "guide must be a torch.Tensor"),
+    (lambda v, g: (v[0, 0], g, 4.0, 0.3), {}, ValueError, "values must be"),
+    (lambda v, g: (v, g[0], 4.0, 0.3), {}, ValueError, "guide must have the same rank"),
+    (lambda v, g: (v, g[:, :, :5], 4.0, 0.3), {}, ValueError, "must share batch size and H, W"),
+    (lambda v, g: (v, g[:1], 4.0, 0.3), {}, ValueError, "must share batch size"),
+    (lambda v, g: (v, g.double(), 4.0, 0.3), {}, ValueError, "guide must have the dtype of values"),
+    (lambda v, g: (v.int(), g.int(), 4.0, 0.3), {}, TypeError, "values must be float16"),
+    (lambda v, g: (v, g, 0.0, 0.3), {}, ValueError, "sigma_s must be a positive finite number"),
+    (lambda v, g: (v, g, -1.0, 0.3), {}, ValueError, "sigma_s"),
+    (lambda v, g: (v, g, 4.0, 0.0), {}, ValueError, "sigma_r must be a positive finite number"),
+    (lambda v, g: (v, g, 4.0, math.nan), {}, ValueError, "sigma_r"),
+    (lambda v, g: (v, g, math.inf, 0.3), {}, ValueError, "sigma_s"),
+    (lambda v, g: (v, g, "4", 0.3), {}, TypeError, "sigma_s"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"tree_height": 0}, ValueError, "tree_height must be an int >= 1"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"tree_height": 2.0}, TypeError, "tree_height"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"power_iterations": -1}, ValueError, "power_iterations"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"guide_sigmas": [1.0, 2.0]}, ValueError, "one sigma per guide channel"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"guide_sigmas": [1.0, 0.0, 1.0]}, ValueError, "positive and finite"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"guide_sigmas": torch.ones(3, 1)}, ValueError, "(D,) tensor"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"guide_sigmas": "abc"}, TypeError, "guide_sigmas"),
+    (lambda v, g: (v, g, 4.0, 0.3), {"backend": "cuda"}, ValueError, "backend must be one of"),
+]
+
+
+@pytest.mark.parametrize("make,kwargs,exc,words", BAD, ids=[b[3][:30] for b in BAD])
+def test_exception(make, kwargs, exc, words):
+    v, g = _rand(2, 3, 3, 8, 9)
+    with pytest.raises(exc, match=words.replace("(", r"\(").replace(")", r"\)")):
+        adaptive_manifold_filter(*make(v, g), **kwargs)
+
+
+def test_exception_module():
+    with pytest.raises(ValueError, match="sigma_s"):
+        AdaptiveManifoldFilter(-1.0, 0.3)
+    with pytest.raises(ValueError, match="tree_height"):
+        AdaptiveManifoldFilter(4.0, 0.3, tree_height=0)
+    with pytest.raises(ValueError, match="backend"):
+        AdaptiveManifoldFilter(4.0, 0.3, backend="gpu")
+    with pytest.raises(ValueError, match="positive and finite"):
+        AdaptiveManifoldFilter(4.0, 0.3, guide_sigmas=[1.0, -2.0])
+
+
+def test_device_mismatch():
+    v, g = _rand(1, 3, 3, 8, 8)
+    with pytest.raises(ValueError, match="guide must be on the device of values"):
+        adaptive_manifold_filter(v, g.to("meta"), 4.0, 0.3)
