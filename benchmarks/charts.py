@@ -177,6 +177,43 @@ def _f(x, nd=2):
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
 
 
+def key_numbers(ds: dict) -> list:
+    """Bullets comparing the best of each family, and ours against plain path tracing at equal time."""
+    m = {n: r for n, r in ds["methods"].items() if r.get("psnr") is not None and math.isfinite(r["psnr"])}
+
+    def best(pred):
+        cands = [(r["psnr"], n) for n, r in m.items() if pred(n, r)]
+        return max(cands)[1] if cands else None
+
+    ours = best(lambda n, r: r["family"] == "ours")
+    classic = best(lambda n, r: r["family"] in ("gaussian", "joint-bilateral", "opencv-am"))
+    out = []
+    if ours:
+        r = m[ours]
+        out.append(f"- Best of ours: `{ours}` {r['psnr']:.2f} dB in {frame_ms(ds, r):.1f} ms per frame.")
+    if ours and classic:
+        c = m[classic]
+        out.append(f"- Best classic filter: `{classic}` {c['psnr']:.2f} dB in {frame_ms(ds, c):.1f} ms "
+                   f"(ours {m[ours]['psnr'] - c['psnr']:+.2f} dB).")
+    if "oidn" in m:
+        out.append(f"- OIDN (neural, colour + albedo + normal): {m['oidn']['psnr']:.2f} dB in "
+                   f"{frame_ms(ds, m['oidn']):.1f} ms.")
+    raw = {n: r for n, r in m.items() if r["family"] == "raw"}
+    timed_raw = [(frame_ms(ds, r), r["psnr"], n) for n, r in raw.items() if r.get("render_ms_known") and r["ms_min"]]
+    if ours and timed_raw:
+        t = frame_ms(ds, m[ours])
+        under = [x for x in timed_raw if x[0] <= t]
+        if under:
+            ms, p, n = max(under)
+            out.append(f"- Plain path tracing in the same time: `{n}` ({ms:.0f} ms) {p:.2f} dB, ours "
+                       f"{m[ours]['psnr'] - p:+.2f} dB.")
+        better = [x for x in sorted(timed_raw) if x[1] >= m[ours]["psnr"]]
+        out.append(f"- Plain path tracing reaches ours' PSNR at `{better[0][2]}` ({better[0][0]:.0f} ms per frame)."
+                   if better else f"- No plain path tracing run here ({max(timed_raw)[2]} at most) reaches ours' "
+                                  "PSNR.")
+    return out
+
+
 def summary(folder: Path, rel: str) -> str:
     methods, sc, ab, pr = (load(folder, n) for n in ("methods", "scaling", "ablation", "progressive"))
     meta = next((d["meta"] for d in (methods, sc, ab, pr) if d), {})
@@ -201,6 +238,7 @@ def summary(folder: Path, rel: str) -> str:
             if ds.get("trace_ms_1spp"):
                 lines += [f"Our tracer renders one 1-spp frame in {ds['trace_ms_1spp']:.0f} ms; filter times below "
                           "add to it, and `raw-Nspp` rows are plain path tracing at N spp (their render time).", ""]
+            lines += key_numbers(ds) + [""]
             lines += ["| method | ms/frame (min) | ms/frame (median) | PSNR dB | relMSE | FLIP | Pareto |",
                       "|---|---|---|---|---|---|---|"]
             rows = sorted(ds["methods"].items(), key=lambda kv: -(kv[1].get("psnr") or -1e9))
