@@ -1,0 +1,69 @@
+"""The suite's own tools: the verdict rule, the method registry's clip windows, and the charts' Pareto front."""
+import math
+import random
+
+import pytest
+import torch
+
+import baselines
+import charts
+from cases import CASES, Problem, judge, psnr
+
+
+def _problem(constant=None):
+    v = torch.full((1, 3, 8, 8), 0.5) if constant is not None else torch.rand(1, 3, 8, 8,
+                                                                              generator=torch.Generator().manual_seed(0))
+    ref = v[0].clone()
+    return Problem(baselines.Clip(v, v.clone(), torch.zeros(1)), reference=ref, constant=constant)
+
+
+def test_judge_flags_each_failure_kind():
+    p = _problem()
+    good = p.clip.values[0] * 0.9 + 0.05
+    v = judge(p, lambda: good)
+    assert not v.failed and math.isclose(v.psnr, psnr(good.double(), p.reference), rel_tol=1e-12)
+    nan = good.clone()
+    nan[0, 0, 0] = float("nan")
+    assert judge(p, lambda: nan).failed and "NaN" in judge(p, lambda: nan).reason
+    assert judge(p, lambda: good * 100).reason.startswith("blown up")
+    assert judge(p, lambda: good[:2]).reason.startswith("shape")
+
+    def boom():
+        raise RuntimeError("x")
+    assert judge(p, boom).reason == "raised RuntimeError"
+    c = _problem(constant=0.5)
+    assert not judge(c, lambda: c.clip.values[0].clone()).failed
+    assert judge(c, lambda: c.clip.values[0] + 1e-3).reason.startswith("constant moved")
+
+
+def test_cases_are_deterministic_and_well_formed():
+    for case in CASES:
+        a, b = case.build(), case.build()
+        assert torch.equal(torch.nan_to_num(a.clip.values), torch.nan_to_num(b.clip.values)), case.name
+        t, c, h, w = a.clip.values.shape
+        assert a.clip.guide.shape[0] == t and a.clip.guide.shape[-2:] == (h, w)
+        assert 0 <= a.query < t
+        if a.reference is not None:
+            assert a.reference.shape == (c, h, w)
+        if a.mask is not None:
+            assert a.mask.shape == (h, w) and bool(a.mask.any()), f"{case.name}: empty error mask"
+
+
+def test_clip_window():
+    clip = baselines.Clip(torch.arange(5.0).view(5, 1, 1, 1), torch.zeros(5, 1, 1, 1), torch.arange(5.0))
+    sub, q = clip.window(1, 2)
+    assert sub.times.tolist() == [0.0, 1.0, 2.0, 3.0] and q == 1
+    sub, q = clip.window(4, 1)
+    assert sub.times.tolist() == [3.0, 4.0] and q == 1
+    with pytest.raises(ValueError, match="times"):
+        baselines.Clip(torch.zeros(2, 1, 1, 1), torch.zeros(2, 1, 1, 1), torch.zeros(3))
+
+
+def test_pareto_front_matches_brute_force():
+    rng = random.Random(0)
+    for _ in range(50):
+        pts = [(rng.choice([1, 2, 3, 5, 8]), rng.choice([10, 20, 25, 30])) for _ in range(rng.randint(1, 12))]
+        brute = {i for i, (x, y) in enumerate(pts)
+                 if not any((x2 <= x and y2 >= y) and (x2, y2) != (x, y) for x2, y2 in pts)}
+        # Among duplicates of one point the front keeps one; compare the points, not the indices.
+        assert {pts[i] for i in charts.pareto(pts)} == {pts[i] for i in brute}
