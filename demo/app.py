@@ -114,6 +114,9 @@ class DemoApp(WindowConfig):
         self.display_ms = 0.0
         self.frames_drawn = 0
         self.stage_log: list[tuple[float, float, float]] = []
+        self._shown_timing = None
+        self._overlay_key = None
+        self._images_key = None
         self._key_actions = {}
         for key_name, action, _ in controls.BINDINGS:
             key = getattr(self.wnd.keys, key_name, None)
@@ -223,9 +226,12 @@ class DemoApp(WindowConfig):
 
     def draw(self) -> None:
         layout, prog = self.layout, self.progression
-        self.panels.upload_images(self.panel_images())
+        key = (prog.version, self.show_time, self.feature_view)
         reference = self._reference_image()
-        self.panels.upload_reference(reference)
+        if key != self._images_key:  # one upload per new result, none while nothing changes
+            self._images_key = key
+            self.panels.upload_images(self.panel_images())
+            self.panels.upload_reference(reference)
         buffer_size = self.wnd.buffer_size
         self.ctx.disable(moderngl.DEPTH_TEST)
         for i, slot in enumerate(SLOTS):
@@ -234,11 +240,18 @@ class DemoApp(WindowConfig):
         if reference is not None:
             self.panels.draw_panel(layout.gl_viewport(layout.panel_rect(3), buffer_size), self.heat_slot,
                                    MODE_HEAT, self.exposure)
-        self.panels.upload_overlay(self._overlay(reference is not None))
+        overlay = self._overlay(reference is not None)
+        if overlay is not None:
+            self.panels.upload_overlay(overlay)
         self.panels.draw_overlay((0, 0, *buffer_size))
 
-    def _overlay(self, has_heat: bool) -> np.ndarray:
+    def _overlay(self, has_heat: bool) -> np.ndarray | None:
+        """The overlay image, or None when nothing on it changed since the last upload."""
         layout, prog = self.layout, self.progression
+        now = time.perf_counter()
+        if self._shown_timing is None or now - self._shown_timing[0] > 0.5:
+            # stage times refresh twice a second: readable, and the overlay is not redrawn every frame
+            self._shown_timing = (now, prog.timing.trace_ms, prog.timing.filter_ms, self.display_ms)
         labels = []
         for i, slot in enumerate(SLOTS):
             title = PANEL_TITLES[slot]
@@ -255,11 +268,11 @@ class DemoApp(WindowConfig):
         p = prog.params
         sigma_s, sigma_r = p.bandwidth(max(prog.iteration, 1))
         guide = ",".join(prog.guide_channels()) or "colour"
-        timing = prog.timing
+        _, trace_ms, filter_ms, display_ms = self._shown_timing
         lines = [
             f"iteration {prog.iteration}   spp {prog.spp}   t = {self.show_time:.2f}"
             f"{'' if self.playing else '  (paused)'}{'' if self.progressing else '  [iterations paused]'}",
-            f"trace {timing.trace_ms:7.1f} ms   filter {timing.filter_ms:7.1f} ms   display {self.display_ms:6.1f} ms",
+            f"trace {trace_ms:7.1f} ms   filter {filter_ms:7.1f} ms   display {display_ms:6.1f} ms",
             f"sigma_s {p.sigma_s:.2f} -> {sigma_s:.2f}   sigma_r {p.sigma_r:.3f} -> {sigma_r:.3f}   a {p.a:.2f}",
             f"time window +-{p.time_window}   tree height {p.tree_height}",
             f"feature set {p.feature_set}: {guide}",
@@ -267,6 +280,11 @@ class DemoApp(WindowConfig):
             "",
             "H: help   SPACE: play/pause   arrows: scrub   R: restart",
         ]
+        key = (tuple(labels), tuple(lines), tuple(tuple(h[-1:]) + (len(h),) for h in prog.history.values()),
+               self.show_help)
+        if key == self._overlay_key:
+            return None
+        self._overlay_key = key
         return render_overlay(
             layout.window_size, labels, layout.plot_rect(), prog.history, layout.text_rect(), lines,
             controls.help_lines() if self.show_help else None,

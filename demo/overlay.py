@@ -21,20 +21,44 @@ def font(size: int = 13) -> ImageFont.ImageFont:
     return ImageFont.load_default(size=size)
 
 
+@lru_cache(maxsize=1024)
+def _text_patch(text: str, size: int, fill: tuple, max_width: int | None) -> Image.Image:
+    """``text`` rendered once into its own RGBA patch, cut to ``max_width`` (rendering text with
+    FreeType costs ~1 ms a string on a slow CPU; most strings repeat from frame to frame)."""
+    f = font(size)
+    while max_width is not None and len(text) > 1 and f.getbbox(text)[2] > max_width:
+        text = text[:-1]
+    left, top, right, bottom = f.getbbox(text or " ")
+    patch = Image.new("RGBA", (max(1, right), max(1, bottom)), (0, 0, 0, 0))
+    ImageDraw.Draw(patch).text((0, 0), text, font=f, fill=fill)
+    return patch
+
+
+def put_text(img: Image.Image, xy, text: str, size: int = 12, fill=TEXT, max_width: int | None = None) -> int:
+    """Blend cached ``text`` into ``img`` at ``xy``; returns the text's width in pixels."""
+    patch = _text_patch(text, size, tuple(fill), max_width)
+    x, y = int(round(xy[0])), int(round(xy[1]))
+    if 0 <= x < img.width and 0 <= y < img.height:
+        img.alpha_composite(patch.crop((0, 0, min(patch.width, img.width - x), min(patch.height, img.height - y))),
+                            dest=(x, y))
+    return patch.width
+
+
 def draw_plot(
-    draw: ImageDraw.ImageDraw,
+    img: Image.Image,
     rect: tuple[int, int, int, int],
     curves: dict[str, list[tuple[int, float]]],
     title: str = "PSNR (dB, clamped sRGB) vs iteration",
 ) -> None:
     """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h)."""
     x0, y0, w, h = rect
+    draw = ImageDraw.Draw(img)
     draw.rectangle((x0, y0, x0 + w, y0 + h), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
-    draw.text((x0 + 6, y0 + 3), title, font=font(12), fill=TEXT)
+    put_text(img, (x0 + 6, y0 + 3), title, 12, TEXT, w - 10)
     pts = [p for c in curves.values() for p in c if np.isfinite(p[1])]
     left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
     if not pts:
-        draw.text((left, top + 10), "no reference: no error curve", font=font(12), fill=DIM)
+        put_text(img, (left, top + 10), "no reference: no error curve", 12, DIM)
         return
     max_it = max(2, max(p[0] for p in pts))
     lo, hi = min(p[1] for p in pts), max(p[1] for p in pts)
@@ -49,11 +73,11 @@ def draw_plot(
     for val in np.linspace(lo, hi, 4):
         _, py = to_px(1, val)
         draw.line((left - 3, py, left, py), fill=(120, 120, 130, 255))
-        draw.text((x0 + 4, py - 6), f"{val:.0f}", font=font(11), fill=DIM)
+        put_text(img, (x0 + 4, py - 6), f"{val:.0f}", 11, DIM)
     for it in sorted({1, max_it} | {2**k for k in range(1, 12) if 2**k < max_it}):
         px, _ = to_px(it, lo)
         draw.line((px, bottom, px, bottom + 3), fill=(120, 120, 130, 255))
-        draw.text((px - 4, bottom + 4), str(it), font=font(11), fill=DIM)
+        put_text(img, (px - 4, bottom + 4), str(it), 11, DIM)
     legend_x = left + 6
     for name, curve in curves.items():
         colour = CURVE_COLOURS.get(name, (255, 255, 255))
@@ -64,8 +88,7 @@ def draw_plot(
             px, py = to_px(*good[0])
             draw.ellipse((px - 2, py - 2, px + 2, py + 2), fill=colour + (255,))
         label = f"{name} {good[-1][1]:.1f}" if good else name
-        draw.text((legend_x, top + 2), label, font=font(11), fill=colour + (255,))
-        legend_x += font(11).getbbox(label)[2] + 12
+        legend_x += put_text(img, (legend_x, top + 2), label, 11, colour + (255,)) + 12
 
 
 def render_overlay(
@@ -90,21 +113,17 @@ def render_overlay(
     img = Image.new("RGBA", (width, height), (0, 0, 0, 0))
     draw = ImageDraw.Draw(img)
     for (x, y), text, max_width in labels:
-        while len(text) > 1 and font(13).getbbox(text)[2] > max_width - 4:
-            text = text[:-1]
-        draw.text((x + 2, y + 3), text, font=font(13), fill=TEXT)
-    draw_plot(draw, plot_rect, curves)
+        put_text(img, (x + 2, y + 3), text, 13, TEXT, max_width - 4)
+    draw_plot(img, plot_rect, curves)
     tx, ty, tw, th = text_rect
     draw.rectangle((tx, ty, tx + tw, ty + th), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
     for i, line in enumerate(text_lines):
-        while len(line) > 1 and font(12).getbbox(line)[2] > tw - 10:
-            line = line[:-1]
-        draw.text((tx + 6, ty + 4 + 15 * i), line, font=font(12), fill=TEXT if i else (255, 210, 120, 255))
+        put_text(img, (tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
     if help_lines:
         draw.rectangle((0, 0, width, height), fill=(0, 0, 0, 200))
         columns = 2 if len(help_lines) > (height - 20) // 16 else 1
         per_col = -(-len(help_lines) // columns)
         for i, line in enumerate(help_lines):
             col, row = divmod(i, per_col)
-            draw.text((16 + col * width // 2, 10 + 16 * row), line, font=font(13), fill=TEXT)
+            put_text(img, (16 + col * width // 2, 10 + 16 * row), line, 13, TEXT)
     return np.asarray(img, dtype=np.uint8)

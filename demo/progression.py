@@ -150,6 +150,7 @@ class Progression:
         """Drop all samples and start again at iteration 0 (optionally with new parameters)."""
         if params is not None:
             self.params = params
+        self.version = getattr(self, "version", 0) + 1  # changes whenever any result may have changed
         self.iteration = 0
         self.raw_sum = None       # (T,3,H,W) sum of 1-spp colour
         self.feat_sum = None      # (T,D,H,W) sum of 1-spp features
@@ -157,6 +158,7 @@ class Progression:
         self.tracks: dict[float, _Track] = {}
         self.history: dict[str, list[tuple[int, float]]] = {"raw": [], "gaussian": [], "ours": []}
         self.timing = StepTiming()
+        self._gauss_cache: dict[int, torch.Tensor] = {}
 
     @property
     def spp(self) -> int:
@@ -196,6 +198,8 @@ class Progression:
         emission = res.emission.float() if getattr(res, "emission", None) is not None else None
         t1 = time.perf_counter()
         self.iteration = i + 1
+        self.version += 1
+        self._gauss_cache.clear()
         self.raw_sum = color.clone() if self.raw_sum is None else self.raw_sum + color
         self.feat_sum = feats.clone() if self.feat_sum is None else self.feat_sum + feats
         if emission is not None:
@@ -294,9 +298,13 @@ class Progression:
         """Raw average blurred with a Gaussian of the current spatial bandwidth ``(3,H,W)``."""
         from kornia.filters import gaussian_blur2d
 
-        sigma_s, _ = self.params.bandwidth(max(self.iteration, 1))
-        k = 2 * int(math.ceil(3 * sigma_s)) + 1
-        return gaussian_blur2d(self.raw(t)[None], (k, k), (sigma_s, sigma_s), border_type="reflect")[0]
+        frame = self._nearest_frame(t)
+        if frame not in self._gauss_cache:  # once per iteration, not once per displayed frame
+            sigma_s, _ = self.params.bandwidth(max(self.iteration, 1))
+            k = 2 * int(math.ceil(3 * sigma_s)) + 1
+            self._gauss_cache[frame] = gaussian_blur2d(self.raw(t)[None], (k, k), (sigma_s, sigma_s),
+                                                       border_type="reflect")[0]
+        return self._gauss_cache[frame]
 
     def ours(self, t: float) -> torch.Tensor:
         """Our running result ``(3,H,W)`` at ``t`` (tracked from now on if it was not)."""
