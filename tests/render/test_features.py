@@ -162,3 +162,17 @@ def test_bad_arguments(ctx):
         tr.render([float("nan")])
     with pytest.raises(ValueError, match="seed"):
         tr.render([0.0], seed=-1)
+
+
+def test_baked_scene_equals_storage_buffer_scene(ctx):
+    """The scene pasted into the shader as constants and read from storage buffers: the same frames."""
+    from torchmanifold.render import default_scene
+
+    scene = default_scene()
+    a = PathTracer(scene, 24, 16, ctx=ctx, bake_scene=True)
+    b = PathTracer(scene, 24, 16, ctx=ctx, bake_scene=False)
+    assert a.baked and not b.baked
+    ra, rb = a.render([0.0, 2.5], spp=2, seed=9), b.render([0.0, 2.5], spp=2, seed=9)
+    for x, y in ((ra.color, rb.color), (ra.features, rb.features), (ra.motion, rb.motion),
+                 (ra.object_id, rb.object_id), (ra.emission, rb.emission)):
+        assert torch.equal(x, y)

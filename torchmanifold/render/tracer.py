@@ -19,6 +19,44 @@ from torchmanifold.render.scene import FEATURE_NAMES, Scene, pack_scene
 
 SHADER_PATH = Path(__file__).parent / "shaders" / "pathtracer.comp"
 GROUP = 8  # local_size_x/y declared in the shader
+MAX_BAKED_OBJECTS = 256  # scenes up to this size become shader constants
+
+
+def _glsl_floats(a) -> str:
+    return ", ".join(f"{float(x):.9g}" for x in a)  # 9 significant digits round-trip float32
+
+
+def _scene_constants(packed: dict) -> str:
+    """The scene as GLSL constant arrays, named like the storage buffers they replace."""
+    prims, ints = packed["prims"], packed["prims"].view(np.int32)
+    rows = [
+        f"Prim(vec4({_glsl_floats(p[0:4])}), vec4({_glsl_floats(p[4:8])}), vec4({_glsl_floats(p[8:12])}), "
+        f"ivec4({', '.join(str(int(x)) for x in i[12:16])}), ivec4({', '.join(str(int(x)) for x in i[16:20])}))"
+        for p, i in zip(prims, ints)
+    ]
+    mats = [f"Material(vec4({_glsl_floats(m[0:4])}), vec4({_glsl_floats(m[4:8])}))" for m in packed["materials"]]
+    keys = [f"vec4({_glsl_floats(k)})" for k in packed["keys"]]
+    cams = [f"vec4({_glsl_floats(c[0:4])}), vec4({_glsl_floats(c[4:8])})" for c in packed["camkeys"]]
+    lights = [str(int(x)) for x in packed["lights"]]
+
+    def arr(typ: str, name: str, items: list[str], n: int) -> str:
+        return f"const {typ} {name}[{n}] = {typ}[{n}](\n    " + ",\n    ".join(items) + ");\n"
+
+    return (
+        f"#define N_PRIMS {len(rows)}\n#define N_LIGHTS {packed['n_lights']}\n#define N_CAMKEYS {len(cams)}\n"
+        + arr("Prim", "prims", rows, len(rows))
+        + arr("Material", "mats", mats, len(mats))
+        + arr("vec4", "keys", keys, len(keys))
+        + arr("vec4", "camkeys", cams, 2 * len(cams))
+        + arr("int", "lights", lights, len(lights))
+    )
+
+
+def _shader_source(packed: dict, has_mesh: bool, baked: bool) -> str:
+    src = SHADER_PATH.read_text()
+    defines = f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
+    src = src.replace("#version 430\n", defines, 1)
+    return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
 
 
 def _check_int(name: str, value, lo: int, hi: int | None = None) -> int:
@@ -39,6 +77,9 @@ class PathTracer:
             ``None`` = ``scene.needed_features()``.
         ctx: a moderngl context with GL >= 4.3 (e.g. a window's); ``None`` = :func:`create_context`.
         spp_per_dispatch: most samples one dispatch takes (bounds the length of one GPU job).
+        bake_scene: paste the scene into the shader as constants (faster; a new tracer per scene
+            anyway) instead of reading storage buffers; ``None`` = when it has at most
+            ``MAX_BAKED_OBJECTS`` objects. Both give identical images.
 
     Example:
         >>> tracer = PathTracer(default_scene(), 64, 64)
@@ -55,6 +96,7 @@ class PathTracer:
         features: Sequence[str] | None = None,
         ctx: moderngl.Context | None = None,
         spp_per_dispatch: int = 64,
+        bake_scene: bool | None = None,
     ):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchmanifold.render.Scene, got {type(scene).__name__}")
@@ -79,10 +121,11 @@ class PathTracer:
         packed = pack_scene(scene)
         self.has_mesh = packed["has_mesh"]
         self.n_lights = packed["n_lights"]
-        src = SHADER_PATH.read_text().replace(
-            "#version 430\n", f"#version 430\n#define HAS_MESH {int(self.has_mesh)}\n", 1
-        )
-        self.program = self.ctx.compute_shader(src)
+        # small scenes are pasted into the shader as constants (about 2x faster on llvmpipe)
+        if bake_scene is None:
+            bake_scene = len(scene.objects) <= MAX_BAKED_OBJECTS and len(packed["keys"]) <= MAX_BAKED_OBJECTS
+        self.baked = bool(bake_scene)
+        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked))
         self._scene_bufs = {
             0: self.ctx.buffer(packed["prims"].tobytes()),
             1: self.ctx.buffer(packed["materials"].tobytes()),
@@ -202,22 +245,24 @@ class PathTracer:
         d = len(self.feature_names)
         spp = self._last["spp"]
 
-        def grab(key: str, c: int) -> torch.Tensor:
+        def grab(key: str, c: int, scale: bool = True) -> np.ndarray:
             arr = np.empty((n, c, h, w), np.float32)
             if c:
                 self._out[key].read_into(arr, size=arr.nbytes)
-            return torch.from_numpy(arr)
+                if scale and spp > 1:
+                    np.divide(arr, np.float32(spp), out=arr)
+            return arr
 
+        # numpy, not torch, for the small post-processing: torch's thread pool contends with llvmpipe's
         make_current(self.ctx)
-        aux = grab("aux", 3)
-        color, feats, emission = grab("color", 3), grab("features", d), grab("emission", 3)
+        aux = grab("aux", 3, scale=False)
         return RenderResult(
-            color=color.div_(spp),
-            features=feats.div_(spp),
+            color=torch.from_numpy(grab("color", 3)),
+            features=torch.from_numpy(grab("features", d)),
             feature_names=list(self.feature_names),
-            object_id=aux[:, 0].round().to(torch.int32),
-            motion=aux[:, 1:3].contiguous(),
-            emission=emission.div_(spp),
+            object_id=torch.from_numpy(np.rint(aux[:, 0]).astype(np.int32)),
+            motion=torch.from_numpy(np.ascontiguousarray(aux[:, 1:3])),
+            emission=torch.from_numpy(grab("emission", 3)),
             times=torch.from_numpy(self._last["times"].copy()),
             spp=spp,
             sample_offset=self._last["sample_offset"],

@@ -9,6 +9,9 @@ layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 #ifndef HAS_MESH
 #define HAS_MESH 0
 #endif
+#ifndef CONST_SCENE
+#define CONST_SCENE 0
+#endif
 
 const float PI = 3.14159265358979;
 const float INF = 1e30;
@@ -21,11 +24,20 @@ struct Prim { vec4 a; vec4 b; vec4 c; ivec4 info; ivec4 info2; };
 // Material: colour.rgb + type (0 diffuse, 1 mirror, 2 glass), emission.rgb + index of refraction.
 struct Material { vec4 color_type; vec4 emission_ior; };
 
+#if CONST_SCENE
+// the host pastes the scene here as constant arrays (prims, mats, keys, camkeys, lights) and defines
+// N_PRIMS, N_LIGHTS, N_CAMKEYS: llvmpipe then reads plain constants instead of bounds-checked buffers (~2x)
+SCENE_CONSTANTS
+#else
 layout(std430, binding = 0) readonly buffer Prims { Prim prims[]; };
 layout(std430, binding = 1) readonly buffer Materials { Material mats[]; };
 layout(std430, binding = 2) readonly buffer Keys { vec4 keys[]; };       // (time, offset.xyz)
 layout(std430, binding = 3) readonly buffer CamKeys { vec4 camkeys[]; }; // pairs (time, eye), (target, vfov_deg)
 layout(std430, binding = 4) readonly buffer Lights { int lights[]; };
+#define N_PRIMS u_n_prims
+#define N_LIGHTS u_n_lights
+#define N_CAMKEYS u_n_camkeys
+#endif
 layout(std430, binding = 5) readonly buffer Times { float frame_times[]; };
 layout(std430, binding = 6) buffer OutColor { float out_color[]; };       // (T, 3, H, W) sums
 layout(std430, binding = 7) buffer OutEmission { float out_emission[]; }; // (T, 3, H, W) sums
@@ -94,9 +106,9 @@ struct Camera { vec3 eye; vec3 fwd; vec3 right; vec3 up; float tan_half; float a
 Camera camera_at(float t) {
     int k = 0;
     float s = 0.0;
-    if (u_n_camkeys > 1 && t > camkeys[0].x) {
-        k = u_n_camkeys - 1;
-        for (int j = 0; j < u_n_camkeys - 1; ++j) {
+    if (N_CAMKEYS > 1 && t > camkeys[0].x) {
+        k = N_CAMKEYS - 1;
+        for (int j = 0; j < N_CAMKEYS - 1; ++j) {
             if (t <= camkeys[2 * (j + 1)].x) {
                 s = (t - camkeys[2 * j].x) / max(camkeys[2 * (j + 1)].x - camkeys[2 * j].x, 1e-12);
                 k = j;
@@ -104,7 +116,7 @@ Camera camera_at(float t) {
             }
         }
     }
-    int k1 = min(k + 1, u_n_camkeys - 1);
+    int k1 = min(k + 1, N_CAMKEYS - 1);
     if (k1 == k) s = 0.0;
     vec3 eye = mix(camkeys[2 * k].yzw, camkeys[2 * k1].yzw, s);
     vec3 target = mix(camkeys[2 * k + 1].xyz, camkeys[2 * k1 + 1].xyz, s);
@@ -211,30 +223,48 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, out vec3 n) {
 }
 #endif
 
+// distance to primitive i along (o, d) within (tmin, tmax), INF if none; n = its front normal there
+float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, out vec3 n) {
+    ivec4 info = prims[i].info;             // read fields as needed: no whole-struct copies per test
+    vec3 ro = info.w > 0 ? o - prim_offset(i, time) : o;  // objects only translate: move the ray instead
+    n = vec3(0.0);
+    float t = INF;
+    if (info.x == 0) {
+        vec4 a = prims[i].a;
+        t = hit_sphere(ro, d, a.xyz, a.w, tmin);
+        if (t < tmax) n = (ro + t * d - a.xyz) / a.w;
+    } else if (info.x == 1) {
+        vec3 u = prims[i].b.xyz, v = prims[i].c.xyz;
+        t = hit_quad(ro, d, prims[i].a.xyz, u, v, tmin);
+        if (t < tmax) n = normalize(cross(u, v));
+    }
+#if HAS_MESH
+    else {
+        t = hit_mesh(ro, d, prims[i].info2.y, tmin, tmax, n);
+    }
+#endif
+    return t;
+}
+
 bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) {
     hit.t = tmax;
     hit.prim = -1;
     hit.n = vec3(0.0);
-    for (int i = 0; i < u_n_prims; ++i) {
-        Prim p = prims[i];
-        vec3 ro = o - prim_offset(i, time);   // objects only translate: move the ray instead
-        float t = INF;
-        vec3 n = vec3(0.0);
-        if (p.info.x == 0) {
-            t = hit_sphere(ro, d, p.a.xyz, p.a.w, tmin);
-            if (t < hit.t) n = (ro + t * d - p.a.xyz) / p.a.w;
-        } else if (p.info.x == 1) {
-            t = hit_quad(ro, d, p.a.xyz, p.b.xyz, p.c.xyz, tmin);
-            if (t < hit.t) n = normalize(cross(p.b.xyz, p.c.xyz));
-        }
-#if HAS_MESH
-        else {
-            t = hit_mesh(ro, d, p.info2.y, tmin, hit.t, n);
-        }
-#endif
+    for (int i = 0; i < N_PRIMS; ++i) {
+        vec3 n;
+        float t = hit_prim(i, o, d, tmin, hit.t, time, n);
         if (t < hit.t) { hit.t = t; hit.prim = i; hit.n = n; }
     }
     return hit.prim >= 0;
+}
+
+// shadow rays: any hit before tmax ends the search
+bool occluded(vec3 o, vec3 d, float tmax, float time) {
+    for (int i = 0; i < N_PRIMS; ++i) {
+        vec3 n;
+        if (hit_prim(i, o, d, 0.0, tmax, time, n) < tmax) return true;
+    }
+    return false;
 }
 
 // ---------------------------------------------------------------- sampling helpers
@@ -261,9 +291,9 @@ float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p
 // next-event estimation: one light chosen uniformly, one point uniform on its area.
 // Returns the radiance contribution (already / pdf) and the unit shadow-ray direction.
 vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
-    int li = lights[min(int(rnd() * float(u_n_lights)), u_n_lights - 1)];
+    int li = lights[min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1)];
     Prim lp = prims[li];
-    vec3 off = prim_offset(li, time);
+    vec3 off = lp.info.w > 0 ? prim_offset(li, time) : vec3(0.0);
     float u1 = rnd(), u2 = rnd();
     vec3 y, ny;
     float area;
@@ -283,11 +313,10 @@ vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     sdir = w / dist;
     float cos_x = dot(n, sdir), cos_y = -dot(ny, sdir);
     if (cos_x <= 0.0 || cos_y <= 0.0) return vec3(0.0);
-    Hit sh;
     vec3 o = p + n * ray_eps(p);
-    if (intersect(o, sdir, 0.0, dist * (1.0 - 1e-4), time, sh)) return vec3(0.0);
+    if (occluded(o, sdir, dist * (1.0 - 1e-4), time)) return vec3(0.0);
     vec3 le = mats[lp.info.y].emission_ior.rgb;
-    return le * (albedo / PI) * cos_x * cos_y / dist2 * area * float(u_n_lights);
+    return le * (albedo / PI) * cos_x * cos_y / dist2 * area * float(N_LIGHTS);
 }
 
 // ---------------------------------------------------------------- main
@@ -318,12 +347,12 @@ void main() {
         for (int depth = 0; depth < u_max_depth; ++depth) {
             Hit h;
             if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
-            Prim p = prims[h.prim];
-            Material m = mats[p.info.y];
+            ivec4 pinfo = prims[h.prim].info;
+            Material m = mats[pinfo.y];
             vec3 x = o + h.t * d;
             vec3 nf = dot(h.n, d) < 0.0 ? h.n : -h.n;   // facing the incoming ray
             vec3 le = emitted(h.prim, h.n, d);
-            if (count_light || p.info2.x == 0) L += beta * le;
+            if (count_light || prims[h.prim].info2.x == 0) L += beta * le;
             int mtype = int(m.color_type.w);
             vec3 albedo = m.color_type.rgb;
             if (depth == 0) {
@@ -336,7 +365,7 @@ void main() {
             }
             vec3 nd;
             if (mtype == 0) {                               // diffuse
-                if (u_n_lights > 0) {
+                if (N_LIGHTS > 0) {
                     vec3 sdir;
                     L += beta * sample_light(x, nf, albedo, time, sdir);
                     if (depth == 0) { feat[11] += sdir.x; feat[12] += sdir.y; feat[13] += sdir.z; }
