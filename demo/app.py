@@ -40,7 +40,7 @@ from tqdm import tqdm  # noqa: E402
 from demo import controls  # noqa: E402
 from demo.overlay import render_overlay  # noqa: E402
 from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
-from demo.progression import FEATURE_VIEWS, FilterParams, Progression  # noqa: E402
+from demo.progression import FEATURE_SETS, FEATURE_VIEWS, FilterParams, Progression  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
 
@@ -95,7 +95,7 @@ class DemoApp(WindowConfig):
             reference = render_reference(self.tracer, self.frame_times, args.reference_spp, seed=args.seed + 7919)
         params = FilterParams(
             sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
-            tree_height=args.tree_height, feature_set=args.feature_set,
+            tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
         )
         self.progression = Progression(self.tracer, self.frame_times, params, seed=args.seed, reference=reference)
         self.make_current()
@@ -274,7 +274,8 @@ class DemoApp(WindowConfig):
             f"{'' if self.playing else '  (paused)'}{'' if self.progressing else '  [iterations paused]'}",
             f"trace {trace_ms:7.1f} ms   filter {filter_ms:7.1f} ms   display {display_ms:6.1f} ms",
             f"sigma_s {p.sigma_s:.2f} -> {sigma_s:.2f}   sigma_r {p.sigma_r:.3f} -> {sigma_r:.3f}   a {p.a:.2f}",
-            f"time window +-{p.time_window}   tree height {p.tree_height}",
+            f"time window +-{p.time_window}   tree height {p.tree_height}   firefly clamp "
+            + (f"{p.clamp:g}" if p.clamp else "off"),
             f"feature set {p.feature_set}: {guide}",
             f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure {self.exposure:.2f}",
             "",
@@ -321,12 +322,17 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--reference-spp", type=int, default=32, help="reference samples per pixel, 0 = none")
     g.add_argument("--max-iterations", type=int, default=1024)
-    g.add_argument("--sigma-s", type=float, default=d.sigma_s)
-    g.add_argument("--sigma-r", type=float, default=d.sigma_r)
-    g.add_argument("--a", type=float, default=d.a, help="bandwidth reduction, in (0, 1)")
-    g.add_argument("--time-window", type=int, default=d.time_window, help="temporal radius in frames")
-    g.add_argument("--tree-height", type=int, default=d.tree_height)
-    g.add_argument("--feature-set", default=d.feature_set)
+    g.add_argument("--sigma-s", type=float, default=d.sigma_s, help=f"spatial sigma, pixels (default {d.sigma_s})")
+    g.add_argument("--sigma-r", type=float, default=d.sigma_r,
+                   help=f"range sigma in normalised feature units (default {d.sigma_r})")
+    g.add_argument("--a", type=float, default=d.a, help="bandwidth reduction, in (0, 1) (default 2/3)")
+    g.add_argument("--time-window", type=int, default=d.time_window,
+                   help=f"temporal radius in frames (default {d.time_window})")
+    g.add_argument("--tree-height", type=int, default=d.tree_height, help=f"manifold tree height (default {d.tree_height})")
+    g.add_argument("--feature-set", default=d.feature_set,
+                   help=f"guide channels: {', '.join(FEATURE_SETS)} (default {d.feature_set})")
+    g.add_argument("--clamp", type=float, default=d.clamp,
+                   help=f"firefly clamp on 1-spp irradiance, grows as sqrt(iteration); 0 = off (default {d.clamp})")
     g.add_argument("--exposure", type=float, default=1.0)
     g.add_argument("--paused", action="store_true", help="start with playback paused")
     g.add_argument("--headless", action="store_true", help="EGL headless window (no display needed)")
@@ -352,7 +358,7 @@ def validate_args(args) -> None:
     if args.screenshot is not None and args.frames == 0 and args.headless:
         raise ValueError("--screenshot with --headless needs --frames N > 0")
     FilterParams(sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
-                 tree_height=args.tree_height, feature_set=args.feature_set)
+                 tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp)
 
 
 def create_app(argv: list[str]) -> DemoApp:

@@ -25,6 +25,7 @@ BINDINGS = (
     ("NUMBER_9", "height_down", "tree height - 1"),
     ("NUMBER_0", "height_up", "tree height + 1"),
     ("G", "feature_set", "next feature set (guide channels)"),
+    ("C", "clamp", "firefly clamp on / off"),
     ("F", "feature_view", "show next feature buffer instead of raw"),
     ("M", "heat_source", "heat map of raw / gaussian / ours"),
     ("MINUS", "exposure_down", "exposure / 1.5"),
@@ -64,6 +65,8 @@ def adjust_params(params: FilterParams, action: str) -> FilterParams | None:
         return p.with_(tree_height=max(1, p.tree_height - 1))
     if action == "height_up":
         return p.with_(tree_height=min(5, p.tree_height + 1))
+    if action == "clamp":
+        return p.with_(clamp=0.0 if p.clamp > 0 else FilterParams().clamp or 4.0)
     if action == "feature_set":
         return p.with_(feature_set=next_in(FEATURE_SETS, p.feature_set))
     return None
