@@ -257,6 +257,10 @@ class DemoApp(WindowConfig):
             title = PANEL_TITLES[slot]
             if i == 0 and self.feature_view is not None:
                 title = f"feature: {self.feature_view}"
+            if slot != "ours" and self.show_time not in prog.frame_times:
+                # only "ours" is synthesised in between; the others show the nearest rendered frame
+                near = prog.frame_times[int(np.argmin([abs(t - self.show_time) for t in prog.frame_times]))]
+                title += f" (t={near:g})"
             labels.append((layout.panel_rect(i)[:2], title))
         if has_heat:
             labels.append((layout.panel_rect(3)[:2], f"|error| {SLOTS[self.heat_slot]}"))

@@ -72,8 +72,12 @@ def adjust_params(params: FilterParams, action: str) -> FilterParams | None:
     return None
 
 
+KEY_LABELS = {"MINUS": "-", "EQUAL": "=", "ESCAPE": "Esc", "SPACE": "Space", "LEFT": "Left", "RIGHT": "Right"}
+
+
 def help_lines() -> list[str]:
     lines = ["torchmanifold demo: keys", ""]
     for key, _, text in BINDINGS:
-        lines.append(f"{key.replace('NUMBER_', ''):>7}  {text}")
+        lines.append(f"{KEY_LABELS.get(key, key.replace('NUMBER_', '')):>6}  {text}")
+    lines += ["", "Changing a filter parameter restarts", "the progression."]
     return lines
