@@ -228,7 +228,8 @@ def summary(folder: Path, rel: str) -> str:
         lines += [f"Machine: {meta.get('cpu')} ({meta.get('cpu_count')} cores, shared), {meta.get('torch_threads')} "
                   f"torch/OpenCV thread(s) (OIDN runs its own thread pool), torch {meta['versions'].get('torch')}, "
                   f"commit `{meta.get('git_commit', '')[:10]}`{' (dirty)' if meta.get('git_dirty') else ''}, "
-                  f"{meta.get('date_utc')}, load average {_f((meta.get('load_average') or [None])[0], 1)}.", ""]
+                  f"{meta.get('date_utc')}, load average {_f((meta.get('load_average') or [None])[0], 1)}; ours ran on the "
+                  f"`{meta.get('ours_backend')}` backend.", ""]
     if methods:
         for ds_name, ds in methods["datasets"].items():
             front = speed_quality(ds_name, ds, folder)

@@ -279,6 +279,11 @@ def metadata(quick: bool = False) -> dict:
         cpu = platform.processor()
     import cv2
 
+    try:  # which implementation "ours" ran: the C++ CPU kernel or the pure-torch fallback
+        from torchmanifold.ops import has_kernel
+        ours_backend = "cpp" if has_kernel("cpu") else "torch"
+    except Exception as exc:  # the filter is not importable
+        ours_backend = f"unavailable ({type(exc).__name__})"
     return {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "git_commit": git("rev-parse", "HEAD"),
@@ -290,6 +295,7 @@ def metadata(quick: bool = False) -> dict:
         "cv2": cv2.__version__,
         "torch_threads": torch.get_num_threads(),
         "cv2_threads": cv2.getNumThreads(),
+        "ours_backend": ours_backend,
         "cpu": cpu,
         "cpu_count": os.cpu_count(),
         "machine": platform.machine(),
