@@ -288,35 +288,47 @@ vec3 emitted(int i, vec3 n, vec3 d) {
 }
 float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
 
-// next-event estimation: one light chosen uniformly, one point uniform on its area.
-// Returns the radiance contribution (already / pdf) and the unit shadow-ray direction.
+// next-event estimation: one light chosen uniformly; a sphere light samples the cone of directions it
+// subtends, a quad a point uniform on its area. Returns the radiance contribution (already / pdf) and the
+// unit shadow-ray direction.
 vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     int li = lights[min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1)];
     Prim lp = prims[li];
     vec3 off = lp.info.w > 0 ? prim_offset(li, time) : vec3(0.0);
     float u1 = rnd(), u2 = rnd();
-    vec3 y, ny;
-    float area;
+    float dist, inv_pdf;  // inv_pdf = 1 / (solid-angle pdf of sdir)
+    sdir = vec3(0.0);
     if (lp.info.x == 0) {
-        float z = 1.0 - 2.0 * u1, r = sqrt(max(0.0, 1.0 - z * z)), phi = 2.0 * PI * u2;
-        ny = vec3(r * cos(phi), r * sin(phi), z);
-        y = lp.a.xyz + off + lp.a.w * ny;
-        area = 4.0 * PI * lp.a.w * lp.a.w;
+        vec3 c = lp.a.xyz + off;
+        float r = lp.a.w;
+        vec3 wc = c - p;
+        float dc2 = dot(wc, wc);
+        if (dc2 <= r * r * 1.0001) return vec3(0.0);  // on or inside: spheres emit outward only
+        float cos_max = sqrt(max(0.0, 1.0 - r * r / dc2));
+        float ct = 1.0 - u1 * (1.0 - cos_max), st = sqrt(max(0.0, 1.0 - ct * ct)), phi = 2.0 * PI * u2;
+        vec3 axis = wc * inversesqrt(dc2), t, b;
+        onb(axis, t, b);
+        sdir = normalize(st * cos(phi) * t + st * sin(phi) * b + ct * axis);
+        dist = hit_sphere(p, sdir, c, r, 0.0);
+        if (dist >= INF) return vec3(0.0);             // grazing direction lost to rounding
+        inv_pdf = 2.0 * PI * (1.0 - cos_max);
     } else {
-        vec3 c = cross(lp.b.xyz, lp.c.xyz);
-        area = length(c);
-        ny = c / area;
-        y = lp.a.xyz + off + u1 * lp.b.xyz + u2 * lp.c.xyz;
+        vec3 cr = cross(lp.b.xyz, lp.c.xyz);
+        float area = length(cr);
+        vec3 w = lp.a.xyz + off + u1 * lp.b.xyz + u2 * lp.c.xyz - p;
+        float dist2 = dot(w, w);
+        dist = sqrt(dist2);
+        sdir = w / dist;
+        float cos_y = -dot(cr / area, sdir);             // quads emit from the front face only
+        if (cos_y <= 0.0) return vec3(0.0);
+        inv_pdf = area * cos_y / dist2;
     }
-    vec3 w = y - p;
-    float dist2 = dot(w, w), dist = sqrt(dist2);
-    sdir = w / dist;
-    float cos_x = dot(n, sdir), cos_y = -dot(ny, sdir);
-    if (cos_x <= 0.0 || cos_y <= 0.0) return vec3(0.0);
+    float cos_x = dot(n, sdir);
+    if (cos_x <= 0.0) return vec3(0.0);
     vec3 o = p + n * ray_eps(p);
     if (occluded(o, sdir, dist * (1.0 - 1e-4), time)) return vec3(0.0);
     vec3 le = mats[lp.info.y].emission_ior.rgb;
-    return le * (albedo / PI) * cos_x * cos_y / dist2 * area * float(N_LIGHTS);
+    return le * (albedo / PI) * cos_x * inv_pdf * float(N_LIGHTS);
 }
 
 // ---------------------------------------------------------------- main
