@@ -12,6 +12,7 @@ from typing import Sequence
 import moderngl
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from torchmanifold.render.context import create_context, make_current
 from torchmanifold.render.frames import RenderResult
@@ -191,6 +192,7 @@ class PathTracer:
         seed: int = 0,
         sample_offset: int = 0,
         tile: int | tuple[int, int] | None = None,
+        progress: bool = False,
     ) -> None:
         """Render into the output :attr:`buffers` without reading them back (see :meth:`render`)."""
         times_np = self._check_times(times)
@@ -204,9 +206,9 @@ class PathTracer:
             tw, th = _check_int("tile width", tw, 1), _check_int("tile height", th, 1)
         n = len(times_np)
         make_current(self.ctx)
-        self._dispatch(times_np, spp, seed, sample_offset, tw, th)
+        self._dispatch(times_np, spp, seed, sample_offset, tw, th, progress)
 
-    def _dispatch(self, times_np, spp, seed, sample_offset, tw, th) -> None:
+    def _dispatch(self, times_np, spp, seed, sample_offset, tw, th, progress) -> None:
         n = len(times_np)
         self._ensure_outputs(n)
         tbytes = times_np.astype(np.float32).tobytes()
@@ -222,18 +224,24 @@ class PathTracer:
         for binding, key in ((6, "color"), (7, "emission"), (8, "features"), (9, "aux")):
             self._out[key].bind_to_storage_buffer(binding)
         self._set("u_seed", seed)
+        tiles = [(x0, y0) for y0 in range(0, self.height, th) for x0 in range(0, self.width, tw)]
+        bar = tqdm(total=math.ceil(spp / self.spp_per_dispatch) * len(tiles), disable=not progress,
+                   desc=f"path tracing {n}x{self.width}x{self.height} @ {spp} spp", unit="dispatch")
         done = 0
         while done < spp:
             chunk = min(self.spp_per_dispatch, spp - done)
             self._set("u_spp", chunk)
             self._set("u_sample_start", sample_offset + done)
             self._set("u_accumulate", int(done > 0))
-            for y0 in range(0, self.height, th):
-                for x0 in range(0, self.width, tw):
-                    self._set("u_tile_origin", (x0, y0))
-                    self._set("u_tile_size", (tw, th))
-                    self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), n)
+            for x0, y0 in tiles:
+                self._set("u_tile_origin", (x0, y0))
+                self._set("u_tile_size", (tw, th))
+                self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), n)
+                if progress:
+                    self.ctx.finish()  # so the bar shows finished work, not queued work
+                    bar.update()
             done += chunk
+        bar.close()
         self.ctx.memory_barrier()
         self._last = {"times": times_np, "spp": spp, "seed": seed, "sample_offset": sample_offset}
 
@@ -276,6 +284,7 @@ class PathTracer:
         seed: int = 0,
         sample_offset: int = 0,
         tile: int | tuple[int, int] | None = None,
+        progress: bool = False,
     ) -> RenderResult:
         """Render frames at the given times.
 
@@ -288,11 +297,12 @@ class PathTracer:
                 ``spp=1, sample_offset=i`` gets fresh independent samples.
             tile: render in tiles of this many pixels (int or (w, h)); the image is the same for
                 any tiling because the RNG is keyed on (pixel, sample index, frame time, seed).
+            progress: show a tqdm bar over the dispatches (for long renders, e.g. references).
 
         Returns:
             :class:`RenderResult` with ``color (T, 3, H, W)``, ``features (T, D, H, W)`` etc.
         """
-        self.dispatch(times, spp=spp, seed=seed, sample_offset=sample_offset, tile=tile)
+        self.dispatch(times, spp=spp, seed=seed, sample_offset=sample_offset, tile=tile, progress=progress)
         return self.read()
 
     @staticmethod
