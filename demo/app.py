@@ -40,7 +40,7 @@ from tqdm import tqdm  # noqa: E402
 from demo import controls  # noqa: E402
 from demo.overlay import render_overlay  # noqa: E402
 from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
-from demo.progression import FEATURE_SETS, FEATURE_VIEWS, FilterParams, Progression  # noqa: E402
+from demo.progression import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams, Progression  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
 
@@ -96,6 +96,7 @@ class DemoApp(WindowConfig):
         params = FilterParams(
             sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
             tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
+            temporal_mode=args.temporal_mode,
         )
         self.progression = Progression(self.tracer, self.frame_times, params, seed=args.seed, reference=reference)
         self.make_current()
@@ -278,7 +279,7 @@ class DemoApp(WindowConfig):
             f"{'' if self.playing else '  (paused)'}{'' if self.progressing else '  [iterations paused]'}",
             f"trace {trace_ms:7.1f} ms   filter {filter_ms:7.1f} ms   display {display_ms:6.1f} ms",
             f"sigma_s {p.sigma_s:.2f} -> {sigma_s:.2f}   sigma_r {p.sigma_r:.3f} -> {sigma_r:.3f}   a {p.a:.2f}",
-            f"time window +-{p.time_window}   tree height {p.tree_height}   firefly clamp "
+            f"time window +-{p.time_window} ({p.temporal_mode})   tree height {p.tree_height}   clamp "
             + (f"{p.clamp:g}" if p.clamp else "off"),
             f"feature set {p.feature_set}: {guide}",
             f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure {self.exposure:.2f}",
@@ -332,6 +333,8 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--a", type=float, default=d.a, help="bandwidth reduction, in (0, 1) (default 2/3)")
     g.add_argument("--time-window", type=int, default=d.time_window,
                    help=f"temporal radius in frames (default {d.time_window})")
+    g.add_argument("--temporal-mode", default=d.temporal_mode, choices=TEMPORAL_MODES,
+                   help="window: mean of the window then filter; spacetime: joint filter, no ghosts (slower)")
     g.add_argument("--tree-height", type=int, default=d.tree_height, help=f"manifold tree height (default {d.tree_height})")
     g.add_argument("--feature-set", default=d.feature_set,
                    help=f"guide channels: {', '.join(FEATURE_SETS)} (default {d.feature_set})")
@@ -362,7 +365,8 @@ def validate_args(args) -> None:
     if args.screenshot is not None and args.frames == 0 and args.headless:
         raise ValueError("--screenshot with --headless needs --frames N > 0")
     FilterParams(sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
-                 tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp)
+                 tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
+                 temporal_mode=args.temporal_mode)
 
 
 def create_app(argv: list[str]) -> DemoApp:

@@ -6,7 +6,7 @@ restarts the progression, because the running buffer was built with the old one.
 """
 from __future__ import annotations
 
-from demo.progression import FEATURE_SETS, FilterParams
+from demo.progression import FEATURE_SETS, TEMPORAL_MODES, FilterParams
 
 BINDINGS = (
     ("SPACE", "play", "play / pause the clip"),
@@ -22,6 +22,7 @@ BINDINGS = (
     ("NUMBER_6", "a_up", "a + 0.1"),
     ("NUMBER_7", "window_down", "time window radius - 1 frame"),
     ("NUMBER_8", "window_up", "time window radius + 1 frame"),
+    ("T", "temporal_mode", "time window mode: window mean / space-time"),
     ("NUMBER_9", "height_down", "tree height - 1"),
     ("NUMBER_0", "height_up", "tree height + 1"),
     ("G", "feature_set", "next feature set (guide channels)"),
@@ -65,6 +66,8 @@ def adjust_params(params: FilterParams, action: str) -> FilterParams | None:
         return p.with_(tree_height=max(1, p.tree_height - 1))
     if action == "height_up":
         return p.with_(tree_height=min(5, p.tree_height + 1))
+    if action == "temporal_mode":
+        return p.with_(temporal_mode=next_in(TEMPORAL_MODES, p.temporal_mode))
     if action == "clamp":
         return p.with_(clamp=0.0 if p.clamp > 0 else FilterParams().clamp or 4.0)
     if action == "feature_set":

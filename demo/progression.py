@@ -35,6 +35,9 @@ FEATURE_SETS = {
     "colour": (),
 }
 
+#: How neighbour frames are combined: mean of the window then filter, or joint space-time filter.
+TEMPORAL_MODES = ("window", "spacetime")
+
 #: Feature buffers that can be shown instead of the raw image.
 FEATURE_VIEWS = ("Z", "albedo", "normal", "reflect", "shadow", "T")
 
@@ -48,7 +51,9 @@ class FilterParams:
     a: bandwidth reduction in (0, 1). time_window: radius in frames of the temporal Gaussian window
     (0 = each frame alone; sigma_t = radius / 2). tree_height: manifold tree height.
     clamp: firefly clamp on 1-spp irradiance at iteration 1 (0 = off); it grows as sqrt(iteration),
-    so its bias fades and the running result stays consistent.
+    so its bias fades and the running result stays consistent. temporal_mode: "window" (average the
+    window, then filter: the paper's accumulation) or "spacetime" (joint filter, no ghosts of moving
+    objects; slower).
     """
 
     sigma_s: float = 3.0
@@ -58,6 +63,7 @@ class FilterParams:
     tree_height: int = 2
     feature_set: str = "albedo+normal+depth"
     clamp: float = 4.0
+    temporal_mode: str = "window"
 
     def __post_init__(self):
         if not self.sigma_s >= 1.0:
@@ -72,6 +78,8 @@ class FilterParams:
             raise ValueError(f"tree_height: expected an int in [1, 8], got {self.tree_height!r}")
         if not self.clamp >= 0.0:
             raise ValueError(f"clamp: expected >= 0 (0 = off), got {self.clamp}")
+        if self.temporal_mode not in TEMPORAL_MODES:
+            raise ValueError(f"temporal_mode: expected one of {TEMPORAL_MODES}, got {self.temporal_mode!r}")
         if self.feature_set not in FEATURE_SETS:
             raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {self.feature_set!r}")
 
@@ -252,37 +260,57 @@ class Progression:
         return guide
 
     def _filter(self, times, color, feats, bandwidth, emission=None, clamp=True) -> torch.Tensor:
-        """Window + adaptive-manifold filter for each time in ``times`` -> ``(len(times), 3, H, W)``."""
-        from torchmanifold import adaptive_manifold_filter
+        """Temporal window + adaptive-manifold filter for each time in ``times`` -> ``(len(times), 3, H, W)``.
+
+        Colour is filtered as irradiance: emission seen at the first hit is kept apart and the albedo
+        divided out per frame, both put back at the shown time after filtering, so lights don't bleed
+        and texture stays sharp.
+        """
+        from torchmanifold import adaptive_manifold_filter, temporal_adaptive_manifold_filter
 
         sigma_s, sigma_r = bandwidth
         names = self.feature_names
-        has_albedo = all(c in names for c in FEATURE_GROUPS["albedo"])
-        values, guides, albedos, emis = [], [], [], []
+        if all(c in names for c in FEATURE_GROUPS["albedo"]):
+            albedo = feats[:, [names.index(c) for c in FEATURE_GROUPS["albedo"]]].clamp_min(1e-3)
+        else:
+            albedo = torch.ones_like(color)
+        if emission is None:
+            emission = torch.zeros_like(color)
+        irr = (color - emission).clamp_min(0.0) / albedo
+        if clamp and self.params.clamp > 0:
+            # fireflies: a bright 1-spp sample would become a blob; the limit grows with the
+            # iteration so the bias vanishes as samples accumulate
+            irr = irr.clamp_max(self.params.clamp * math.sqrt(self.iteration))
+        guide = self._guide(feats, irr)
+        height = self.params.tree_height
+        if self.params.temporal_mode == "window":
+            # the paper's accumulation: Gaussian-weighted mean of the frames in the window, then one
+            # spatial filter per shown time (batched)
+            ws = [self._window(t) for t in times]
+            mix = lambda x: torch.stack([(x[i] * w.view(-1, 1, 1, 1)).sum(0) for i, w in ws])  # noqa: E731
+            out = adaptive_manifold_filter(mix(irr), mix(guide), sigma_s, sigma_r, tree_height=height)
+            return out * mix(albedo) + mix(emission)
+        outs = []
         for t in times:
-            idx, w = self._window(t)
-            wv = w.view(-1, 1, 1, 1)
-            c = (color[idx] * wv).sum(0)
-            f = (feats[idx] * wv).sum(0)
-            e = (emission[idx] * wv).sum(0) if emission is not None else torch.zeros_like(c)
-            if has_albedo:
-                # filter irradiance: texture is divided out and multiplied back after filtering
-                alb = f[[names.index(ch) for ch in FEATURE_GROUPS["albedo"]]].clamp_min(1e-3)
-            else:
-                alb = torch.ones_like(c)
-            irr = (c - e).clamp_min(0.0) / alb
-            if clamp and self.params.clamp > 0:
-                # fireflies: a bright 1-spp sample would become a blob; the limit grows with the
-                # iteration so the bias vanishes as samples accumulate
-                irr = irr.clamp_max(self.params.clamp * math.sqrt(self.iteration))
-            values.append(irr)
-            guides.append(f)
-            albedos.append(alb)
-            emis.append(e)
-        values = torch.stack(values)
-        guide = self._guide(torch.stack(guides), values)
-        out = adaptive_manifold_filter(values, guide, sigma_s, sigma_r, tree_height=self.params.tree_height)
-        return out * torch.stack(albedos) + torch.stack(emis)
+            # space-time: samples of other frames only count where their guide matches the shown
+            # frame's, so moving objects don't leave ghosts
+            idx, _ = self._window(t)
+            frame_times = [self.frame_times[i] for i in idx]
+            sigma_t = max(self.params.time_window / 2.0, 0.5)
+            out = temporal_adaptive_manifold_filter(
+                irr[idx][None], guide[idx][None], frame_times, [t], sigma_s, sigma_r, sigma_t=sigma_t,
+                mode="spacetime", tree_height=height)[0, 0]
+            outs.append(out * self._interpolate(albedo, t) + self._interpolate(emission, t))
+        return torch.stack(outs)
+
+    def _interpolate(self, x: torch.Tensor, t: float) -> torch.Tensor:
+        """``x`` (T, C, H, W) at time ``t``: linear between the frames bracketing it."""
+        ft = self.frame_times
+        k = int(np.searchsorted(ft, t, side="right")) - 1
+        if k < 0 or k >= len(ft) - 1 or ft[k] == t:
+            return x[min(max(k, 0), len(ft) - 1)]
+        s = (t - ft[k]) / (ft[k + 1] - ft[k])
+        return torch.lerp(x[k], x[k + 1], s)
 
     # ------------------------------------------------------------------------------------ views
     def _nearest_frame(self, t: float) -> int:

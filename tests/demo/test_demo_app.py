@@ -109,6 +109,16 @@ def test_parameter_keys_change_and_restart(live_app, action, field, direction):
     assert app.progression.iteration == 1
 
 
+def test_temporal_mode_key_switches_to_spacetime(live_app):
+    app = live_app
+    app.apply_action("temporal_mode")
+    assert app.progression.params.temporal_mode == "spacetime" and app.progression.iteration == 0
+    step_frame(app)
+    assert app.progression.ours(app.show_time).isfinite().all()
+    app.apply_action("temporal_mode")
+    assert app.progression.params.temporal_mode == "window"
+
+
 def test_feature_set_switch_changes_guide(live_app):
     app = live_app
     seen = set()

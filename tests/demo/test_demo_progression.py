@@ -30,6 +30,7 @@ def test_bandwidth_follows_the_recurrence():
     (dict(sigma_s=0.5), "sigma_s"), (dict(sigma_r=0.0), "sigma_r"), (dict(a=1.0), "a"),
     (dict(time_window=-1), "time_window"), (dict(tree_height=0), "tree_height"),
     (dict(feature_set="x"), "feature_set"), (dict(clamp=-1.0), "clamp"),
+    (dict(temporal_mode="both"), "temporal_mode"),
 ])
 def test_bad_params_name_the_field(kwargs, name):
     with pytest.raises(ValueError, match=name):
@@ -90,3 +91,32 @@ def test_in_between_time_joins_late_and_keeps_up(tracer):
     assert (prog.ours(0.5) - both).abs().mean() < 0.5 * both.abs().mean()
     with pytest.raises(ValueError, match="t:"):
         prog.track(5.0)
+
+
+def test_spacetime_equals_spatial_filter_without_neighbours(tracer):
+    """With a window of one frame both temporal modes reduce to the same spatial filter."""
+    outs = []
+    for mode in ("window", "spacetime"):
+        prog = Progression(tracer, [0.0, 1.0], FilterParams(time_window=0, temporal_mode=mode, tree_height=1))
+        prog.step()
+        outs.append(prog.ours(1.0))
+    assert torch.allclose(outs[0], outs[1], rtol=1e-3, atol=1e-3)
+
+
+def test_spacetime_keeps_moving_object_sharper(tracer):
+    """Space-time filtering ghosts less than the window mean: where the scene moved between frames,
+    its result stays nearer the frame filtered alone."""
+    def run(params):
+        prog = Progression(tracer, [0.0, 2.0, 4.0], params)
+        for _ in range(2):
+            prog.step()
+        return prog
+
+    alone = run(FilterParams(time_window=0))
+    window = run(FilterParams(time_window=2, temporal_mode="window")).ours(2.0)
+    spacetime = run(FilterParams(time_window=2, temporal_mode="spacetime")).ours(2.0)
+    moved = (alone.feat_sum[0] - alone.feat_sum[2]).abs().sum(0) > 0.5  # features changed from t=0 to 4
+    assert moved.sum() > 10
+    ghost_window = (window - alone.ours(2.0)).abs().sum(0)[moved].mean()
+    ghost_spacetime = (spacetime - alone.ours(2.0)).abs().sum(0)[moved].mean()
+    assert ghost_spacetime < ghost_window
