@@ -38,6 +38,7 @@ class Clip:
         guide_names: names of the D guide channels (for reports).
         albedo: optional (T, 3, H, W) raw albedo in [0, 1] (OIDN's auxiliary input).
         normal: optional (T, 3, H, W) raw normals in [-1, 1] (OIDN's auxiliary input).
+        features: optional (T, F, H, W) raw features named ``feature_names`` (the pipeline's input).
     """
 
     values: torch.Tensor
@@ -46,6 +47,8 @@ class Clip:
     guide_names: tuple = ()
     albedo: Optional[torch.Tensor] = None
     normal: Optional[torch.Tensor] = None
+    features: Optional[torch.Tensor] = None
+    feature_names: tuple = ()
 
     def __post_init__(self):
         if self.values.dim() != 4 or self.guide.dim() != 4:
@@ -63,12 +66,16 @@ class Clip:
         lo, hi = max(0, query - radius), min(self.values.shape[0], query + radius + 1)
         pick = (lambda x: None if x is None else x[lo:hi])
         return Clip(self.values[lo:hi], self.guide[lo:hi], self.times[lo:hi], self.guide_names,
-                    pick(self.albedo), pick(self.normal)), query - lo
+                    pick(self.albedo), pick(self.normal), pick(self.features), self.feature_names), query - lo
 
 
 @dataclass
 class Method:
-    """One denoiser: ``fn(clip, query, sigma_s, sigma_r, **params) -> (C, H, W)``."""
+    """One denoiser: ``fn(clip, query, sigma_s, sigma_r, **params) -> (C, H, W)``.
+
+    ``raw_input``: the method wants the renderer's colour as it is (OIDN, our pipeline, which demodulate and
+    treat fireflies themselves), not the demodulated irradiance the benchmarks give the plain filters.
+    """
 
     name: str
     family: str
@@ -77,6 +84,7 @@ class Method:
     temporal: bool = False
     available: bool = True
     why: str = ""
+    raw_input: bool = False
 
     def __call__(self, clip: Clip, query: int = 0, sigma_s: float = 8.0, sigma_r: float = 0.3) -> torch.Tensor:
         if not self.available:
@@ -189,6 +197,17 @@ def _ours(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: i
                                                   adjust_outliers=adjust_outliers)[0]
 
 
+def _pipeline(clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings) -> torch.Tensor:
+    """Our product: ``torchmanifold.pipeline.denoise_frames`` with its own preprocessing (demodulation, firefly
+    treatment, guide sigmas) on the raw colour and features; sigma_s / sigma_r of the call are not used."""
+    from torchmanifold.pipeline import DenoiseSettings, denoise_frames
+
+    if clip.features is None:
+        raise ValueError("the pipeline needs the clip's raw features (Clip.features)")
+    out = denoise_frames(clip.values, clip.features, clip.feature_names, settings=DenoiseSettings(**settings))
+    return out[query]
+
+
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,
                    mode: str = "window", sigma_t: float = 1.0, adjust_outliers: bool = False) -> torch.Tensor:
     import torchmanifold
@@ -214,9 +233,9 @@ def _probe(module: str, attr: Optional[str] = None) -> tuple[bool, str]:
         return False, f"{type(exc).__name__}: {exc}"
 
 
-def _entry(name, family, fn, probe, params=None, temporal=False) -> Method:
+def _entry(name, family, fn, probe, params=None, temporal=False, raw_input=False) -> Method:
     ok, why = probe
-    return Method(name, family, fn, dict(params or {}), temporal, ok, why)
+    return Method(name, family, fn, dict(params or {}), temporal, ok, why, raw_input)
 
 
 def stability_methods() -> list[Method]:
@@ -228,7 +247,7 @@ def stability_methods() -> list[Method]:
         _entry("gaussian", "gaussian", _gaussian, kornia_ok),
         _entry("joint-bilateral", "joint-bilateral", _joint_bilateral, kornia_ok),
         _entry("opencv-am", "opencv-am", _opencv_am, _probe("cv2", "ximgproc.amFilter")),
-        _entry("oidn", "oidn", _oidn, _probe("pyoidn", "Filter")),
+        _entry("oidn", "oidn", _oidn, _probe("pyoidn", "Filter"), raw_input=True),
         _entry("ours-H1", "ours", _ours, ours_ok, {"tree_height": 1}),
         _entry("ours-H2", "ours", _ours, ours_ok, {"tree_height": 2}),
         _entry("ours-H4", "ours", _ours, ours_ok, {"tree_height": 4}),
@@ -250,12 +269,16 @@ def benchmark_methods(sigma_s: float = 8.0, sigma_r: float = 0.3, sigma_t: float
                    {"sigma_s": min(sigma_s, 3.0), "sigma_r": r}) for r in bilateral_sigma_r]
     # amFilter picks its tree height itself from the sigmas.
     out += [_entry("opencv-am", "opencv-am", _opencv_am, cv_ok, {"sigma_s": sigma_s, "sigma_r": sigma_r})]
-    out += [_entry("oidn", "oidn", _oidn, _probe("pyoidn", "Filter"))]
+    out += [_entry("oidn", "oidn", _oidn, _probe("pyoidn", "Filter"), raw_input=True)]
     out += [_entry(f"ours-H{h}", "ours", _ours, ours_ok, {"sigma_s": sigma_s, "sigma_r": sigma_r, "tree_height": h})
             for h in heights]
     out += [_entry(f"ours-H2-{m}", "ours", _ours_temporal, ours_t_ok,
                    {"sigma_s": sigma_s, "sigma_r": sigma_r, "sigma_t": sigma_t, "mode": m}, temporal=True)
             for m in ("window", "spacetime")]
+    pipe_ok = _probe("torchmanifold.pipeline", "denoise_frames")
+    out += [_entry("ours-pipeline", "ours", _pipeline, pipe_ok, raw_input=True),
+            _entry("ours-pipeline-spacetime", "ours", _pipeline, pipe_ok, {"temporal_radius": 2}, temporal=True,
+                   raw_input=True)]
     return out
 
 

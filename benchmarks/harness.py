@@ -201,7 +201,8 @@ def clip_for(ds: Dataset, use=DEFAULT_FEATURES, sigmas=None, demod: bool = True)
     guide, names = make_guide(ds, use, sigmas)
     values, alb = demodulate(ds) if demod else (ds.color, None)
     clip = Clip(values.contiguous(), guide, ds.times, names,
-                albedo=None if ds.albedo is None else ds.albedo.clamp(0, 1), normal=ds.normal)
+                albedo=None if ds.albedo is None else ds.albedo.clamp(0, 1), normal=ds.normal,
+                features=ds.features, feature_names=ds.names)
     return clip, alb
 
 
@@ -209,9 +210,10 @@ def clip_for(ds: Dataset, use=DEFAULT_FEATURES, sigmas=None, demod: bool = True)
 def prepare(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor], sigma_s=8.0, sigma_r=1.0,
             window: int = 2):
     """``(one, finish)``: ``one(q)`` runs the method on frame q (the timed part), ``finish(q, out)`` remodulates."""
-    if method.family == "oidn":
-        # OIDN takes the raw colour with its own albedo/normal inputs, not the demodulated irradiance.
-        clip = Clip(ds.color, clip.guide, clip.times, clip.guide_names, clip.albedo, clip.normal)
+    if method.raw_input:
+        # OIDN and our pipeline take the renderer's colour and do their own preprocessing.
+        clip = Clip(ds.color, clip.guide, clip.times, clip.guide_names, clip.albedo, clip.normal, clip.features,
+                    clip.feature_names)
         alb = None
 
     def one(q):
