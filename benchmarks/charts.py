@@ -223,7 +223,10 @@ def summary(folder: Path, rel: str) -> str:
              "relMSE on linear values, FLIP (lower is better), mean over frames. Time: fastest round per frame "
              "(the machine is shared; medians are in the JSON). Classic filters and ours filter demodulated "
              "colour (colour / albedo, multiplied back) guided by depth + normal + albedo, each scaled by its sigma; "
-             "OIDN gets the colour with its albedo and normal.", ""]
+             "OIDN and `ours-pipeline*` (our `denoise_frames`, with its own firefly treatment) get the raw colour and "
+             "features.", "",
+             "Regenerate everything with `.venv/bin/python benchmarks/run_all.py` (about 10 minutes on 2 cores; "
+             "`--quick` for a smoke run, `--threads N`). Where each method breaks: [stability.md](stability.md).", ""]
     if meta:
         lines += [f"Machine: {meta.get('cpu')} ({meta.get('cpu_count')} cores, shared), {meta.get('torch_threads')} "
                   f"torch/OpenCV thread(s) (OIDN runs its own thread pool), torch {meta['versions'].get('torch')}, "
