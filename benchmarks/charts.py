@@ -222,14 +222,15 @@ def summary(folder: Path, rel: str) -> str:
              "`benchmarks/results/*.json`). Quality: PSNR on clamped sRGB (the score of `/work/shared/data`), "
              "relMSE on linear values, FLIP (lower is better), mean over frames. Time: fastest round per frame "
              "(the machine is shared; medians are in the JSON). Classic filters and ours filter demodulated "
-             "colour (colour / albedo, multiplied back) guided by depth + normal + albedo, each scaled by its sigma; "
+             "colour (colour / albedo, multiplied back) guided by log colour + depth + normal + albedo, each scaled by its "
+             "sigma (`benchmarks/harness.py`); "
              "OIDN and `ours-pipeline*` (our `denoise_frames`, with its own firefly treatment) get the raw colour and "
              "features.", "",
              "Regenerate everything with `.venv/bin/python benchmarks/run_all.py` (about 10 minutes on 2 cores; "
              "`--quick` for a smoke run, `--threads N`). Where each method breaks: [stability.md](stability.md).", ""]
     if meta:
         lines += [f"Machine: {meta.get('cpu')} ({meta.get('cpu_count')} cores, shared), {meta.get('torch_threads')} "
-                  f"torch/OpenCV thread(s) (OIDN runs its own thread pool), torch {meta['versions'].get('torch')}, "
+                  f"thread(s) for torch, OpenCV and OIDN, torch {meta['versions'].get('torch')}, "
                   f"commit `{meta.get('git_commit', '')[:10]}`{' (dirty)' if meta.get('git_dirty') else ''}, "
                   f"{meta.get('date_utc')}, load average {_f((meta.get('load_average') or [None])[0], 1)}; ours ran on the "
                   f"`{meta.get('ours_backend')}` backend.", ""]
