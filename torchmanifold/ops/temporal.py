@@ -297,8 +297,9 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
 
     if mode == "window":
         fin_v, fin_g = torch.isfinite(v), torch.isfinite(g)
-        wv = fin_v.to(work) * tw[None, :, :, None, None, None]  # (B,Q,T,C,H,W) finite samples only
-        wg = fin_g.to(work) * tw[None, :, :, None, None, None]
+        tw6 = tw[None, :, :, None, None, None]
+        wv = fin_v.to(work).unsqueeze(1) * tw6  # (B,Q,T,C,H,W): finite samples only
+        wg = fin_g.to(work).unsqueeze(1) * tw6
         vz = torch.where(fin_v, v, 0.0).unsqueeze(1)
         gz = torch.where(fin_g, g, 0.0).unsqueeze(1)
         # no finite sample at a pixel -> NaN, which the spatial filter ignores (never spreads)
