@@ -1,0 +1,432 @@
+"""Denoise Monte Carlo frames with the adaptive-manifold filter: the preprocessing that makes it win.
+
+Plain joint filtering of 1-spp colour loses to a Gaussian blur on real renders (fireflies become
+blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op with:
+
+1. **Sanitising**: non-finite colour or feature samples are counted and given zero weight (the filter
+   runs on ``[w * colour, w]`` and divides, so they never enter any sum).
+2. **Emission apart**: emitted radiance at the first hit (when the renderer gives it) is removed
+   before filtering and added back unfiltered, so lights do not bleed into walls.
+3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
+   albedo averaged over the pixel footprint (a 1-spp albedo is one point of the pixel; the reference
+   is the pixel's mean), so texture stays sharp.
+4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
+   firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
+   to it, and the clamped samples are filtered linearly. The energy removed is measured and returned
+   (``stats["firefly_energy_removed"]``).
+5. **Guide scaling**: each feature group gets its own range sigma (albedo, normals, world position or
+   depth relative to the scene's extent, directions); see :func:`default_guide_sigmas`.
+6. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
+   time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "DenoiseSettings",
+    "denoise_frames",
+    "Denoiser",
+    "default_guide_sigmas",
+    "feature_group",
+    "luminance",
+    "footprint_blur",
+]
+
+_ALBEDO = ("albedo.R", "albedo.G", "albedo.B")
+_TRACER_TO_EXR = {
+    "T": "T", "Z": "Z", "Mr": "albedo.R", "Mg": "albedo.G", "Mb": "albedo.B",
+    "Nx": "N.X", "Ny": "N.Y", "Nz": "N.Z", "Dx": "D.X", "Dy": "D.Y", "Dz": "D.Z",
+    "Sx": "S.X", "Sy": "S.Y", "Sz": "S.Z", "Px": "P.X", "Py": "P.Y", "Pz": "P.Z",
+}
+
+
+def canonical_name(name: str) -> str:
+    """Tracer feature names (``Mr``, ``Nx``) mapped to EXR channel names (``albedo.R``, ``N.X``)."""
+    return _TRACER_TO_EXR.get(name, name)
+
+
+def feature_group(name: str) -> str:
+    """The group a feature channel belongs to: ``albedo``, ``N``, ``P``, ``Z``, ``D``, ``S``, ``T`` or
+    the name itself for unknown channels."""
+    name = canonical_name(name)
+    head = name.split(".")[0]
+    return head
+
+
+def luminance(x: Tensor) -> Tensor:
+    """Rec. 709 luminance of ``(..., 3, H, W)`` -> ``(..., 1, H, W)``."""
+    return 0.2126 * x[..., 0:1, :, :] + 0.7152 * x[..., 1:2, :, :] + 0.0722 * x[..., 2:3, :, :]
+
+
+def footprint_blur(x: Tensor, sigma: float) -> Tensor:
+    """Gaussian blur of ``(N, C, H, W)`` with a small ``sigma`` (pixels): a 1-sample image's estimate of
+    the pixel-footprint average. ``sigma <= 0`` returns ``x``."""
+    if sigma <= 0:
+        return x
+    r = max(1, int(math.ceil(3 * sigma)))
+    k = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+    k = torch.exp(-(k * k) / (2 * sigma * sigma))
+    k = k / k.sum()
+    c = x.shape[1]
+    xp = torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
+    xp = torch.nn.functional.conv2d(xp, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return torch.nn.functional.conv2d(xp, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def _extent(x: Tensor, valid: Tensor) -> float:
+    """Robust spread (1st to 99th percentile, largest over channels) of (N, C, H, W) where valid."""
+    spreads = []
+    for c in range(x.shape[1]):
+        v = x[:, c][valid[:, 0]]
+        if v.numel() < 2:
+            continue
+        if v.numel() > 200_000:  # quantile of a deterministic subsample is plenty
+            v = v[:: v.numel() // 100_000]
+        lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64))
+        spreads.append(float(hi - lo))
+    s = max(spreads) if spreads else 0.0
+    return s if s > 0 and math.isfinite(s) else 1.0
+
+
+#: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
+GROUP_SIGMAS = {"albedo": 0.1, "N": 0.3, "P": 0.025, "Z": 0.02, "D": 0.6, "S": 0.6}
+
+
+def default_guide_sigmas(names: Sequence[str], features: Tensor | None = None,
+                         valid: Tensor | None = None) -> list[float]:
+    """Range sigma of every guide channel, from its group (see ``GROUP_SIGMAS``).
+
+    World position and depth have scene units, so their sigma is a fraction of the robust extent of
+    the data in ``features`` ``(N, D, H, W)`` (1 scene unit when not given).
+    """
+    out = []
+    extents: dict[str, float] = {}
+    for k, n in enumerate(names):
+        g = feature_group(n)
+        if g not in GROUP_SIGMAS:
+            raise ValueError(f"guide_sigmas: no default sigma for feature channel {n!r}; pass guide_sigmas "
+                             f"explicitly (known groups: {sorted(GROUP_SIGMAS)})")
+        s = GROUP_SIGMAS[g]
+        if g in ("P", "Z"):
+            if g not in extents:
+                idx = [j for j, m in enumerate(names) if feature_group(m) == g]
+                if features is None:
+                    extents[g] = 1.0
+                else:
+                    v = valid if valid is not None else torch.ones_like(features[:, :1], dtype=torch.bool)
+                    if g == "Z":  # depth 0 marks background in Mitsuba and our tracer
+                        v = v & (features[:, idx[0]:idx[0] + 1] > 0)
+                    extents[g] = _extent(features[:, idx], v)
+            s = s * extents[g]
+        out.append(float(s))
+    return out
+
+
+@dataclass
+class DenoiseSettings:
+    """Settings of :func:`denoise_frames` (defaults measured on ``shared/data``; see the benchmark).
+
+    Attributes:
+        sigma_s: spatial sigma in pixels.
+        guide: feature channels that steer the filter (EXR or tracer names); ``None`` = every known one
+            present except time ``T``.
+        guide_sigmas: range sigma per guide channel (``{name: sigma}`` overrides); missing ones default.
+        tree_height: manifold tree height.
+        firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
+            biased dark), or ``"none"``.
+        firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor).
+        albedo_blur: sigma (pixels) of the footprint average of the albedo used to multiply back.
+        albedo_eps: smallest albedo divided by (darker albedo is treated as this).
+        demodulate: divide by albedo when albedo channels are present.
+        temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
+        sigma_t: temporal sigma in frames.
+        mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
+        dtype: working precision (float64 keeps S/S0 exact where the weights get tiny).
+    """
+
+    sigma_s: float = 6.0
+    guide: Sequence[str] | None = None
+    guide_sigmas: Mapping[str, float] = field(default_factory=dict)
+    tree_height: int = 2
+    firefly: str = "clamp"
+    firefly_k: float = 2.0
+    albedo_blur: float = 0.5
+    albedo_eps: float = 0.02
+    demodulate: bool = True
+    temporal_radius: int = 0
+    sigma_t: float = 1.0
+    mode: str = "spacetime"
+    dtype: torch.dtype = torch.float64
+
+    def check(self) -> "DenoiseSettings":
+        def pos(name, v, allow_zero=False):
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or \
+                    (v < 0 if allow_zero else v <= 0):
+                raise ValueError(f"{name} must be a {'non-negative' if allow_zero else 'positive'} number, "
+                                 f"got {v!r}")
+        pos("sigma_s", self.sigma_s)
+        pos("firefly_k", self.firefly_k)
+        pos("albedo_blur", self.albedo_blur, allow_zero=True)
+        pos("albedo_eps", self.albedo_eps)
+        pos("sigma_t", self.sigma_t)
+        if self.firefly not in ("clamp", "log", "none"):
+            raise ValueError(f"firefly must be 'clamp', 'log' or 'none', got {self.firefly!r}")
+        if self.mode not in ("spacetime", "window"):
+            raise ValueError(f"mode must be 'spacetime' or 'window', got {self.mode!r}")
+        if not isinstance(self.temporal_radius, int) or self.temporal_radius < 0:
+            raise ValueError(f"temporal_radius must be an int >= 0, got {self.temporal_radius!r}")
+        if not isinstance(self.tree_height, int) or self.tree_height < 1:
+            raise ValueError(f"tree_height must be an int >= 1, got {self.tree_height!r}")
+        for k, v in dict(self.guide_sigmas).items():
+            pos(f"guide_sigmas[{k!r}]", v)
+        return self
+
+
+def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
+    if settings.guide is None:
+        return [k for k, n in enumerate(names) if feature_group(n) in GROUP_SIGMAS]
+    canon = [canonical_name(n) for n in names]
+    idx = []
+    for g in settings.guide:
+        c = canonical_name(g)
+        if c not in canon:
+            raise ValueError(f"guide: feature channel {g!r} not found; available: {list(names)}")
+        idx.append(canon.index(c))
+    return idx
+
+
+def _bracket(frame_times: list[float], q: float) -> tuple[int, int, float]:
+    """Indices of the frames bracketing time q and the lerp weight (clamped at the ends)."""
+    order = sorted(range(len(frame_times)), key=lambda k: frame_times[k])
+    below = [k for k in order if frame_times[k] <= q]
+    above = [k for k in order if frame_times[k] >= q]
+    if not below:
+        return above[0], above[0], 0.0
+    if not above:
+        return below[-1], below[-1], 0.0
+    i0, i1 = below[-1], above[0]
+    if frame_times[i1] == frame_times[i0]:
+        return i0, i0, 0.0
+    return i0, i1, (q - frame_times[i0]) / (frame_times[i1] - frame_times[i0])
+
+
+class _Filter:
+    """The weighted (sample-mask) adaptive-manifold filter over a clip, at query times.
+
+    A query at a frame time with no temporal radius is a plain spatial filter (batched); otherwise the
+    frames within ``temporal_radius`` (time units) of the query join through the temporal op.
+    """
+
+    def __init__(self, guide: Tensor, sigmas: list[float], settings: DenoiseSettings,
+                 frame_times: list[float], query_times: list[float],
+                 sigma_s: float | None = None, range_scale: float = 1.0):
+        self.g, self.gs, self.st = guide, [s * range_scale for s in sigmas], settings
+        self.sigma_s = settings.sigma_s if sigma_s is None else sigma_s
+        self.ft, self.qt = frame_times, query_times
+
+    def _window(self, q: float) -> list[int]:
+        r = self.st.temporal_radius
+        ids = [k for k, t in enumerate(self.ft) if abs(t - q) <= r + 1e-9]
+        i0, i1, _ = _bracket(self.ft, q)
+        return sorted(set(ids) | {i0, i1})
+
+    def __call__(self, values: Tensor, mask: Tensor) -> Tensor:
+        from torchmanifold.ops import adaptive_manifold_filter, temporal_adaptive_manifold_filter
+
+        st = self.st
+        x = torch.cat([values * mask, mask], 1)
+        exact = [self.ft.index(q) if q in self.ft else None for q in self.qt]
+        if st.temporal_radius == 0 and all(k is not None for k in exact):
+            y = adaptive_manifold_filter(x[exact], self.g[exact], self.sigma_s, 1.0,
+                                         tree_height=st.tree_height, guide_sigmas=self.gs)
+        else:
+            outs = []
+            for q in self.qt:
+                ids = self._window(q)
+                outs.append(temporal_adaptive_manifold_filter(
+                    x[ids][None], self.g[ids][None], [self.ft[k] for k in ids], [q], self.sigma_s, 1.0,
+                    sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height, guide_sigmas=self.gs)[0, 0])
+            y = torch.stack(outs)
+        num, den = y[:, :-1], y[:, -1:]
+        ok = den > 1e-8
+        # no valid sample under the kernel: fall back to the interpolated (masked) input
+        return torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
+
+    def at_queries(self, x: Tensor) -> Tensor:
+        """Per-frame data ``(T, C, H, W)`` at the query times, linear between bracketing frames."""
+        outs = []
+        for q in self.qt:
+            i0, i1, s = _bracket(self.ft, q)
+            outs.append(x[i0] if i0 == i1 or s == 0 else torch.lerp(x[i0], x[i1], s))
+        return torch.stack(outs)
+
+
+def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names: Sequence[str] = (),
+                   emission: Tensor | None = None, settings: DenoiseSettings | None = None,
+                   sigma_s: float | None = None, range_scale: float = 1.0,
+                   frame_times: Sequence[float] | None = None, query_times: Sequence[float] | None = None,
+                   pilot: Tensor | None = None, firefly_k: float | None = None,
+                   return_stats: bool = False):
+    """Denoise a clip of Monte Carlo frames guided by their per-sample features.
+
+    Args:
+        color: ``(T, 3, H, W)`` linear radiance (e.g. 1 sample per pixel).
+        features: ``(T, D, H, W)`` feature channels of the same samples, or ``None``.
+        feature_names: the D names (EXR names such as ``albedo.R``, ``N.X``, ``Z``, ``P.X`` or tracer
+            names such as ``Mr``, ``Nx``); albedo is used to demodulate when present.
+        emission: optional ``(T, 3, H, W)`` emitted radiance at the first hit, part of ``color``.
+        settings: :class:`DenoiseSettings` (defaults when ``None``).
+        sigma_s: overrides ``settings.sigma_s`` (the progressive loop shrinks it).
+        range_scale: multiplies every range sigma (the progressive loop shrinks it).
+        frame_times: ``(T,)`` times of the frames (default ``0..T-1``, in frames).
+        query_times: ``(Q,)`` times to output, may fall between frames (default ``frame_times``).
+        pilot: optional ``(T, 3, H, W)`` radiance estimate of the frames (e.g. the progressive running
+            average) used for firefly clamping instead of the log-domain pilot filter.
+        firefly_k: overrides ``settings.firefly_k``.
+        return_stats: also return a dict of counts (non-finite samples, firefly energy removed).
+
+    Returns:
+        ``(Q, 3, H, W)`` denoised radiance in ``color``'s dtype (and the stats dict when asked).
+
+    Raises:
+        TypeError, ValueError: wrong types/shapes, names not matching ``features``, bad settings.
+
+    Example:
+        >>> c, f = torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32)
+        >>> denoise_frames(c, f, ["albedo.R", "albedo.G", "albedo.B"]).shape
+        torch.Size([2, 3, 32, 32])
+    """
+    settings = (settings or DenoiseSettings()).check()
+    if not isinstance(color, Tensor):
+        raise TypeError(f"color must be a torch.Tensor, got {type(color).__name__}")
+    if color.dim() != 4 or color.shape[1] != 3:
+        raise ValueError(f"color must be (T, 3, H, W), got {tuple(color.shape)}")
+    T, _, H, W = color.shape
+    names = list(feature_names)
+    if features is None:
+        features = color.new_zeros(T, 0, H, W)
+        if names:
+            raise ValueError("feature_names given without features")
+    if not isinstance(features, Tensor) or features.dim() != 4 or features.shape[0] != T or \
+            features.shape[2:] != color.shape[2:]:
+        raise ValueError(f"features must be (T, D, H, W) matching color {tuple(color.shape)}, got "
+                         f"{tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__}")
+    if features.shape[1] != len(names):
+        raise ValueError(f"feature_names must name the {features.shape[1]} feature channels, got {len(names)}")
+    if emission is not None and (not isinstance(emission, Tensor) or emission.shape != color.shape):
+        raise ValueError(f"emission must be a tensor shaped like color {tuple(color.shape)}")
+
+    ft = [float(t) for t in (range(T) if frame_times is None else frame_times)]
+    qt = ft if query_times is None else [float(t) for t in query_times]
+    if len(ft) != T:
+        raise ValueError(f"frame_times must have one time per frame (T={T}), got {len(ft)}")
+    if not qt or not all(math.isfinite(t) for t in ft + qt):
+        raise ValueError("frame_times and query_times must be non-empty and finite")
+    if pilot is not None and (not isinstance(pilot, Tensor) or pilot.shape != color.shape):
+        raise ValueError(f"pilot must be a tensor shaped like color {tuple(color.shape)}")
+    k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
+
+    dt = settings.dtype
+    c = color.to(dt)
+    f = features.to(dt)
+    fin_c = torch.isfinite(c).all(1, keepdim=True)
+    fin_f = torch.isfinite(f).all(1, keepdim=True)
+    mask = (fin_c & fin_f).to(dt)
+    stats = {"nonfinite_color": int((~torch.isfinite(c)).sum()),
+             "nonfinite_features": int((~torch.isfinite(f)).sum()),
+             "masked_pixels": int((mask == 0).sum())}
+    c = torch.where(torch.isfinite(c), c, 0.0)
+    f = torch.where(torch.isfinite(f), f, 0.0)
+    em = None
+    if emission is not None:
+        em = emission.to(dt)
+        em = torch.where(torch.isfinite(em), em, 0.0)
+        c = (c - em).clamp_min(0.0)
+
+    canon = [canonical_name(n) for n in names]
+    has_albedo = all(a in canon for a in _ALBEDO)
+    if settings.demodulate and has_albedo:
+        alb = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(settings.albedo_eps)
+    else:
+        alb = torch.ones_like(c)
+    e = c / alb
+
+    gi = _select_guide(names, settings)
+    gnames = [names[k] for k in gi]
+    guide = f[:, gi] if gi else torch.zeros(T, 1, H, W, dtype=dt)
+    if gi:
+        sig = default_guide_sigmas(gnames, guide, mask > 0)
+        over = {canonical_name(k): float(v) for k, v in dict(settings.guide_sigmas).items()}
+        unknown = [k for k in over if k not in [canonical_name(n) for n in gnames]]
+        if unknown:
+            raise ValueError(f"guide_sigmas: channels {unknown} are not guide channels {gnames}")
+        sig = [over.get(canonical_name(n), s) for n, s in zip(gnames, sig)]
+        ai = [k for k, n in enumerate(gnames) if feature_group(n) == "albedo"]
+        if ai:  # renderer albedo may exceed 1 (conductors); the guide only needs its colour
+            guide = guide.clone()
+            guide[:, ai] = guide[:, ai].clamp(0.0, 1.0)
+    else:
+        sig = [1.0]
+    filt = _Filter(guide, sig, settings, ft, qt, sigma_s, range_scale)
+    alb_fp = footprint_blur(alb, settings.albedo_blur)
+
+    if settings.firefly == "none":
+        out = filt(e, mask)
+        stats["firefly_energy_removed"] = 0.0
+    else:
+        if pilot is not None:
+            pe = pilot.to(dt)
+            pe = torch.where(torch.isfinite(pe), pe, 0.0)
+            if em is not None:
+                pe = pe - em
+            pe = pe.clamp_min(0.0) / alb_fp.clamp_min(settings.albedo_eps)
+        else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
+            pf = _Filter(guide, sig, DenoiseSettings(**{**settings.__dict__, "temporal_radius": 0}),
+                         ft, ft, sigma_s, range_scale)
+            pe = torch.expm1(pf(torch.log1p(e.clamp_min(0.0)), mask))
+        if settings.firefly == "log" and pilot is None:
+            out = filt.at_queries(pe) if qt != ft else pe
+            stats["firefly_energy_removed"] = 0.0
+        else:
+            lp = luminance(pe).clamp_min(0.0)
+            floor = 0.25 * float((lp * mask).sum() / mask.sum().clamp_min(1.0))
+            thr = k_ff * (lp + floor)
+            L = luminance(e)
+            scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
+            ec = e * scale
+            total = float(((e * alb) * mask).sum())
+            stats["firefly_energy_removed"] = float((((e - ec) * alb) * mask).sum()) / max(total, 1e-30)
+            stats["firefly_clamped_samples"] = int(((scale < 1) & (mask > 0)).sum())
+            out = filt(ec, mask)
+    out = out * filt.at_queries(alb_fp)
+    if em is not None:
+        out = out + filt.at_queries(em)
+    out = out.to(color.dtype)
+    return (out, stats) if return_stats else out
+
+
+class Denoiser(nn.Module):
+    """Module form of :func:`denoise_frames`; stores a :class:`DenoiseSettings`.
+
+    Shape:
+        - color ``(T, 3, H, W)``, features ``(T, D, H, W)`` -> ``(T, 3, H, W)``
+    """
+
+    def __init__(self, feature_names: Sequence[str] = (), settings: DenoiseSettings | None = None, **kwargs):
+        super().__init__()
+        self.feature_names = list(feature_names)
+        self.settings = (settings or DenoiseSettings(**kwargs)).check()
+
+    def forward(self, color: Tensor, features: Tensor | None = None, emission: Tensor | None = None) -> Tensor:
+        return denoise_frames(color, features, self.feature_names, emission, self.settings)
+
+    def extra_repr(self) -> str:
+        s = self.settings
+        return (f"sigma_s={s.sigma_s}, firefly={s.firefly!r}, firefly_k={s.firefly_k}, "
+                f"temporal_radius={s.temporal_radius}, mode={s.mode!r}, features={self.feature_names}")
