@@ -93,7 +93,7 @@ def test_time_feature_and_motion(ctx):
     assert abs(shift.item() - 2.5 * expected) < 0.6
 
 
-def test_adding_features_keeps_colour(ctx, ):
+def test_adding_features_keeps_colour(ctx):
     from torchmanifold.render import default_scene
 
     scene = default_scene()

@@ -3,6 +3,7 @@ import math
 import tomllib
 
 import pytest
+import numpy as np
 import torch
 
 from torchmanifold.render import PathTracer, default_scene, scene_from_dict
@@ -92,3 +93,39 @@ def test_mean_of_1spp_frames_matches_long_render(ctx, which):
     # and the test has power: a 10 % darker long render fails it
     z_bad = (m1 - 0.9 * m2) / torch.sqrt(se1**2 + se2**2)
     assert (z_bad.abs() > 4.5).any() or (z_bad**2).mean() >= 3.0
+
+
+def test_direct_light_from_sphere_and_quad_matches_analytic(ctx):
+    """max_depth 1 (first hit + NEE only) on a plane: sphere light E = pi Le (r/d)^2 cos(theta) exactly;
+    a small distant quad light nearly a point light: E = Le A cos_l cos(theta) / d^2. Expected values
+    are averaged over 8x8 sub-pixels (the tracer's pixel mean)."""
+    from _render_helpers import pixel_dirs, plane_scene_dict
+
+    w = h = 16
+    albedo, le, sub = 0.6, 20.0, 8
+    dirs = pixel_dirs(w, h, 30.0, (0, 0, -1), (1, 0, 0), (0, 1, 0), sub=sub)
+    p = dirs * (2.0 / -dirs[..., 2:]) + np.array([0, 0, 2.0])  # sub-pixel hits on the plane z = 0
+
+    def pixel_mean(x):
+        return x.reshape(h, sub, w, sub).mean(axis=(1, 3))
+
+    d = plane_scene_dict(albedo=(albedo,) * 3, light=False, max_depth=1)
+    d["materials"]["lamp"]["emission"] = [le] * 3
+    c, r = np.array([0.9, 0.1, 0.25]), 0.1  # close to the plane, grazing light, outside the view
+    d["objects"].append({"type": "sphere", "center": c.tolist(), "radius": r, "material": "lamp"})
+    res = PathTracer(scene_from_dict(d), w, h, features=[], ctx=ctx).render([0.0], spp=1024, seed=3)
+    v = c - p
+    dist2 = np.sum(v * v, axis=-1)
+    expected = pixel_mean(albedo * le * r * r / dist2 * (v[..., 2] / np.sqrt(dist2)))
+    np.testing.assert_allclose(res.color[0, 1].numpy(), expected, rtol=0.05)
+    assert abs(res.color[0, 1].numpy().mean() / expected.mean() - 1) < 0.01
+
+    d["objects"][-1] = {"type": "quad", "origin": [-0.01, -0.01, 3.0], "u": [0, 0.02, 0], "v": [0.02, 0, 0],
+                        "material": "lamp"}  # faces -z, 3 units above the plane, behind the camera's eye
+    d["materials"]["lamp"]["emission"] = [le * 1e3] * 3
+    res = PathTracer(scene_from_dict(d), w, h, features=[], ctx=ctx).render([0.0], spp=16, seed=3)
+    v = np.array([0.0, 0.0, 3.0]) - p
+    dist2 = np.sum(v * v, axis=-1)
+    cos = v[..., 2] / np.sqrt(dist2)
+    expected = pixel_mean(albedo / np.pi * le * 1e3 * 4e-4 * cos * cos / dist2)
+    np.testing.assert_allclose(res.color[0, 1].numpy(), expected, rtol=0.01)

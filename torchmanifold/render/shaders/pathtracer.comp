@@ -258,11 +258,12 @@ bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) 
     return hit.prim >= 0;
 }
 
-// shadow rays: any hit before tmax ends the search
-bool occluded(vec3 o, vec3 d, float tmax, float time) {
+// shadow rays: any hit before tmax ends the search. `skip` is the light itself: a convex light cannot hide
+// its own sampled point, and testing it would let the ray-origin offset turn the light into its own blocker.
+bool occluded(vec3 o, vec3 d, float tmax, float time, int skip) {
     for (int i = 0; i < N_PRIMS; ++i) {
         vec3 n;
-        if (hit_prim(i, o, d, 0.0, tmax, time, n) < tmax) return true;
+        if (i != skip && hit_prim(i, o, d, 0.0, tmax, time, n) < tmax) return true;
     }
     return false;
 }
@@ -326,7 +327,7 @@ vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     float cos_x = dot(n, sdir);
     if (cos_x <= 0.0) return vec3(0.0);
     vec3 o = p + n * ray_eps(p);
-    if (occluded(o, sdir, dist * (1.0 - 1e-4), time)) return vec3(0.0);
+    if (occluded(o, sdir, dist * (1.0 - 1e-4), time, li)) return vec3(0.0);
     vec3 le = mats[lp.info.y].emission_ior.rgb;
     return le * (albedo / PI) * cos_x * inv_pdf * float(N_LIGHTS);
 }
