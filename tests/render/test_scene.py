@@ -144,3 +144,16 @@ def test_bad_scene_files_name_file_field_and_expectation(tmp_path, edit, field, 
 def test_missing_scene_file(tmp_path):
     with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "none.toml"))):
         load_scene(tmp_path / "none.toml")
+
+
+def test_every_bundled_scene_renders(ctx):
+    from torchmanifold.render.scene import SCENES_DIR
+
+    files = sorted(SCENES_DIR.glob("*.toml"))
+    assert len(files) >= 2
+    for f in files:
+        scene = load_scene(f)
+        res = PathTracer(scene, 16, 12, ctx=ctx).render([0.0, 5.5], spp=1, seed=1)
+        assert torch.isfinite(res.color).all() and torch.isfinite(res.features).all(), f.name
+        assert res.color.mean() > 0 and (res.object_id >= 0).float().mean() > 0.5, f.name
+        assert ctx.error == "GL_NO_ERROR", f.name
