@@ -98,7 +98,8 @@ class DemoApp(WindowConfig):
             tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
             temporal_mode=args.temporal_mode,
         )
-        self.progression = Progression(self.tracer, self.frame_times, params, seed=args.seed, reference=reference)
+        self.progression = Progression(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
+                                       threads=args.threads or None)
         self.make_current()
         self.panels = PanelRenderer(self.ctx, args.width, args.height)
         if reference is not None:
@@ -341,6 +342,8 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--clamp", type=float, default=d.clamp,
                    help=f"firefly clamp on 1-spp irradiance, grows as sqrt(iteration); 0 = off (default {d.clamp})")
     g.add_argument("--exposure", type=float, default=1.0)
+    g.add_argument("--threads", type=int, default=1,
+                   help="torch threads for the filter, 0 = torch's default (default 1: the images are small)")
     g.add_argument("--paused", action="store_true", help="start with playback paused")
     g.add_argument("--headless", action="store_true", help="EGL headless window (no display needed)")
     g.add_argument("--frames", type=int, default=0, help="stop after N frames (0 = run until closed)")
@@ -358,6 +361,8 @@ def validate_args(args) -> None:
         raise ValueError(f"--clip: expected at least 1 frame, got {args.clip}")
     if args.reference_spp < 0:
         raise ValueError(f"--reference-spp: expected >= 0, got {args.reference_spp}")
+    if args.threads < 0:
+        raise ValueError(f"--threads: expected >= 0 (0 = torch's default), got {args.threads}")
     if args.frames < 0:
         raise ValueError(f"--frames: expected >= 0, got {args.frames}")
     if args.clip_fps <= 0:

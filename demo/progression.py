@@ -9,6 +9,7 @@ comparison panels, and their errors against a reference are recorded after every
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass, replace
@@ -107,6 +108,20 @@ def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
     return float(_psnr(img, ref))
 
 
+@contextlib.contextmanager
+def torch_threads(n: int | None):
+    """Run the block with ``n`` torch intra-op threads (None = unchanged), then restore the count."""
+    if n is None:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 @dataclass
 class _Track:
     """Running state of one shown time (a clip frame or an in-between time)."""
@@ -130,12 +145,15 @@ class Progression:
         params: :class:`FilterParams`.
         seed: sample seed; the same seed gives the same progression.
         reference: optional ``(T, 3, H, W)`` converged frames at ``frame_times`` for the error curves.
+        threads: torch threads for the filtering (None = torch's setting). At demo sizes one thread
+            beats two on a shared CPU: OpenMP barriers wait on descheduled threads, and the tracer's
+            llvmpipe threads want a core too.
 
     Memory: one running sum per clip frame and per tracked in-between time, plus the last samples.
     """
 
     def __init__(self, tracer, frame_times, params: FilterParams | None = None, seed: int = 0,
-                 reference: torch.Tensor | None = None, max_extra_times: int = 4):
+                 reference: torch.Tensor | None = None, max_extra_times: int = 4, threads: int | None = None):
         self.tracer = tracer
         self.frame_times = [float(t) for t in frame_times]
         if not self.frame_times:
@@ -150,6 +168,9 @@ class Progression:
                 raise ValueError(f"reference: expected shape {expected}, got {tuple(reference.shape)}")
         self.reference = reference
         self.max_extra_times = max_extra_times
+        if threads is not None and not (isinstance(threads, int) and threads >= 1):
+            raise ValueError(f"threads: expected an int >= 1 or None, got {threads!r}")
+        self.threads = threads
         self.feature_names: list[str] = []
         self.restart()
 
@@ -192,7 +213,8 @@ class Progression:
         raw = self.raw_sum / self.iteration
         feats = self.feat_sum / self.iteration
         emis = self.emis_sum / self.iteration if self.emis_sum is not None else None
-        out = self._filter([t], raw, feats, self.params.bandwidth(self.iteration), emis, clamp=False)
+        with torch_threads(self.threads):
+            out = self._filter([t], raw, feats, self.params.bandwidth(self.iteration), emis, clamp=False)
         self.tracks[t] = _Track(out[0] * self.iteration, self.iteration)
 
     # ------------------------------------------------------------------------------------ step
@@ -215,7 +237,8 @@ class Progression:
         for t in self.frame_times:
             self.tracks.setdefault(t, _Track(None, 0))
         times = list(self.tracks)
-        out = self._filter(times, color, feats, self.params.bandwidth(self.iteration), emission)
+        with torch_threads(self.threads):
+            out = self._filter(times, color, feats, self.params.bandwidth(self.iteration), emission)
         for k, t in enumerate(times):
             tr = self.tracks[t]
             tr.ours_sum = out[k].clone() if tr.ours_sum is None else tr.ours_sum + out[k]

@@ -37,6 +37,15 @@ def test_bad_params_name_the_field(kwargs, name):
         FilterParams(**kwargs)
 
 
+def test_threads_setting_is_restored(tracer):
+    before = torch.get_num_threads()
+    prog = Progression(tracer, [0.0], threads=1)
+    prog.step()
+    assert torch.get_num_threads() == before
+    with pytest.raises(ValueError, match="threads"):
+        Progression(tracer, [0.0], threads=0)
+
+
 def test_bad_frame_times_and_reference(tracer):
     with pytest.raises(ValueError, match="frame_times"):
         Progression(tracer, [1.0, 0.0])
