@@ -79,6 +79,7 @@ def test_write_results(quick):
         "gl_version": ctx.info["GL_VERSION"],
         "llvmpipe_threads": os.environ.get("LP_NUM_THREADS", f"default (= {os.cpu_count()} cpus)"),
         "frames_per_call": FRAMES,
+        "load_average_1_5_15min": list(os.getloadavg()),  # the CPU is shared: llvmpipe gets what is left
         "sizes": _RESULTS,
         "summary": {
             size: round(r["full"]["megapaths_per_s"], 4) for size, r in _RESULTS.items() if "full" in r
