@@ -176,3 +176,15 @@ def test_baked_scene_equals_storage_buffer_scene(ctx):
     for x, y in ((ra.color, rb.color), (ra.features, rb.features), (ra.motion, rb.motion),
                  (ra.object_id, rb.object_id), (ra.emission, rb.emission)):
         assert torch.equal(x, y)
+
+
+def test_context_manager_releases(ctx):
+    from torchmanifold.render import default_scene
+
+    with PathTracer(default_scene(), 8, 8, ctx=ctx) as tr:
+        first = tr.render([0.0], spp=1).color
+    with pytest.raises(RuntimeError, match="released"):
+        tr.render([0.0])
+    tr.release()  # twice is harmless
+    again = PathTracer(default_scene(), 8, 8, ctx=ctx).render([0.0], spp=1).color
+    assert torch.equal(first, again) and ctx.error == "GL_NO_ERROR"

@@ -36,6 +36,7 @@ def create_context(new: bool = False) -> moderngl.Context:
             f"could not create a headless OpenGL 4.3 context through EGL ({exc}); "
             "on Debian install libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libopengl0"
         ) from exc
+    ctx.gc_mode = "auto"  # GL objects are freed when garbage-collected: tracers come and go in long sessions
     if not new:
         _default_ctx = ctx
     return ctx

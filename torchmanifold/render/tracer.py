@@ -195,6 +195,8 @@ class PathTracer:
         progress: bool = False,
     ) -> None:
         """Render into the output :attr:`buffers` without reading them back (see :meth:`render`)."""
+        if self.program is None:
+            raise RuntimeError("dispatch: this PathTracer was released")
         times_np = self._check_times(times)
         spp = _check_int("spp", spp, 1)
         seed = _check_int("seed", seed, 0, 2**32 - 1)
@@ -320,14 +322,23 @@ class PathTracer:
         return arr
 
     def release(self) -> None:
-        """Free the GL objects (the context stays)."""
+        """Free the GL objects (the context stays); ``with PathTracer(...) as tracer:`` calls it on exit."""
+        if self.program is None:
+            return
         make_current(self.ctx)
         for b in [*self._scene_bufs.values(), *self._out.values()]:
             b.release()
         if self._times_buf is not None:
             self._times_buf.release()
         self.program.release()
+        self.program = None
         self._scene_bufs, self._out, self._times_buf, self._capacity = {}, {}, None, 0
+
+    def __enter__(self) -> "PathTracer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
     def __repr__(self) -> str:
         return (
