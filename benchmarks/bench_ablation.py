@@ -43,7 +43,8 @@ def scenes(quick):
     if harness.DATA.is_dir():
         out["mitsuba"] = harness.load_mitsuba([5, 6] if quick else [0, 3, 6, 9], crop=64 if quick else None)
     if harness.tracer_available()[0]:
-        out["builtin"] = harness.builtin_dataset(quick)
+        for scene in harness.BUILTIN_SCENES:
+            out[scene] = harness.builtin_dataset(quick, scene)
     return out
 
 
@@ -79,7 +80,7 @@ def conclude(res: dict) -> dict:
     text = ("Per scene, smallest guide within 0.1 dB of the best: " + "; ".join(
         f"{sc}: **{' + '.join(v['groups'])}** (best `{v['best']}` {v['best_psnr']:.2f} dB)"
         for sc, v in per_scene.items())
-        + f". Default that follows (smallest worst-case loss over both scenes, {common[pick]:.2f} dB): "
+        + f". Default that follows (smallest worst-case loss over the scenes, {common[pick]:.2f} dB): "
         f"**{' + '.join(pick)}**. Gain of each step of the chain (dB): "
         + "; ".join(f"{sc}: " + ", ".join(f"{k} {v:+.2f}" for k, v in g.items()) for sc, g in gains.items())
         + ". Tree height 4 instead of 2 (rows marked @H4), colour-only and full guide: " + "; ".join(
@@ -92,7 +93,7 @@ def conclude(res: dict) -> dict:
                     "clamped sRGB, mean over frames."}
 
 
-@pytest.mark.parametrize("scene", ["mitsuba", "builtin"])
+@pytest.mark.parametrize("scene", ["mitsuba", *harness.BUILTIN_SCENES])
 def test_ablation(scene, scenes):
     if scene not in scenes:
         pytest.skip(f"{scene} input not available")

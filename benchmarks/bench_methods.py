@@ -37,7 +37,7 @@ def datasets(quick):
         out["mitsuba"] = ds
     ok, _ = harness.tracer_available()
     if ok:
-        out["builtin"] = harness.builtin_dataset(quick)
+        out["cornell_box"] = harness.builtin_dataset(quick)
     return out
 
 
@@ -70,7 +70,7 @@ def _record(ds_name, ds, name, family, out, secs, params=None, extra=None):
     return res
 
 
-@pytest.mark.parametrize("ds_name", ["mitsuba", "builtin"])
+@pytest.mark.parametrize("ds_name", ["mitsuba", "cornell_box"])
 def test_raw(ds_name, datasets):
     """Plain path tracing: the 1-spp frames and the frames with more samples, at their render time."""
     if ds_name not in datasets:
@@ -84,7 +84,7 @@ def test_raw(ds_name, datasets):
 
 
 @pytest.mark.parametrize("method", METHODS, ids=[m.name for m in METHODS])
-@pytest.mark.parametrize("ds_name", ["mitsuba", "builtin"])
+@pytest.mark.parametrize("ds_name", ["mitsuba", "cornell_box"])
 def test_method(benchmark, ds_name, method, datasets, quick):
     if ds_name not in datasets:
         pytest.skip(f"{ds_name} input not available")
@@ -190,65 +190,59 @@ def test_scaling_height(benchmark, h, quick):
 
 
 # ---------------------------------------------------------------------------------------------------- progressive
-def bandwidth(sigma0: float, i: int, a: float = 2.0 / 3.0) -> float:
-    """sigma_i with sigma_{k+1}^2 / sigma_k^2 = (k + a) / (k + 1), sigma_1 = sigma0 (iterations count from 1)."""
-    s2 = sigma0 * sigma0
-    for k in range(1, i):
-        s2 *= (k + a) / (k + 1)
-    return math.sqrt(s2)
-
-
 def test_progressive(quick):
-    """Error against iteration: raw progressive average, Gaussian-filtered average and ours, all with the
-    shrinking bandwidth schedule, on the built-in scene (each iteration adds one sample per pixel per frame)."""
+    """Error against iteration: the raw progressive average, the Gaussian-filtered average and ours (the
+    pipeline's ``denoise_frames``), both filters shrinking with the pipeline's bandwidth schedule, on the built-in
+    Cornell box (each iteration adds one sample per pixel per frame)."""
     if not harness.tracer_available()[0]:
         pytest.skip("tracer not available")
     import kornia
+    from torchmanifold.pipeline import BandwidthSchedule, DenoiseSettings, denoise_frames
     from torchmanifold.render import PathTracer, create_context, default_scene
 
     ref_ds = harness.builtin_dataset(quick)
-    frames = ref_ds.color.shape[0]
-    size = ref_ds.color.shape[-1]
+    frames, size = ref_ds.color.shape[0], ref_ds.color.shape[-1]
     iterations = 4 if quick else 32
     tracer = PathTracer(default_scene(), width=size, height=size, ctx=create_context())
     times = [float(t) for t in range(frames)]
-    ours = baselines.by_name(METHODS)["ours-H2"]
+    ours_sched = BandwidthSchedule(DenoiseSettings().sigma_s, 1.0)
+    gauss_sched = BandwidthSchedule(2.0)
     curves = {k: {"iteration": [], "psnr": [], "relmse": [], "seconds": []} for k in ("raw", "gaussian", "ours")}
     csum = fsum = None
-    clock = {"raw": 0.0, "gaussian": 0.0, "ours": 0.0}
+    clock = dict.fromkeys(curves, 0.0)
     for i in tqdm(range(1, iterations + 1), desc="progressive", leave=False):
         t0 = time.perf_counter()
         res = tracer.render(times=times, spp=1, seed=7, sample_offset=i - 1)
         csum = res.color if csum is None else csum + res.color
         fsum = res.features if fsum is None else fsum + res.features
-        trace = time.perf_counter() - t0
-        avg = harness.Dataset("builtin", csum / i, fsum / i, res.feature_names, ref_ds.reference,
-                              torch.tensor(times), {})
-        outs = {"raw": avg.color}
+        elapsed = {"raw": time.perf_counter() - t0}
+        avg = csum / i
+        outs = {"raw": avg}
         t0 = time.perf_counter()
-        s = bandwidth(2.0, i)
+        s = gauss_sched.sigma_s(i)
         k = 2 * math.ceil(3 * s) + 1
-        outs["gaussian"] = kornia.filters.gaussian_blur2d(avg.color, (k, k), (s, s))
-        t_gauss = time.perf_counter() - t0
+        outs["gaussian"] = kornia.filters.gaussian_blur2d(avg, (k, k), (s, s))
+        elapsed["gaussian"] = elapsed["raw"] + time.perf_counter() - t0
         t0 = time.perf_counter()
-        clip, alb = harness.clip_for(avg)
-        outs["ours"] = torch.stack([ours.fn(clip, q, **{**ours.params, "sigma_s": bandwidth(SIGMA_S, i)}) * alb[q]
-                                    for q in range(frames)])
-        t_ours = time.perf_counter() - t0
-        for key, extra in (("raw", 0.0), ("gaussian", t_gauss), ("ours", t_ours)):
-            clock[key] += trace + extra
-            sc = harness.scores(outs[key].float(), ref_ds.reference, with_flip=False)
+        outs["ours"] = denoise_frames(avg, fsum / i, res.feature_names, sigma_s=ours_sched.sigma_s(i),
+                                      range_scale=ours_sched.sigma_r(i))
+        elapsed["ours"] = elapsed["raw"] + time.perf_counter() - t0
+        for key, out in outs.items():
+            clock[key] += elapsed[key]
+            sc = harness.scores(out.float(), ref_ds.reference, with_flip=False)
             c = curves[key]
             c["iteration"].append(i), c["psnr"].append(sc["psnr"]), c["relmse"].append(sc["relmse"])
             c["seconds"].append(clock[key])
-    # The spp plain path tracing needs to match ours at the last iteration (raw average crossing).
+    # The samples per pixel plain path tracing needs to match ours at the last iteration.
     target = curves["ours"]["psnr"][-1]
     match = next((it for it, p in zip(curves["raw"]["iteration"], curves["raw"]["psnr"]) if p >= target), None)
     harness.write_json("progressive", {
-        "title": f"built-in scene {size}x{size}, {frames} frames: error against iteration",
-        "note": (f"Each iteration renders 1 spp per frame; `raw` is the running average, `gaussian` blurs it with "
-                 f"sigma 2 and `ours` filters it (H2, sigma_s {SIGMA_S:g}), both shrinking by "
-                 "sigma_{i+1}^2/sigma_i^2 = (i+2/3)/(i+1). Reference: 256 spp. "
+        "title": f"built-in Cornell box {size}x{size}, {frames} frames: error against iteration",
+        "note": (f"Each iteration renders 1 spp per frame; `raw` is the running average, `gaussian` blurs it "
+                 f"(sigma 2 at iteration 1) and `ours` runs `denoise_frames` on it (sigma_s "
+                 f"{ours_sched.sigma_s0:g} at iteration 1), both shrinking by the pipeline's schedule "
+                 f"sigma_(i+1)^2/sigma_i^2 = (i+a)/(i+1), a = {ours_sched.alpha:g}. Reference: "
+                 f"{'16' if quick else '256'} spp. "
                  + (f"Plain path tracing reaches ours' final PSNR at {match} spp." if match else
                     f"Plain path tracing does not reach ours' final PSNR within {iterations} spp.")),
         "report_iterations": [i for i in (1, 2, 4, 8, 16, 32) if i <= iterations],

@@ -114,10 +114,13 @@ def tracer_available() -> tuple[bool, str]:
         return False, f"{type(exc).__name__}: {exc}"
 
 
-def builtin_dataset(quick: bool) -> Dataset:
-    """The built-in scene at the size every benchmark file uses (so they share the render cache)."""
+BUILTIN_SCENES = ("cornell_box", "torus_box")  # torchmanifold/render/scenes/<name>.toml
+
+
+def builtin_dataset(quick: bool, scene: str = "cornell_box") -> Dataset:
+    """A built-in scene at the size every benchmark file uses (so they share the render cache)."""
     size, frames, ref_spp, more = (32, 2, 16, (2, 4)) if quick else (64, 4, 256, (2, 4, 8, 16))
-    return render_builtin(size, frames, ref_spp, more)
+    return render_builtin(size, frames, ref_spp, more, scene=scene)
 
 
 def _render_key(*args) -> str:
@@ -131,16 +134,18 @@ def _render_key(*args) -> str:
     return h.hexdigest()[:16]
 
 
-def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), seed: int = 0) -> Dataset:
+def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), seed: int = 0,
+                   scene: str = "cornell_box") -> Dataset:
     """The tracer's built-in scene: 1-spp frames with every feature, a ``ref_spp`` reference, and plain path
     tracing at ``more_spp`` samples, each with its measured render time per frame.
 
     Cached in ``results/cache/`` (never committed) so the benchmark files of one run render it once."""
-    cache = RESULTS / "cache" / f"builtin-{_render_key(size, frames, ref_spp, tuple(more_spp), seed)}.pt"
+    key = _render_key(size, frames, ref_spp, tuple(more_spp), seed, scene)
+    cache = RESULTS / "cache" / f"{scene}-{key}.pt"
     if cache.exists():
         d = torch.load(cache)
-        return Dataset("builtin", d["color"], d["features"], d["names"], d["reference"], d["times"], d["spp"])
-    ds = _render_builtin(size, frames, ref_spp, more_spp, seed)
+        return Dataset(scene, d["color"], d["features"], d["names"], d["reference"], d["times"], d["spp"])
+    ds = _render_builtin(size, frames, ref_spp, more_spp, seed, scene)
     cache.parent.mkdir(parents=True, exist_ok=True)
     (cache.parent / ".gitignore").write_text("*\n")
     torch.save({"color": ds.color, "features": ds.features, "names": ds.names, "reference": ds.reference,
@@ -148,10 +153,11 @@ def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), see
     return ds
 
 
-def _render_builtin(size, frames, ref_spp, more_spp, seed) -> Dataset:
-    from torchmanifold.render import PathTracer, create_context, default_scene
+def _render_builtin(size, frames, ref_spp, more_spp, seed, scene) -> Dataset:
+    from torchmanifold.render import PathTracer, create_context, load_scene
+    from torchmanifold.render.scene import SCENES_DIR
 
-    tracer = PathTracer(default_scene(), width=size, height=size, ctx=create_context())
+    tracer = PathTracer(load_scene(SCENES_DIR / f"{scene}.toml"), width=size, height=size, ctx=create_context())
     times = [float(t) for t in range(frames)]
     tracer.render(times=times[:1], spp=1, seed=seed + 99)  # warm-up: shader compile, buffers
     spp_frames = {}
@@ -162,8 +168,8 @@ def _render_builtin(size, frames, ref_spp, more_spp, seed) -> Dataset:
         if spp == 1:
             noisy = res
     ref = tracer.render(times=times, spp=ref_spp, seed=seed + 1000, sample_offset=0)
-    return Dataset("builtin", noisy.color, noisy.features, noisy.feature_names, ref.color,
-                   torch.tensor(times), spp_frames)
+    return Dataset(scene, noisy.color, noisy.features, noisy.feature_names, ref.color, torch.tensor(times),
+                   spp_frames)
 
 
 # ---------------------------------------------------------------------------------------------------- guides
