@@ -142,6 +142,19 @@ class DemoApp(WindowConfig):
         if name is not None:
             self.apply_action(name)
 
+    def on_mouse_press_event(self, x: int, y: int, button: int) -> None:
+        """A click on the clip bar jumps there (snapped to 1/4 frame, in-between frames included)."""
+        x0, x1, ty = self.layout.timeline_span()
+        if abs(y - ty) > 12 or not x0 - 8 <= x <= x1 + 8 or len(self.frame_times) < 2:
+            return
+        lo, hi = self.frame_times[0], self.frame_times[-1]
+        t = lo + (min(max(x, x0), x1) - x0) / (x1 - x0) * (hi - lo)
+        self.playing = False
+        self.show_time = round(t * 4) / 4
+
+    def on_mouse_drag_event(self, x: int, y: int, dx: int, dy: int) -> None:
+        self.on_mouse_press_event(x, y, 1)
+
     def apply_action(self, action: str) -> None:
         """Run one named action from :data:`demo.controls.ACTIONS`."""
         if action not in controls.ACTIONS:
@@ -294,7 +307,7 @@ class DemoApp(WindowConfig):
         self._overlay_key = key
         return render_overlay(
             layout.window_size, labels, layout.plot_rect(), prog.history, layout.text_rect(), lines,
-            controls.help_lines() if self.show_help else None,
+            controls.help_lines() if self.show_help else None, (prog.frame_times, self.show_time, layout.timeline_span()),
         )
 
     # ------------------------------------------------------------------------------ capture

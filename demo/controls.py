@@ -82,5 +82,5 @@ def help_lines() -> list[str]:
     lines = ["torchmanifold demo: keys", ""]
     for key, _, text in BINDINGS:
         lines.append(f"{KEY_LABELS.get(key, key.replace('NUMBER_', '')):>6}  {text}")
-    lines += ["", "Changing a filter parameter restarts", "the progression."]
+    lines += ["", "Click or drag on the clip bar to scrub.", "Changing a filter parameter restarts", "the progression."]
     return lines

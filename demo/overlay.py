@@ -99,6 +99,7 @@ def render_overlay(
     text_rect: tuple[int, int, int, int],
     text_lines: list[str],
     help_lines: list[str] | None = None,
+    timeline: tuple[list[float], float, tuple[int, int, int]] | None = None,
 ) -> np.ndarray:
     """The whole overlay as an RGBA8 array ``(H, W, 4)``, top row first.
 
@@ -108,6 +109,7 @@ def render_overlay(
         plot_rect, curves: where and what to plot (see :func:`draw_plot`).
         text_rect, text_lines: the stats block.
         help_lines: when given, a translucent help screen over everything.
+        timeline: (frame times, shown time, (x0, x1, y)): a clip bar with a marker at the shown time.
     """
     width, height = size
     img = Image.new("RGBA", (width, height), (0, 0, 0, 0))
@@ -119,6 +121,17 @@ def render_overlay(
     draw.rectangle((tx, ty, tx + tw, ty + th), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
     for i, line in enumerate(text_lines):
         put_text(img, (tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
+    if timeline is not None and len(timeline[0]) > 1:
+        times, shown, (x0, x1, y) = timeline
+        span = times[-1] - times[0]
+        to_x = lambda t: x0 + (t - times[0]) / span * (x1 - x0)  # noqa: E731
+        draw.line((x0, y, x1, y), fill=(120, 120, 130, 255), width=2)
+        for t in times:
+            draw.line((to_x(t), y - 4, to_x(t), y + 4), fill=(170, 170, 180, 255))
+        mx = to_x(shown)
+        draw.polygon([(mx - 5, y - 9), (mx + 5, y - 9), (mx, y - 2)], fill=(255, 210, 120, 255))
+        put_text(img, (x0 - 12, y + 4), f"{times[0]:g}", 11, DIM)
+        put_text(img, (x1 - 4, y + 4), f"{times[-1]:g}", 11, DIM)
     if help_lines:
         draw.rectangle((0, 0, width, height), fill=(0, 0, 0, 200))
         columns = 2 if len(help_lines) > (height - 20) // 16 else 1

@@ -63,6 +63,11 @@ class Layout:
         left = px + pw + 2 * self.gap
         return left, top, width - left - self.gap, ph
 
+    def timeline_span(self) -> tuple[int, int, int]:
+        """(x0, x1, y) of the clip bar drawn at the bottom of the stats block."""
+        tx, ty, tw, th = self.text_rect()
+        return tx + 16, tx + tw - 16, ty + th - 18
+
     def gl_viewport(self, rect: tuple[int, int, int, int], buffer_size: tuple[int, int]) -> tuple[int, int, int, int]:
         """Top-left window rect -> GL viewport in framebuffer pixels (handles HiDPI buffers)."""
         width, height = self.window_size

@@ -159,6 +159,19 @@ def test_scrub_shows_in_between_frame(live_app):
     assert app.show_time == 0.0
 
 
+def test_click_on_clip_bar_scrubs(live_app):
+    app = live_app
+    x0, x1, y = app.layout.timeline_span()
+    app.on_mouse_press_event(x1, y, 1)
+    assert app.show_time == app.frame_times[-1]
+    app.on_mouse_press_event(x0 + (x1 - x0) * 0.26, y, 1)  # 0.26 of a 1-frame clip -> 0.25
+    assert app.show_time == 0.25
+    app.on_mouse_press_event(x0, y - 100, 1)  # elsewhere: nothing happens
+    assert app.show_time == 0.25
+    app.on_mouse_press_event(x0, y, 1)
+    assert app.show_time == 0.0
+
+
 def test_play_pause_restart_help(live_app):
     app = live_app
     app.apply_action("play")
