@@ -188,3 +188,21 @@ def test_context_manager_releases(ctx):
     tr.release()  # twice is harmless
     again = PathTracer(default_scene(), 8, 8, ctx=ctx).render([0.0], spp=1).color
     assert torch.equal(first, again) and ctx.error == "GL_NO_ERROR"
+
+
+def test_frames_split_over_buffer_batches(ctx):
+    """Frames beyond one storage block's size go to further buffers: the same frames either way."""
+    from torchmanifold.render import default_scene
+
+    scene, times = default_scene(), [0.0, 1.0, 2.5, 3.0, 7.0]
+    one = PathTracer(scene, 16, 12, ctx=ctx)
+    split = PathTracer(scene, 16, 12, ctx=ctx, max_buffer_bytes=2 * 16 * 12 * 14 * 4)  # 2 frames per batch
+    assert one.frames_per_batch >= 5 and split.frames_per_batch == 2
+    a, b = one.render(times, spp=2, seed=1), split.render(times, spp=2, seed=1)
+    assert [(f0, n) for f0, n, _ in split.buffers] == [(0, 2), (2, 2), (4, 1)]
+    for x, y in ((a.color, b.color), (a.features, b.features), (a.object_id, b.object_id), (a.motion, b.motion)):
+        assert torch.equal(x, y)
+    c = split.render(times[:3], spp=2, seed=1)  # fewer frames reuse the buffers
+    assert torch.equal(c.color, a.color[:3]) and len(split.buffers) == 2
+    with pytest.raises(ValueError, match="storage-block limit"):
+        PathTracer(scene, 64, 64, ctx=ctx, max_buffer_bytes=1000)

@@ -81,6 +81,8 @@ class PathTracer:
         bake_scene: paste the scene into the shader as constants (faster; a new tracer per scene
             anyway) instead of reading storage buffers; ``None`` = when it has at most
             ``MAX_BAKED_OBJECTS`` objects. Both give identical images.
+        max_buffer_bytes: cap on one output storage buffer (default: the driver's
+            ``GL_MAX_SHADER_STORAGE_BLOCK_SIZE``); longer batches of frames are rendered in parts.
 
     Example:
         >>> tracer = PathTracer(default_scene(), 64, 64)
@@ -98,6 +100,7 @@ class PathTracer:
         ctx: moderngl.Context | None = None,
         spp_per_dispatch: int = 64,
         bake_scene: bool | None = None,
+        max_buffer_bytes: int | None = None,
     ):
         if not isinstance(scene, Scene):
             raise TypeError(f"scene must be a torchmanifold.render.Scene, got {type(scene).__name__}")
@@ -138,8 +141,18 @@ class PathTracer:
             self._scene_bufs[10] = self.ctx.buffer(packed["nodes"].tobytes())
             self._scene_bufs[11] = self.ctx.buffer(packed["tris"].tobytes())
         self._times_buf: moderngl.Buffer | None = None
-        self._out: dict[str, moderngl.Buffer] = {}
-        self._capacity = 0  # frames the output buffers hold
+        # output buffers in batches of frames: one storage block may not exceed the driver's limit
+        # (128 MiB on llvmpipe; 12 frames of 14 features at 512x512 would not fit)
+        limit = self.ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 27)
+        limit = min(int(limit), max_buffer_bytes) if max_buffer_bytes is not None else int(limit)
+        frame_bytes = 4 * self.width * self.height * max(3, len(features))
+        if frame_bytes > limit:
+            raise ValueError(
+                f"width x height: one frame needs {frame_bytes} bytes per output buffer, over this GL driver's "
+                f"storage-block limit of {limit}; render a smaller image or fewer features")
+        self.frames_per_batch = limit // frame_bytes
+        self._batches: list[dict[str, moderngl.Buffer]] = []
+        self._batch_frames: list[int] = []  # frames each batch holds
         self._last: dict | None = None
 
         slots = [-1] * len(FEATURE_NAMES)
@@ -162,28 +175,46 @@ class PathTracer:
             self.program[name].value = value
 
     @property
-    def buffers(self) -> dict[str, moderngl.Buffer]:
-        """The output storage buffers (for consumers that keep frames on the GPU).
+    def buffers(self) -> list[tuple[int, int, dict[str, moderngl.Buffer]]]:
+        """The output storage buffers of the last :meth:`dispatch`, for consumers that keep frames on the GPU.
 
-        ``color`` / ``emission``: float32 ``(T, 3, H, W)`` sums over the samples of the last
-        :meth:`dispatch` (divide by its spp); ``features``: float32 ``(T, D, H, W)`` sums;
-        ``aux``: float32 ``(T, 3, H, W)`` = object id, motion x, motion y.
+        A list of ``(first_frame, n_frames, {name: buffer})`` batches (one unless the frames exceed
+        the driver's storage-block size). In each: ``color`` / ``emission`` float32 ``(n, 3, H, W)``
+        sums over the samples (divide by the spp), ``features`` float32 ``(n, D, H, W)`` sums,
+        ``aux`` float32 ``(n, 3, H, W)`` = object id, motion x, motion y.
         """
-        return dict(self._out)
+        if self._last is None:
+            return []
+        total, out, first = len(self._last["times"]), [], 0
+        for bufs in self._batches:
+            if first >= total:
+                break
+            k = min(self.frames_per_batch, total - first)
+            out.append((first, k, dict(bufs)))
+            first += k
+        return out
 
     def _ensure_outputs(self, n_frames: int) -> None:
-        if n_frames <= self._capacity:
-            return
-        plane = self.width * self.height * n_frames * 4
-        for b in self._out.values():
-            b.release()
-        self._out = {
-            "color": self.ctx.buffer(reserve=3 * plane),
-            "emission": self.ctx.buffer(reserve=3 * plane),
-            "features": self.ctx.buffer(reserve=max(len(self.feature_names), 1) * plane),
-            "aux": self.ctx.buffer(reserve=3 * plane),
-        }
-        self._capacity = n_frames
+        plane = self.width * self.height * 4
+        d = max(len(self.feature_names), 1)
+        for b in range(math.ceil(n_frames / self.frames_per_batch)):
+            need = min(self.frames_per_batch, n_frames - b * self.frames_per_batch)
+            if b < len(self._batches) and self._batch_frames[b] >= need:
+                continue
+            if b < len(self._batches):
+                for buf in self._batches[b].values():
+                    buf.release()
+            bufs = {
+                "color": self.ctx.buffer(reserve=3 * plane * need),
+                "emission": self.ctx.buffer(reserve=3 * plane * need),
+                "features": self.ctx.buffer(reserve=d * plane * need),
+                "aux": self.ctx.buffer(reserve=3 * plane * need),
+            }
+            if b < len(self._batches):
+                self._batches[b], self._batch_frames[b] = bufs, need
+            else:
+                self._batches.append(bufs)
+                self._batch_frames.append(need)
 
     def dispatch(
         self,
@@ -223,26 +254,29 @@ class PathTracer:
         for binding, buf in self._scene_bufs.items():
             buf.bind_to_storage_buffer(binding)
         self._times_buf.bind_to_storage_buffer(5)
-        for binding, key in ((6, "color"), (7, "emission"), (8, "features"), (9, "aux")):
-            self._out[key].bind_to_storage_buffer(binding)
         self._set("u_seed", seed)
         tiles = [(x0, y0) for y0 in range(0, self.height, th) for x0 in range(0, self.width, tw)]
-        bar = tqdm(total=math.ceil(spp / self.spp_per_dispatch) * len(tiles), disable=not progress,
+        batches = [(f0, min(self.frames_per_batch, n - f0)) for f0 in range(0, n, self.frames_per_batch)]
+        bar = tqdm(total=math.ceil(spp / self.spp_per_dispatch) * len(tiles) * len(batches), disable=not progress,
                    desc=f"path tracing {n}x{self.width}x{self.height} @ {spp} spp", unit="dispatch")
-        done = 0
-        while done < spp:
-            chunk = min(self.spp_per_dispatch, spp - done)
-            self._set("u_spp", chunk)
-            self._set("u_sample_start", sample_offset + done)
-            self._set("u_accumulate", int(done > 0))
-            for x0, y0 in tiles:
-                self._set("u_tile_origin", (x0, y0))
-                self._set("u_tile_size", (tw, th))
-                self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), n)
-                if progress:
-                    self.ctx.finish()  # so the bar shows finished work, not queued work
-                    bar.update()
-            done += chunk
+        for b, (f0, nb) in enumerate(batches):
+            for binding, key in ((6, "color"), (7, "emission"), (8, "features"), (9, "aux")):
+                self._batches[b][key].bind_to_storage_buffer(binding)
+            self._set("u_frame_base", f0)
+            done = 0
+            while done < spp:
+                chunk = min(self.spp_per_dispatch, spp - done)
+                self._set("u_spp", chunk)
+                self._set("u_sample_start", sample_offset + done)
+                self._set("u_accumulate", int(done > 0))
+                for x0, y0 in tiles:
+                    self._set("u_tile_origin", (x0, y0))
+                    self._set("u_tile_size", (tw, th))
+                    self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
+                    if progress:
+                        self.ctx.finish()  # so the bar shows finished work, not queued work
+                        bar.update()
+                done += chunk
         bar.close()
         self.ctx.memory_barrier()
         self._last = {"times": times_np, "spp": spp, "seed": seed, "sample_offset": sample_offset}
@@ -258,7 +292,9 @@ class PathTracer:
         def grab(key: str, c: int, scale: bool = True) -> np.ndarray:
             arr = np.empty((n, c, h, w), np.float32)
             if c:
-                self._out[key].read_into(arr, size=arr.nbytes)
+                for f0, nb, bufs in self.buffers:
+                    part = arr[f0:f0 + nb]  # contiguous: frames are the outer axis
+                    bufs[key].read_into(part, size=part.nbytes)
                 if scale and spp > 1:
                     np.divide(arr, np.float32(spp), out=arr)
             return arr
@@ -326,13 +362,13 @@ class PathTracer:
         if self.program is None:
             return
         make_current(self.ctx)
-        for b in [*self._scene_bufs.values(), *self._out.values()]:
+        for b in [*self._scene_bufs.values(), *(x for bufs in self._batches for x in bufs.values())]:
             b.release()
         if self._times_buf is not None:
             self._times_buf.release()
         self.program.release()
         self.program = None
-        self._scene_bufs, self._out, self._times_buf, self._capacity = {}, {}, None, 0
+        self._scene_bufs, self._batches, self._batch_frames, self._times_buf = {}, [], [], None
 
     def __enter__(self) -> "PathTracer":
         return self

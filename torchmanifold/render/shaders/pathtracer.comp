@@ -51,6 +51,7 @@ layout(std430, binding = 11) readonly buffer Tris { vec4 tris[]; };    // triple
 uniform ivec2 u_size;          // image W, H
 uniform ivec2 u_tile_origin;   // pixel offset of this dispatch
 uniform ivec2 u_tile_size;
+uniform int u_frame_base;      // first frame of this batch of output buffers
 uniform int u_n_prims;
 uniform int u_n_lights;
 uniform int u_n_camkeys;
@@ -339,7 +340,7 @@ void main() {
     ivec2 pix = u_tile_origin + local;
     if (pix.x >= u_size.x || pix.y >= u_size.y) return;
     int f = int(gl_GlobalInvocationID.z);
-    float ftime = frame_times[f];
+    float ftime = frame_times[u_frame_base + f];  // f indexes this batch's output buffers
     int W = u_size.x, H = u_size.y;
     int plane = W * H, pidx = pix.y * W + pix.x;
 
