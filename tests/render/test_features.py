@@ -151,6 +151,8 @@ def test_bad_arguments(ctx):
         PathTracer(default_scene(), 8, 8, features=["Q"], ctx=ctx)
     with pytest.raises(TypeError, match="scene"):
         PathTracer({"objects": []}, 8, 8, ctx=ctx)
+    with pytest.raises(TypeError, match="ctx"):
+        PathTracer(default_scene(), 8, 8, ctx="gl")
     with pytest.raises(ValueError, match="width"):
         PathTracer(default_scene(), 0, 8, ctx=ctx)
     tr = PathTracer(default_scene(), 8, 8, ctx=ctx)

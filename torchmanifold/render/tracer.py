@@ -117,6 +117,8 @@ class PathTracer:
             raise ValueError(f"features must be distinct names from {list(FEATURE_NAMES)}, got {features}")
         self.scene = scene
         self.feature_names = features
+        if ctx is not None and not isinstance(ctx, moderngl.Context):
+            raise TypeError(f"ctx must be a moderngl.Context or None, got {type(ctx).__name__}")
         self.ctx = ctx if ctx is not None else create_context()
         if self.ctx.version_code < 430:
             raise ValueError(f"ctx must support OpenGL 4.3 compute shaders, got version {self.ctx.version_code}")
