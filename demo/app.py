@@ -60,6 +60,22 @@ def render_reference(tracer, times, spp: int, seed: int, chunk: int = 8) -> torc
     return total / spp
 
 
+def resolve_scene(name: str | None):
+    """``None`` -> the default scene; a built-in scene's name (e.g. ``torus_box``) or a TOML path -> that."""
+    from torchmanifold.render import default_scene, load_scene
+    from torchmanifold.render.scene import SCENES_DIR
+
+    if name is None:
+        return default_scene()
+    builtin = SCENES_DIR / f"{name}.toml"
+    if not Path(name).suffix and builtin.is_file():
+        return load_scene(builtin)
+    if not Path(name).is_file():
+        known = sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+        raise ValueError(f"--scene: expected a built-in scene {known} or a TOML file, got {name!r}")
+    return load_scene(name)
+
+
 class DemoApp(WindowConfig):
     """moderngl-window app: progressive rendering + filtering of a short clip, live.
 
@@ -86,9 +102,9 @@ class DemoApp(WindowConfig):
         self.layout = Layout(args.width, args.height, scale=args.scale)
         self.frame_times = [float(i) for i in range(args.clip)]
         self.max_iterations = args.max_iterations
-        from torchmanifold.render import PathTracer, default_scene, load_scene
+        from torchmanifold.render import PathTracer
 
-        scene = load_scene(args.scene) if args.scene else default_scene()
+        scene = resolve_scene(args.scene)
         self.tracer = PathTracer(scene, width=args.width, height=args.height, ctx=self.ctx)
         reference = None
         if args.reference_spp > 0:
@@ -337,7 +353,8 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--scale", type=int, default=3, help="panel zoom factor (default 3)")
     g.add_argument("--clip", type=int, default=3, help="clip length in frames (default 3)")
     g.add_argument("--clip-fps", type=float, default=4.0, help="playback speed in frames/s (default 4)")
-    g.add_argument("--scene", default=None, help="scene TOML file (default: the built-in Cornell box)")
+    g.add_argument("--scene", default=None,
+                   help="built-in scene name (cornell_box, torus_box) or a scene TOML file (default: cornell_box)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--reference-spp", type=int, default=32, help="reference samples per pixel, 0 = none")
     g.add_argument("--max-iterations", type=int, default=1024)

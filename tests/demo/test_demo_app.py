@@ -194,6 +194,20 @@ def test_play_pause_restart_help(live_app):
         app.apply_action("nonsense")
 
 
+def test_scene_names_and_files(tmp_path):
+    from demo.app import resolve_scene
+    from torchmanifold.render.scene import SCENES_DIR
+
+    assert resolve_scene("torus_box").objects  # a built-in scene by name
+    assert len(resolve_scene(str(SCENES_DIR / "cornell_box.toml")).objects) == len(resolve_scene(None).objects)
+    with pytest.raises(ValueError, match="--scene"):
+        resolve_scene("no_such_scene")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[camera]\nfov = 'wide'\n")
+    with pytest.raises(ValueError, match="bad.toml"):
+        resolve_scene(str(bad))
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--width", "2"], "--width"),
     (["--clip", "0"], "--clip"),
