@@ -69,7 +69,7 @@ def test_time_feature_and_motion(ctx):
                          "material": "wall", "motion": [{"time": 0, "offset": [0, 0, 0]},
                                                         {"time": 10, "offset": [10 * speed, 0, 0]}]})
     scene = scene_from_dict(d)
-    assert scene.needed_features()[0] == "T"
+    assert scene.needed_features()[0] == "T" and scene.moving_objects() == [1]
     tr = PathTracer(scene, W, H, features=["T", "Z"], ctx=ctx)
     res = tr.render([2.0, 4.5], spp=16, seed=1)
     t = res.feature("T")

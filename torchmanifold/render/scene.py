@@ -143,6 +143,10 @@ class Scene:
         """Anything moves (an object or the camera has two or more keyframes)."""
         return len(self.camera.keys) > 1 or any(len(o.motion) > 1 for o in self.objects)
 
+    def moving_objects(self) -> list[int]:
+        """Indices (as in ``RenderResult.object_id``) of the objects that move, e.g. to mask them."""
+        return [i for i, o in enumerate(self.objects) if len(o.motion) > 1]
+
     @property
     def has_lights(self) -> bool:
         """Some sphere or quad emits, so next-event estimation casts shadow rays."""
