@@ -42,22 +42,30 @@ def bilateral_brute_force(values: Tensor, guide: Tensor, sigma_s: float, sigma_r
     g = guide.detach().to(torch.float64)
     B, C, H, W = f.shape
     N = H * W
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
-                            indexing="ij")
-    ys, xs = ys.reshape(-1).to(f.device), xs.reshape(-1).to(f.device)
-    out = torch.empty((B, C, N), dtype=torch.float64, device=f.device)
+    dev = f.device
+    # separable spatial log-weights per axis, broadcast into (chunk, H, W) rows below
+    ay = torch.arange(H, dtype=torch.float64, device=dev)
+    ax = torch.arange(W, dtype=torch.float64, device=dev)
+    ly = -(ay[:, None] - ay[None, :]).square() / (2 * sigma_s**2)  # (H, H)
+    lx = -(ax[:, None] - ax[None, :]).square() / (2 * sigma_s**2)  # (W, W)
+    if radius is not None:
+        ly = ly.masked_fill((ay[:, None] - ay[None, :]).abs() > radius, -torch.inf)
+        lx = lx.masked_fill((ax[:, None] - ax[None, :]).abs() > radius, -torch.inf)
+    iy = torch.arange(N, device=dev) // W
+    ix = torch.arange(N, device=dev) % W
+    inv = 1.0 / (2 * sigma_r**2)
+    out = torch.empty((B, C, N), dtype=torch.float64, device=dev)
     for b in range(B):
-        fb = f[b].reshape(C, N).T  # (N, C)
+        fb = torch.cat([f[b].reshape(C, N).T, torch.ones(N, 1, dtype=torch.float64, device=dev)], 1)
         gb = g[b].reshape(-1, N).T  # (N, D)
+        sq = gb.square().sum(1)
         for s in range(0, N, chunk):
             e = min(N, s + chunk)
-            dy = ys[s:e, None] - ys[None, :]
-            dx = xs[s:e, None] - xs[None, :]
-            logw = -(dx.square() + dy.square()) / (2 * sigma_s**2)
-            logw = logw - torch.cdist(gb[s:e], gb).square() / (2 * sigma_r**2)
-            if radius is not None:
-                logw = logw.masked_fill((dx.abs() > radius) | (dy.abs() > radius), -torch.inf)
-            wgt = torch.exp(logw)
-            out[b, :, s:e] = (wgt @ fb / wgt.sum(1, keepdim=True)).T
+            # -|g_i - g_j|^2 / 2 sigma_r^2 via |a|^2 + |b|^2 - 2ab (float64; clamped at 0), in place
+            logw = torch.addmm(sq[None, :], gb[s:e], gb.T, beta=1.0, alpha=-2.0)
+            logw.add_(sq[s:e, None]).clamp_(min=0.0).mul_(-inv)
+            logw.view(e - s, H, W).add_(ly[iy[s:e]][:, :, None]).add_(lx[ix[s:e]][:, None, :])
+            acc = logw.exp_() @ fb  # (chunk, C + 1): numerators and the denominator
+            out[b, :, s:e] = (acc[:, :C] / acc[:, C:]).T
     out = out.reshape(B, C, H, W)
     return out[0] if unbatched else out

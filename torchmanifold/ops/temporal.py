@@ -225,7 +225,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
                                       sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
                                       tree_height: int | None = 2,
                                       guide_sigmas: Sequence[float] | Tensor | None = None,
-                                      adjust_outliers: bool = False, power_iterations: int = 10,
+                                      adjust_outliers: bool = False, power_iterations: int = 32,
                                       backend: str = "auto") -> Tensor:
     r"""Filter a window of frames at query times with Gaussian weights in time.
 
@@ -333,7 +333,7 @@ class TemporalAdaptiveManifoldFilter(nn.Module):
 
     def __init__(self, sigma_s: float, sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
                  tree_height: int | None = 2, guide_sigmas: Sequence[float] | Tensor | None = None,
-                 adjust_outliers: bool = False, power_iterations: int = 10, backend: str = "auto") -> None:
+                 adjust_outliers: bool = False, power_iterations: int = 32, backend: str = "auto") -> None:
         super().__init__()
         self.sigma_s = _check_sigma("sigma_s", sigma_s)
         self.sigma_r = _check_sigma("sigma_r", sigma_r)
