@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -413,6 +414,9 @@ def create_app(argv: list[str]) -> DemoApp:
     args, _ = pre.parse_known_args(argv)
     validate_args(args)
     extra = []
+    window_flag = any(a in ("-wnd", "--window") or a.startswith("--window=") for a in argv)
+    if not args.headless and not window_flag and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ValueError("no display (DISPLAY is not set): use --headless, or run under xvfb-run")
     if args.headless:
         extra += ["--window", "headless", "--backend", "egl"]
     if "--size" not in argv:

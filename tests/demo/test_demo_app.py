@@ -226,6 +226,13 @@ def test_bad_options_name_the_option(argv, match):
         validate_args(parser.parse_args(argv))
 
 
+def test_no_display_gives_a_clear_error(monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(ValueError, match="--headless"):
+        create_app(["--frames", "1"])
+
+
 def test_real_window_under_xvfb(tmp_path):
     shot = tmp_path / "xvfb.png"
     cmd = ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-m", "demo",
