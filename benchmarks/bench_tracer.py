@@ -4,7 +4,8 @@ On this machine that is Mesa's llvmpipe (compute shaders run on the CPU, synchro
 the right timer); on a GPU machine the same file measures the GPU. Each size is measured for the built-in
 Cornell box (full paths: NEE, glass, Russian roulette, all 14 features) and, as the baseline from the same
 run, for primary rays only (``max_depth = 1``, no features) -- the ratio says what the light transport
-costs on top of casting camera rays through the same scene.
+costs on top of casting camera rays through the same scene. ``mesh_scene`` is ``torus_box.toml`` (a
+768-triangle glass mesh through the BVH, a sphere light, motion blur).
 
 ``pytest benchmarks/bench_tracer.py`` writes ``benchmarks/results/tracer.json`` (``--quick``: 64x64, a
 smoke run, written to ``results/quick/``).
@@ -19,7 +20,8 @@ import statistics
 import pytest
 
 import harness
-from torchmanifold.render import PathTracer, create_context, default_scene
+from torchmanifold.render import PathTracer, create_context, default_scene, load_scene
+from torchmanifold.render.scene import SCENES_DIR
 
 SIZES = (256, 512)
 FRAMES = 2  # frames per render call (one dispatch per call covers all of them)
@@ -29,11 +31,12 @@ _RESULTS: dict = {}
 def _variants():
     full = default_scene()
     primary = dataclasses.replace(full, max_depth=1)
-    return {"full": (full, None), "primary_rays": (primary, [])}
+    mesh = load_scene(SCENES_DIR / "torus_box.toml")
+    return {"full": (full, None), "primary_rays": (primary, []), "mesh_scene": (mesh, None)}
 
 
 @pytest.mark.parametrize("size", SIZES)
-@pytest.mark.parametrize("variant", ["primary_rays", "full"])
+@pytest.mark.parametrize("variant", ["primary_rays", "full", "mesh_scene"])
 def test_tracer_megapaths(benchmark, quick, size, variant):
     if quick:
         size = 64
@@ -74,7 +77,7 @@ def test_write_results(quick):
         if "full" in r and "primary_rays" in r:
             r["full_vs_primary_time_ratio"] = r["full"]["median_s"] / r["primary_rays"]["median_s"]
     out = {
-        "what": "megapaths/s of the built-in Cornell box at 1 spp (full paths) vs primary rays only",
+        "what": "megapaths/s at 1 spp: built-in Cornell box (full paths), primary rays only, torus_box (mesh)",
         "gl_renderer": ctx.info["GL_RENDERER"],
         "gl_version": ctx.info["GL_VERSION"],
         "llvmpipe_threads": os.environ.get("LP_NUM_THREADS", f"default (= {os.cpu_count()} cpus)"),
@@ -82,7 +85,8 @@ def test_write_results(quick):
         "load_average_1_5_15min": list(os.getloadavg()),  # the CPU is shared: llvmpipe gets what is left
         "sizes": _RESULTS,
         "summary": {
-            size: round(r["full"]["megapaths_per_s"], 4) for size, r in _RESULTS.items() if "full" in r
+            size: {k: round(v["megapaths_per_s"], 4) for k, v in r.items() if isinstance(v, dict)}
+            for size, r in _RESULTS.items()
         },
         "median_megapaths_per_s": statistics.median(
             r["full"]["megapaths_per_s"] for r in _RESULTS.values() if "full" in r
