@@ -95,7 +95,7 @@ def _extent(x: Tensor, valid: Tensor) -> float:
 
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
-GROUP_SIGMAS = {"albedo": 0.1, "N": 0.3, "P": 0.025, "Z": 0.02, "D": 0.6, "S": 0.6}
+GROUP_SIGMAS = {"albedo": 0.1, "N": 0.3, "P": 0.04, "Z": 0.15, "D": 0.6, "S": 0.6}
 
 
 def default_guide_sigmas(names: Sequence[str], features: Tensor | None = None,
@@ -134,8 +134,9 @@ class DenoiseSettings:
 
     Attributes:
         sigma_s: spatial sigma in pixels.
-        guide: feature channels that steer the filter (EXR or tracer names); ``None`` = every known one
-            present except time ``T``.
+        guide: feature channels that steer the filter (EXR or tracer names); ``None`` = albedo, normals
+            and world position ``P`` (or depth ``Z`` without ``P``): the sampled directions ``D``/``S`` are
+            one random draw per sample and only add noise to the range weights (measured).
         guide_sigmas: range sigma per guide channel (``{name: sigma}`` overrides); missing ones default.
         tree_height: manifold tree height.
         firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
@@ -150,7 +151,7 @@ class DenoiseSettings:
         dtype: working precision (float64 keeps S/S0 exact where the weights get tiny).
     """
 
-    sigma_s: float = 6.0
+    sigma_s: float = 5.0
     guide: Sequence[str] | None = None
     guide_sigmas: Mapping[str, float] = field(default_factory=dict)
     tree_height: int = 2
@@ -190,7 +191,10 @@ class DenoiseSettings:
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
     if settings.guide is None:
-        return [k for k, n in enumerate(names) if feature_group(n) in GROUP_SIGMAS]
+        groups = {feature_group(n) for n in names}
+        # per-sample random directions (D, S) make a noisy guide; world position makes depth redundant
+        skip = {"D", "S", "T"} | ({"Z"} if "P" in groups else set())
+        return [k for k, n in enumerate(names) if feature_group(n) in GROUP_SIGMAS and feature_group(n) not in skip]
     canon = [canonical_name(n) for n in names]
     idx = []
     for g in settings.guide:
