@@ -21,16 +21,38 @@
 #include <cstdint>
 #include <limits>
 #include <vector>
+#include <cstdio>
+#include <cstdlib>
+#include <ctime>
 
 #include "ops/cpu/manifold_ops.h"
 #include "ops/cpu/recursive_filter.h"
+#include "ops/cpu/workspace.h"
 
 namespace torchmanifold {
 namespace cpu {
 namespace {
 
 // Rows per reduction chunk: fixed, so partial sums never depend on the thread count.
-constexpr int64_t kReduceRows = 8;
+constexpr int64_t kReduceRows = 16;
+
+// TORCHMANIFOLD_KERNEL_PROFILE=1 prints the calling thread's CPU time per phase to stderr
+// (meaningful with torch.set_num_threads(1)); a development aid, off by default.
+struct PhaseClock {
+  bool on = std::getenv("TORCHMANIFOLD_KERNEL_PROFILE") != nullptr;
+  double t = now();
+  static double now() {
+    timespec ts;
+    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    return ts.tv_sec + 1e-9 * ts.tv_nsec;
+  }
+  void lap(const char* what, int64_t id = 0) {
+    if (!on) return;
+    const double n = now();
+    std::fprintf(stderr, "[am] %-14s node %3ld %8.2f ms\n", what, static_cast<long>(id), 1e3 * (n - t));
+    t = n;
+  }
+};
 
 struct Options {
   double sigma_s, sigma_r;
@@ -48,7 +70,9 @@ class ImageFilter {
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt),
         df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
-        ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), out_(out) {
+        // pixel passes run over groups of block rows: >= kReduceRows full-res rows each
+        bpg_(std::max<int64_t>(1, kReduceRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
+        ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
     const double fmax = static_cast<double>(std::numeric_limits<T>::max());
     const double r2 = opt.sigma_r * opt.sigma_r;
     inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
@@ -59,10 +83,11 @@ class ImageFilter {
 
   void run() {
     prepare();
-    w_.assign(N_, T(0));
-    S_.assign(C_ * N_, T(0));
+    clock_.lap("prepare");
+    w_.resize(N_);
+    std::fill(S_, S_ + C_ * N_, T(0));
     S0_.assign(N_, T(0));
-    minD_.assign(N_, std::numeric_limits<T>::infinity());
+    if (opt_.adjust_outliers) minD_.assign(N_, std::numeric_limits<T>::infinity());
 
     // 7. Depth first, pre-order (k, 2k, 2k+1): each node depends only on its parent, so this
     // equals the reference's breadth-first levels. Entries own their low-res manifold.
@@ -78,6 +103,7 @@ class ImageFilter {
       process_node(e.id, e.eta, stack);
     }
     finish();
+    clock_.lap("finish");
   }
 
  private:
@@ -88,81 +114,46 @@ class ImageFilter {
 
   // 2., 3., 6.: masks, sanitised samples, the per-channel offset c, the root manifold and gs.
   void prepare() {
-    mg_.assign(N_, 1);
-    mv_.assign(N_, 1);
-    rows_parallel(C_ + D_, [&](int64_t b, int64_t e) {
-      for (int64_t c = 0; c < C_; ++c)
-        for (int64_t i = b * W_; i < e * W_; ++i)
-          if (!std::isfinite(f_in_[c * N_ + i])) mv_[i] = 0;
-      for (int64_t d = 0; d < D_; ++d)
-        for (int64_t i = b * W_; i < e * W_; ++i)
-          if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
-    });
-    const bool all_g = std::all_of(mg_.begin(), mg_.end(), [](uint8_t m) { return m != 0; });
-    const bool all_v = std::all_of(mv_.begin(), mv_.end(), [](uint8_t m) { return m != 0; });
-
-    f_s_ = f_in_;
-    if (!all_v) {
-      fs_buf_.resize(C_ * N_);
-      rows_parallel(C_, [&](int64_t b, int64_t e) {
-        for (int64_t c = 0; c < C_; ++c)
-          for (int64_t i = b * W_; i < e * W_; ++i) {
-            const T x = f_in_[c * N_ + i];
-            fs_buf_[c * N_ + i] = std::isfinite(x) ? x : T(0);
-          }
-      });
-      f_s_ = fs_buf_.data();
-    }
-    ms_.resize(N_);
-    for (int64_t i = 0; i < N_; ++i) ms_[i] = mg_[i] & mv_[i];
-
-    // 3. c = lo + (hi - lo) / 2 over splat pixels; min/max are order independent.
-    const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;
-    std::vector<T> lo(chunks * C_, std::numeric_limits<T>::infinity());
-    std::vector<T> hi(chunks * C_, -std::numeric_limits<T>::infinity());
-    at::parallel_for(0, chunks, grain_for(kReduceRows * W_ * C_), [&](int64_t b, int64_t e) {
-      for (int64_t ch = b; ch < e; ++ch) {
-        const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
-        for (int64_t c = 0; c < C_; ++c) {
-          T l = lo[ch * C_ + c], h = hi[ch * C_ + c];
-          const T* x = f_s_ + c * N_;
-          for (int64_t i = p0; i < p1; ++i)
-            if (ms_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
-          lo[ch * C_ + c] = l;
-          hi[ch * C_ + c] = h;
+    // Guide: copy into eta1 checking finiteness, then h in place. Only a non-finite guide takes
+    // the masked route h(mg g0) / h(mg).
+    eta1_.resize(D_ * N_);
+    std::vector<uint8_t> line_ok(D_ * H_, 1);
+    const T a = lowpass_coefficient<T>(opt_.sigma_s);
+    at::parallel_for(0, D_ * H_, grain_for(6 * W_), [&](int64_t b, int64_t e) {
+      for (int64_t line = b; line < e; ++line) {
+        const T* src = g_in_ + line * W_;
+        T* dst = eta1_.data() + line * W_;
+        T bad = T(0);  // x - x is 0 for finite x, NaN otherwise; branch-free so it vectorises
+        for (int64_t j = 0; j < W_; ++j) {
+          dst[j] = src[j];
+          bad += src[j] - src[j];
         }
+        line_ok[line] = bad == T(0);
       }
+      // The row pass of h while the lines are in cache (used only if the guide is finite).
+      if (W_ > 1)
+        for (int64_t line = b; line < e;) {
+          const int64_t pl = line / H_, r0 = line % H_, r1 = std::min(H_, r0 + (e - line));
+          lowpass_rows(eta1_.data() + pl * N_, r0, r1, W_, a);
+          line += r1 - r0;
+        }
     });
-    c_.assign(C_, T(0));
-    for (int64_t c = 0; c < C_; ++c) {
-      T l = std::numeric_limits<T>::infinity(), h = -l;
-      for (int64_t ch = 0; ch < chunks; ++ch) l = std::min(l, lo[ch * C_ + c]), h = std::max(h, hi[ch * C_ + c]);
-      const T mid = l + (h - l) / T(2);
-      c_[c] = std::isfinite(mid) ? mid : T(0);
-    }
-    fp_.resize(C_ * N_);
-    rows_parallel(C_, [&](int64_t b, int64_t e) {
-      for (int64_t c = 0; c < C_; ++c) {
-        const T* x = f_s_ + c * N_;
-        T* y = fp_.data() + c * N_;
-        const T cc = c_[c];
-        for (int64_t i = b * W_; i < e * W_; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
-      }
-    });
-
-    // 6. eta_1 = h(mg g0) / h(mg); with a fully finite guide h(1) == 1 exactly, so eta_1 = h(g).
+    all_g_ = std::all_of(line_ok.begin(), line_ok.end(), [](uint8_t m) { return m != 0; });
+    mg_.assign(N_, 1);
     gs_ = g_in_;
-    if (all_g) {
-      eta1_.assign(g_in_, g_in_ + D_ * N_);
-      lowpass_planes(eta1_.data(), D_, H_, W_, opt_.sigma_s);
+    clock_.lap("guide copy");
+    if (all_g_) {
+      lowpass_planes(eta1_.data(), D_, H_, W_, opt_.sigma_s, /*rows_done=*/true);
+      clock_.lap("root lowpass");
     } else {
+      for (int64_t d = 0; d < D_; ++d)
+        for (int64_t i = 0; i < N_; ++i)
+          if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
       eta1_.resize((D_ + 1) * N_);
       rows_parallel(D_ + 1, [&](int64_t b, int64_t e) {
         for (int64_t d = 0; d < D_; ++d)
-          for (int64_t i = b * W_; i < e * W_; ++i) {
-            const T x = g_in_[d * N_ + i];
-            eta1_[d * N_ + i] = mg_[i] && std::isfinite(x) ? x : T(0);
-          }
+          for (int64_t i = b * W_; i < e * W_; ++i)
+            eta1_[d * N_ + i] = mg_[i] ? g_in_[d * N_ + i] : T(0);
         for (int64_t i = b * W_; i < e * W_; ++i) eta1_[D_ * N_ + i] = mg_[i] ? T(1) : T(0);
       });
       lowpass_planes(eta1_.data(), D_ + 1, H_, W_, opt_.sigma_s);
@@ -173,19 +164,109 @@ class ImageFilter {
           for (int64_t i = b * W_; i < e * W_; ++i) {
             T& eta = eta1_[d * N_ + i];
             eta = den[i] > T(0) ? eta / den[i] : T(0);
-            const T x = g_in_[d * N_ + i];
-            // An invalid guide pixel sits on the root manifold; the valid channels of a
-            // partially finite pixel are kept only where the whole pixel is valid.
-            gs_buf_[d * N_ + i] = mg_[i] ? x : eta;
+            // An invalid guide pixel sits on the root manifold.
+            gs_buf_[d * N_ + i] = mg_[i] ? g_in_[d * N_ + i] : eta;
           }
       });
       eta1_.resize(D_ * N_);
       gs_ = gs_buf_.data();
     }
+
+    // Values: finiteness, then c = lo + (hi - lo) / 2 over splat pixels (min/max are order
+    // independent), then f' = (f_s - c) ms.
+    mv_.assign(N_, 1);
+    const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;
+    std::vector<T> lo(chunks * C_, std::numeric_limits<T>::infinity());
+    std::vector<T> hi(chunks * C_, -std::numeric_limits<T>::infinity());
+    std::vector<uint8_t> chunk_ok(chunks, 1);
+    at::parallel_for(0, chunks, grain_for(kReduceRows * W_ * C_), [&](int64_t b, int64_t e) {
+      for (int64_t ch = b; ch < e; ++ch) {
+        const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
+        for (int64_t c = 0; c < C_; ++c) {
+          const T* x = f_in_ + c * N_;
+          bool ok = true;
+          for (int64_t i = p0; i < p1; ++i) ok = ok && std::isfinite(x[i]);
+          if (!ok) {
+            chunk_ok[ch] = 0;
+            for (int64_t i = p0; i < p1; ++i)
+              if (!std::isfinite(x[i])) mv_[i] = 0;
+          }
+        }
+        for (int64_t c = 0; c < C_; ++c) {
+          const T* x = f_in_ + c * N_;
+          T l = lo[ch * C_ + c], h = hi[ch * C_ + c];
+          if (chunk_ok[ch] && all_g_) {
+            for (int64_t i = p0; i < p1; ++i) l = std::min(l, x[i]), h = std::max(h, x[i]);
+          } else {
+            for (int64_t i = p0; i < p1; ++i)
+              if (mg_[i] && mv_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
+          }
+          lo[ch * C_ + c] = l;
+          hi[ch * C_ + c] = h;
+        }
+      }
+    });
+    all_v_ = std::all_of(chunk_ok.begin(), chunk_ok.end(), [](uint8_t m) { return m != 0; });
+    f_s_ = f_in_;
+    if (!all_v_) {
+      fs_buf_.resize(C_ * N_);
+      rows_parallel(C_, [&](int64_t b, int64_t e) {
+        for (int64_t c = 0; c < C_; ++c)
+          for (int64_t i = b * W_; i < e * W_; ++i) {
+            const T x = f_in_[c * N_ + i];
+            fs_buf_[c * N_ + i] = std::isfinite(x) ? x : T(0);
+          }
+      });
+      f_s_ = fs_buf_.data();
+    }
+    c_.assign(C_, T(0));
+    for (int64_t c = 0; c < C_; ++c) {
+      T l = std::numeric_limits<T>::infinity(), h = -l;
+      for (int64_t ch = 0; ch < chunks; ++ch)
+        l = std::min(l, lo[ch * C_ + c]), h = std::max(h, hi[ch * C_ + c]);
+      const T mid = l + (h - l) / T(2);
+      c_[c] = std::isfinite(mid) ? mid : T(0);
+    }
+    ms_.resize(N_);
+    for (int64_t i = 0; i < N_; ++i) ms_[i] = mg_[i] & mv_[i];
+    fp_.resize(C_ * N_);
+    rows_parallel(C_, [&](int64_t b, int64_t e) {
+      for (int64_t c = 0; c < C_; ++c) {
+        const T* x = f_s_ + c * N_;
+        T* y = fp_.data() + c * N_;
+        const T cc = c_[c];
+        for (int64_t i = b * W_; i < e * W_; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
+      }
+    });
     // 8. The root's cluster is the pixels with a finite guide; label 0 is never a node.
     if (opt_.tree_height > 1) {
       label_.resize(N_);
       for (int64_t i = 0; i < N_; ++i) label_[i] = mg_[i] ? 1 : 0;
+    }
+  }
+
+  // Residual r = gs - eta at full-res row i into res (D, W), and dist += |r|^2 when dist is
+  // given; eta_low is the low-res manifold (upsampled through tmp) or, for the root, null (eta_1
+  // at full res). One channel at a time so the row stays in L1.
+  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist) const {
+    const int64_t row = i * W_;
+    for (int64_t d = 0; d < D_; ++d) {
+      const T* gr = gs_ + d * N_ + row;
+      T* rr = res + d * W_;
+      const T* er = eta1_.data() + d * N_ + row;
+      if (eta_low) {
+        upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
+        er = rr;
+      }
+      if (dist) {
+        for (int64_t j = 0; j < W_; ++j) {
+          const T r = gr[j] - er[j];
+          rr[j] = r;
+          dist[j] += r * r;
+        }
+      } else {
+        for (int64_t j = 0; j < W_; ++j) rr[j] = gr[j] - er[j];
+      }
     }
   }
 
@@ -195,73 +276,61 @@ class ImageFilter {
     int64_t depth = 0;
     for (int64_t k = id; k > 1; k >>= 1) ++depth;
     const bool leaf = depth + 1 >= opt_.tree_height;
+    const bool want_m = !leaf && opt_.power_iterations > 0;
     if (root) eta_low.assign(D_ * Nl_, T(0));
-    if (!leaf) R_.resize(D_ * N_);
-    std::vector<T> rmax(Hl_, T(0));  // per block row: max |r| over the cluster
+    const T* eta_src = root ? nullptr : eta_low.data();
+    const int64_t msize = D_ * (D_ + 1) / 2;  // upper triangle of M
+    std::vector<double> mpart(want_m ? groups_ * msize : 0, 0.0);
 
-    // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w) ----
-    std::vector<T> P((C_ + 1) * Nl_, T(0));
-    at::parallel_for(0, Hl_, grain_for(df_ * W_ * (D_ + C_ + 4)), [&](int64_t b, int64_t e) {
-      std::vector<T> eta(root ? 0 : D_ * W_), tmp(D_ * Wl_), dist(W_), ws(W_);
-      for (int64_t bi = b; bi < e; ++bi) {
-        const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
-        T rm = T(0);
-        for (int64_t i = i0; i < i1; ++i) {
-          const int64_t row = i * W_;
-          if (root) {
-            for (int64_t d = 0; d < D_; ++d)
-              block_sum_row(eta1_.data() + d * N_ + row, W_, df_, Wl_,
-                            eta_low.data() + d * Nl_ + bi * Wl_);
-          } else {
-            upsample_row(eta_low.data(), D_, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), eta.data());
-          }
-          std::fill(dist.begin(), dist.end(), T(0));
-          const int32_t* lr = leaf ? nullptr : label_.data() + row;
-          for (int64_t d = 0; d < D_; ++d) {
-            const T* gr = gs_ + d * N_ + row;
-            const T* er = root ? eta1_.data() + d * N_ + row : eta.data() + d * W_;
-            if (leaf) {
-              for (int64_t j = 0; j < W_; ++j) {
-                const T r = gr[j] - er[j];
-                dist[j] += r * r;
-              }
-            } else {
-              T* rr = R_.data() + d * N_ + row;
-              for (int64_t j = 0; j < W_; ++j) {
-                const T r = gr[j] - er[j];
-                rr[j] = r;
-                dist[j] += r * r;
-              }
-              for (int64_t j = 0; j < W_; ++j)
-                if (lr[j] == id) rm = std::max(rm, std::abs(rr[j]));
+    // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); M = sum r r^T ----
+    Scratch<T> P;
+    P.assign((C_ + 1) * Nl_, T(0));
+    at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
+      std::vector<T> res(D_ * W_), tmp(D_ * Wl_), dist(W_), ws(W_), mrow(msize);
+      for (int64_t grp = gb; grp < ge; ++grp) {
+        if (want_m) std::fill(mrow.begin(), mrow.end(), T(0));
+        for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
+          const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+          for (int64_t i = i0; i < i1; ++i) {
+            const int64_t row = i * W_;
+            if (root)
+              for (int64_t d = 0; d < D_; ++d)
+                block_sum_row(eta1_.data() + d * N_ + row, W_, df_, Wl_,
+                              eta_low.data() + d * Nl_ + bi * Wl_);
+            std::fill(dist.begin(), dist.end(), T(0));
+            residual_row(eta_src, i, tmp.data(), res.data(), dist.data());
+            T* wr = w_.data() + row;
+            const uint8_t* sr = ms_.data() + row;
+            for (int64_t j = 0; j < W_; ++j) {
+              const T w = exp_nonpositive(-dist[j] * inv_r2_);
+              wr[j] = w;
+              ws[j] = sr[j] ? w : T(0);
             }
+            if (opt_.adjust_outliers) {
+              T* mr = minD_.data() + row;
+              for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
+            }
+            for (int64_t c = 0; c < C_; ++c)
+              block_dot_row(ws.data(), fp_.data() + c * N_ + row, W_, df_, Wl_,
+                            P.data() + c * Nl_ + bi * Wl_);
+            block_sum_row(ws.data(), W_, df_, Wl_, P.data() + C_ * Nl_ + bi * Wl_);
+            if (want_m) accumulate_m(id, row, res.data(), mrow.data());
           }
-          T* wr = w_.data() + row;
-          const uint8_t* sr = ms_.data() + row;
-          T* mr = minD_.data() + row;
-          for (int64_t j = 0; j < W_; ++j) {
-            const T w = exp_nonpositive(-dist[j] * inv_r2_);
-            wr[j] = w;
-            ws[j] = sr[j] ? w : T(0);
-            mr[j] = std::min(mr[j], dist[j]);
+          // Area means over the pixels that exist in each block.
+          const int64_t rows = i1 - i0;
+          for (int64_t bj = 0; bj < Wl_; ++bj) {
+            const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
+            for (int64_t c = 0; c <= C_; ++c) P[c * Nl_ + bi * Wl_ + bj] /= cnt;
+            if (root)
+              for (int64_t d = 0; d < D_; ++d) eta_low[d * Nl_ + bi * Wl_ + bj] /= cnt;
           }
-          for (int64_t c = 0; c < C_; ++c)
-            block_dot_row(ws.data(), fp_.data() + c * N_ + row, W_, df_, Wl_,
-                          P.data() + c * Nl_ + bi * Wl_);
-          block_sum_row(ws.data(), W_, df_, Wl_, P.data() + C_ * Nl_ + bi * Wl_);
         }
-        rmax[bi] = rm;
-        // Area means over the pixels that exist in each block.
-        const int64_t rows = i1 - i0;
-        for (int64_t bj = 0; bj < Wl_; ++bj) {
-          const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
-          for (int64_t c = 0; c <= C_; ++c) P[c * Nl_ + bi * Wl_ + bj] /= cnt;
-          if (root)
-            for (int64_t d = 0; d < D_; ++d) eta_low[d * Nl_ + bi * Wl_ + bj] /= cnt;
-        }
+        if (want_m)
+          for (int64_t k = 0; k < msize; ++k) mpart[grp * msize + k] = static_cast<double>(mrow[k]);
       }
     });
 
+    clock_.lap("pass A", id);
     // ---- low-res blur of [P, P0] steered by the node's manifold ----
     {
       std::vector<T> ah(Nl_), av(Nl_);
@@ -272,34 +341,33 @@ class ImageFilter {
 
     // ---- 8. split direction ----
     std::vector<T> v;
-    if (!leaf) {
-      T scale = T(0);
-      for (T m : rmax) scale = std::max(scale, m);
-      v = split_direction(id, scale > T(0) ? T(1) / scale : T(1));
-    }
+    if (!leaf) v = split_direction(mpart);
+    clock_.lap("blur+split", id);
 
     // ---- pass B: slice; internal nodes also label, theta and the children's sums ----
-    std::vector<T> Q;  // [side][D + 1][Nl]: down(T gs) planes then down(T)
+    Scratch<T> Q;  // [side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
     if (!leaf) Q.assign(2 * qside, T(0));
-    at::parallel_for(0, Hl_, grain_for(df_ * W_ * (D_ + C_ + 4)), [&](int64_t b, int64_t e) {
-      std::vector<T> up((C_ + 1) * W_), tmp((C_ + 1) * Wl_), t0(W_), t1(W_);
-      for (int64_t bi = b; bi < e; ++bi) {
+    at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
+      std::vector<T> up((C_ + 1) * W_), tmp(std::max(C_ + 1, D_) * Wl_), t0(W_), t1(W_);
+      std::vector<T> res(leaf ? 0 : D_ * W_);
+      for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
           upsample_row(P.data(), C_ + 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
           const T* wr = w_.data() + row;
           for (int64_t c = 0; c <= C_; ++c) {
-            T* s = (c < C_ ? S_.data() + c * N_ : S0_.data()) + row;
+            T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
             const T* u = up.data() + c * W_;
             for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * u[j];
           }
           if (leaf) continue;
           // t0 first holds the projection v . r, then theta on the - side.
+          residual_row(eta_src, i, tmp.data(), res.data(), nullptr);
           std::fill(t0.begin(), t0.end(), T(0));
           for (int64_t d = 0; d < D_; ++d) {
-            const T* rr = R_.data() + d * N_ + row;
+            const T* rr = res.data() + d * W_;
             const T vd = v[d];
             for (int64_t j = 0; j < W_; ++j) t0[j] += vd * rr[j];
           }
@@ -329,6 +397,7 @@ class ImageFilter {
         }
       }
     });
+    clock_.lap("pass B", id);
     if (leaf) return;
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
@@ -345,77 +414,73 @@ class ImageFilter {
         for (int64_t i = 0; i < Nl_; ++i)
           eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : eta_low[d * Nl_ + i];
     }
+    clock_.lap("children", id);
     // Push + first so the - child (2k) is processed first.
     for (int64_t s = 1; s >= 0; --s)
       if (!kids[s].empty()) stack.push_back({2 * id + s, std::move(kids[s])});
   }
 
-  // 8. Power iteration on M = sum over the cluster of rs rs^T (rs = r / max|r|) without forming
-  // M: each step is one pass u = sum rs (rs . v). Per-chunk partials, fixed chunks, fixed order.
-  std::vector<T> split_direction(int64_t id, T inv_scale) {
-    const T eps = std::numeric_limits<T>::epsilon();
+  // m += sum over the row's cluster pixels of r r^T (upper triangle, row-major). The reference
+  // scales r by 1/max|r| against overflow; the direction and the collapse test do not depend on
+  // it, and here a float32 r is squared in float32 per row, then summed in double.
+  void accumulate_m(int64_t id, int64_t row, T* res, T* m) const {
+    const int32_t* lr = label_.data() + row;
+    for (int64_t d = 0; d < D_; ++d) {
+      T* rr = res + d * W_;  // res is scratch now: mask it
+      for (int64_t j = 0; j < W_; ++j) rr[j] = lr[j] == id ? rr[j] : T(0);
+    }
+    int64_t k = 0;
+    for (int64_t a = 0; a < D_; ++a) {
+      const T* ra = res + a * W_;
+      for (int64_t b = a; b < D_; ++b, ++k) {
+        const T* rb = res + b * W_;
+        m[k] += dot_lanes(ra, rb, W_);
+      }
+    }
+  }
+
+  // 8. Power iteration u = M v, v = u/|u| from ones/sqrt(D); the largest-variance channel when it
+  // collapses. M is the fixed-order sum of per-group partials.
+  std::vector<T> split_direction(const std::vector<double>& mpart) {
+    const int64_t msize = D_ * (D_ + 1) / 2;
     std::vector<double> v(D_, 1.0 / std::sqrt(static_cast<double>(D_)));
-    std::vector<double> diag(D_, 0.0);
+    std::vector<T> out(D_, T(0));
+    if (opt_.power_iterations <= 0) {
+      for (int64_t d = 0; d < D_; ++d) out[d] = static_cast<T>(v[d]);
+      return out;
+    }
+    std::vector<double> M(D_ * D_, 0.0);
+    {
+      std::vector<double> tri(msize, 0.0);
+      for (int64_t g = 0; g < groups_; ++g)
+        for (int64_t k = 0; k < msize; ++k) tri[k] += mpart[g * msize + k];
+      int64_t k = 0;
+      for (int64_t a = 0; a < D_; ++a)
+        for (int64_t b = a; b < D_; ++b, ++k) M[a * D_ + b] = M[b * D_ + a] = tri[k];
+    }
+    double trace = 0;
+    for (int64_t d = 0; d < D_; ++d) trace += M[d * D_ + d];
+    const double eps = static_cast<double>(std::numeric_limits<T>::epsilon());
     bool collapsed = false;
-    const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;
-    // per chunk: u (D) then diag (D)
-    std::vector<double> part(chunks * 2 * D_);
+    std::vector<double> u(D_);
     for (int64_t it = 0; it < opt_.power_iterations; ++it) {
-      const bool first = it == 0;
-      std::vector<T> vt(D_);
-      for (int64_t d = 0; d < D_; ++d) vt[d] = static_cast<T>(v[d]);
-      at::parallel_for(0, chunks, grain_for(kReduceRows * W_ * 3 * D_), [&](int64_t b, int64_t e) {
-        std::vector<T> proj(W_), acc(2 * D_);
-        for (int64_t ch = b; ch < e; ++ch) {
-          std::fill(acc.begin(), acc.end(), T(0));
-          for (int64_t i = ch * kReduceRows; i < std::min(H_, (ch + 1) * kReduceRows); ++i) {
-            const int64_t row = i * W_;
-            const int32_t* lr = label_.data() + row;
-            std::fill(proj.begin(), proj.end(), T(0));
-            for (int64_t d = 0; d < D_; ++d) {
-              const T* rr = R_.data() + d * N_ + row;
-              const T vd = vt[d];
-              for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (rr[j] * inv_scale);
-            }
-            for (int64_t j = 0; j < W_; ++j)
-              if (lr[j] != id) proj[j] = T(0);
-            for (int64_t d = 0; d < D_; ++d) {
-              const T* rr = R_.data() + d * N_ + row;
-              T s = T(0);
-              for (int64_t j = 0; j < W_; ++j) s += proj[j] * (rr[j] * inv_scale);
-              acc[d] += s;
-              if (first) {
-                T q = T(0);
-                for (int64_t j = 0; j < W_; ++j) {
-                  const T x = lr[j] == id ? rr[j] * inv_scale : T(0);
-                  q += x * x;
-                }
-                acc[D_ + d] += q;
-              }
-            }
-          }
-          for (int64_t k = 0; k < 2 * D_; ++k) part[ch * 2 * D_ + k] = static_cast<double>(acc[k]);
-        }
-      });
-      std::vector<double> u(D_, 0.0);
-      for (int64_t ch = 0; ch < chunks; ++ch)
-        for (int64_t d = 0; d < D_; ++d) {
-          u[d] += part[ch * 2 * D_ + d];
-          if (first) diag[d] += part[ch * 2 * D_ + D_ + d];
-        }
-      double trace = 0, norm = 0;
-      for (int64_t d = 0; d < D_; ++d) trace += diag[d], norm += u[d] * u[d];
+      double norm = 0;
+      for (int64_t a = 0; a < D_; ++a) {
+        double s = 0;
+        for (int64_t b = 0; b < D_; ++b) s += M[a * D_ + b] * v[b];
+        u[a] = s;
+        norm += s * s;
+      }
       norm = std::sqrt(norm);
-      const bool bad = !(norm > static_cast<double>(eps) * trace) || !std::isfinite(norm);
+      const bool bad = !(norm > eps * trace) || !std::isfinite(norm);
       collapsed = collapsed || bad;
       if (!bad)
         for (int64_t d = 0; d < D_; ++d) v[d] = u[d] / norm;
     }
-    std::vector<T> out(D_, T(0));
     if (collapsed) {  // split on the channel with the largest spread (first on ties)
       int64_t k = 0;
       for (int64_t d = 1; d < D_; ++d)
-        if (diag[d] > diag[k]) k = d;
+        if (M[d * D_ + d] > M[k * D_ + k]) k = d;
       out[k] = T(1);
     } else {
       for (int64_t d = 0; d < D_; ++d) out[d] = static_cast<T>(v[d]);
@@ -423,7 +488,7 @@ class ImageFilter {
     return out;
   }
 
-  // 9., 10.
+  // 9., 10. In place: S_ is the output tensor.
   void finish() {
     rows_parallel(C_ + 2, [&](int64_t b, int64_t e) {
       for (int64_t i = b * W_; i < e * W_; ++i) {
@@ -434,7 +499,7 @@ class ImageFilter {
           const T fs = f_s_[c * N_ + i];
           T g = s0 > T(0) ? c_[c] + S_[c * N_ + i] / s0 : fs;
           if (opt_.adjust_outliers) g = fs + alpha * (g - fs);
-          out_[c * N_ + i] = g;
+          S_[c * N_ + i] = g;
         }
       }
     });
@@ -442,20 +507,22 @@ class ImageFilter {
 
   const int64_t C_, D_, H_, W_, N_;
   const Options opt_;
-  const int64_t df_, Hl_, Wl_, Nl_;
+  const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_;
   const Taps<T> ty_, tx_;
   const T* f_in_;
   const T* g_in_;
-  T* out_;
+  T* S_;  // the output buffer accumulates S
   T inv_r2_, half_inv_r2_;
   double ss_low_, sr_low_;
+  bool all_g_ = true, all_v_ = true;
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide
-  std::vector<T> fs_buf_, gs_buf_, fp_, c_;
-  std::vector<uint8_t> mg_, mv_, ms_;
-  std::vector<T> eta1_, R_, w_, minD_, S_, S0_;
-  std::vector<int32_t> label_;
+  std::vector<T> c_;
+  Scratch<T> fs_buf_, gs_buf_, fp_, eta1_, w_, minD_, S0_;
+  Scratch<uint8_t> mg_, mv_, ms_;
+  Scratch<int32_t> label_;
+  PhaseClock clock_;
 };
 
 at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,

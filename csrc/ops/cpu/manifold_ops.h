@@ -80,8 +80,12 @@ template <typename T>
 struct Taps {
   std::vector<int64_t> i0, i1;
   std::vector<T> f;
+  int64_t df;
+  std::vector<T> period;  // f for the df outputs between two low-res centres
 
-  Taps(int64_t out, int64_t in, int64_t df) : i0(out), i1(out), f(out) {
+  Taps(int64_t out, int64_t in, int64_t df_) : i0(out), i1(out), f(out), df(df_), period(df_) {
+    for (int64_t k = 0; k < df; ++k)
+      period[k] = (static_cast<T>(k) + T(0.5)) / static_cast<T>(df);
     const T scale = T(1) / static_cast<T>(df);
     for (int64_t o = 0; o < out; ++o) {
       T src = scale * (static_cast<T>(o) + T(0.5)) - T(0.5);
@@ -109,35 +113,73 @@ inline void upsample_row(const T* low, int64_t planes, int64_t hl, int64_t wl, i
     T* t = tmp + p * wl;
     for (int64_t j = 0; j < wl; ++j) t[j] = gy * r0[j] + fy * r1[j];
   }
-  const int64_t* x0 = tx.i0.data();
-  const int64_t* x1 = tx.i1.data();
-  const T* fx = tx.f.data();
+  if (w == wl) {  // df == 1
+    std::copy(tmp, tmp + planes * wl, out);
+    return;
+  }
+  // Horizontal taps repeat with period df: between low-res centres b and b+1 the df outputs use
+  // weights f_k = (k + 0.5) / df (the same values Taps computes), so no per-pixel gathers.
+  const int64_t df = tx.df;
+  const int64_t half = df / 2;
+  const T* fk = tx.period.data();
   for (int64_t p = 0; p < planes; ++p) {
     const T* t = tmp + p * wl;
     T* o = out + p * w;
-    for (int64_t j = 0; j < w; ++j) o[j] = (T(1) - fx[j]) * t[x0[j]] + fx[j] * t[x1[j]];
+    const int64_t head = std::min(w, half);
+    for (int64_t j = 0; j < head; ++j) o[j] = t[0];
+    for (int64_t b = 0; b + 1 < wl; ++b) {
+      const int64_t j0 = half + b * df;
+      if (j0 >= w) break;
+      const T a0 = t[b], a1 = t[b + 1];
+      if (j0 + df <= w) {
+        for (int64_t k = 0; k < df; ++k) o[j0 + k] = (T(1) - fk[k]) * a0 + fk[k] * a1;
+      } else {
+        for (int64_t k = 0; j0 + k < w; ++k) o[j0 + k] = (T(1) - fk[k]) * a0 + fk[k] * a1;
+      }
+    }
+    for (int64_t j = std::max(head, half + (wl - 1) * df); j < w; ++j) o[j] = t[wl - 1];
   }
 }
 
+// sum a[j] b[j] with 16 interleaved partial sums combined in a fixed order: the compiler keeps
+// the lanes in vector registers without reassociating anything, so it is fast and reproducible.
+template <typename T>
+inline T dot_lanes(const T* a, const T* b, int64_t n) {
+  constexpr int L = 16;
+  T acc[L] = {};
+  int64_t j = 0;
+  for (; j + L <= n; j += L)
+    for (int l = 0; l < L; ++l) acc[l] += a[j + l] * b[j + l];
+  for (int l = 0; j < n; ++j, ++l) acc[l] += a[j] * b[j];
+  for (int width = L / 2; width >= 1; width /= 2)
+    for (int l = 0; l < width; ++l) acc[l] += acc[l + width];
+  return acc[0];
+}
+
 // acc[bj] += sum of x[j] over the block's columns j in [bj*df, min(w, (bj+1)*df)).
+// Offset-major so the full blocks vectorise over bj (strided loads); the partial last block after.
 template <typename T>
 inline void block_sum_row(const T* x, int64_t w, int64_t df, int64_t wl, T* acc) {
-  for (int64_t bj = 0; bj < wl; ++bj) {
-    const int64_t j0 = bj * df, j1 = std::min(w, j0 + df);
+  const int64_t full = w / df;
+  for (int64_t k = 0; k < df; ++k)
+    for (int64_t bj = 0; bj < full; ++bj) acc[bj] += x[bj * df + k];
+  if (full < wl) {
     T s = T(0);
-    for (int64_t j = j0; j < j1; ++j) s += x[j];
-    acc[bj] += s;
+    for (int64_t j = full * df; j < w; ++j) s += x[j];
+    acc[full] += s;
   }
 }
 
 // acc[bj] += sum of a[j] * b[j] over the block's columns.
 template <typename T>
 inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t wl, T* acc) {
-  for (int64_t bj = 0; bj < wl; ++bj) {
-    const int64_t j0 = bj * df, j1 = std::min(w, j0 + df);
+  const int64_t full = w / df;
+  for (int64_t k = 0; k < df; ++k)
+    for (int64_t bj = 0; bj < full; ++bj) acc[bj] += a[bj * df + k] * b[bj * df + k];
+  if (full < wl) {
     T s = T(0);
-    for (int64_t j = j0; j < j1; ++j) s += a[j] * b[j];
-    acc[bj] += s;
+    for (int64_t j = full * df; j < w; ++j) s += a[j] * b[j];
+    acc[full] += s;
   }
 }
 

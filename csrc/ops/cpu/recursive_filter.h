@@ -48,13 +48,65 @@ inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a
   }
 }
 
-// h on `planes` contiguous (h, w) planes, in place.
+// Rows [r0, r1) of a plane, eight at a time with the running value kept in a register: eight
+// independent recursions keep the pipeline busy (one alone is latency bound). Same operations
+// per element as lowpass_row, so the same bits.
 template <typename T>
-void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma) {
-  const T a = static_cast<T>(std::exp(-std::sqrt(2.0) / sigma));
-  if (w > 1) {
+inline void lowpass_rows(T* p, int64_t r0, int64_t r1, int64_t w, T a) {
+  constexpr int R = 8;
+  int64_t r = r0;
+  for (; r + R <= r1; r += R) {
+    T* y[R];
+    T prev[R];
+    for (int k = 0; k < R; ++k) y[k] = p + (r + k) * w, prev[k] = y[k][0];
+    for (int64_t j = 1; j < w; ++j)
+      for (int k = 0; k < R; ++k) {
+        const T x = y[k][j];
+        prev[k] = x + a * (prev[k] - x);
+        y[k][j] = prev[k];
+      }
+    for (int k = 0; k < R; ++k) prev[k] = y[k][w - 1];
+    for (int64_t j = w - 2; j >= 0; --j)
+      for (int k = 0; k < R; ++k) {
+        const T x = y[k][j];
+        prev[k] = x + a * (prev[k] - x);
+        y[k][j] = prev[k];
+      }
+  }
+  for (; r < r1; ++r) lowpass_row(p + r * w, w, a);
+}
+
+// h on `planes` contiguous (h, w) planes, in place. With enough planes every task filters whole
+// planes (rows, then columns while the plane is still in cache); otherwise lines and column
+// strips are spread over the threads. Both give bitwise the same result.
+// rows_done: the caller already ran the row pass (fused with producing the data).
+template <typename T>
+inline T lowpass_coefficient(double sigma) {
+  return static_cast<T>(std::exp(-std::sqrt(2.0) / sigma));
+}
+
+template <typename T>
+void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
+                    bool rows_done = false) {
+  const T a = lowpass_coefficient<T>(sigma);
+  if (planes >= 2 * at::get_num_threads()) {
+    at::parallel_for(0, planes, 1, [&](int64_t b, int64_t e) {
+      for (int64_t pl = b; pl < e; ++pl) {
+        T* p = data + pl * h * w;
+        if (w > 1 && !rows_done) lowpass_rows(p, 0, h, w, a);
+        if (h > 1) lowpass_cols(p, h, w, 0, w, a);
+      }
+    });
+    return;
+  }
+  if (w > 1 && !rows_done) {
     at::parallel_for(0, planes * h, grain_for(4 * w), [&](int64_t b, int64_t e) {
-      for (int64_t line = b; line < e; ++line) lowpass_row(data + line * w, w, a);
+      // split [b, e) at plane boundaries
+      for (int64_t line = b; line < e;) {
+        const int64_t pl = line / h, r0 = line % h, r1 = std::min(h, r0 + (e - line));
+        lowpass_rows(data + pl * h * w, r0, r1, w, a);
+        line += r1 - r0;
+      }
     });
   }
   if (h > 1) {
