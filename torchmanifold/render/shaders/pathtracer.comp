@@ -195,8 +195,9 @@ bool hit_box(vec3 o, vec3 inv_d, vec3 bmin, vec3 bmax, float tmax) {
     float b = min(min(hi.x, hi.y), min(hi.z, tmax));
     return a <= b;
 }
-// nearest triangle of the mesh whose BVH starts at `root`; returns t, writes the geometric normal
-float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, out vec3 n) {
+// nearest triangle of the mesh whose BVH starts at `root` (any one before tmax when any_hit);
+// returns t, writes the geometric normal
+float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, bool any_hit, out vec3 n) {
     vec3 inv_d = 1.0 / d;
     int stack[32];
     int sp = 0;
@@ -214,6 +215,7 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, out vec3 n) {
                 float t = hit_tri(o, d, v0, v1, v2, tmin);
                 if (t < best) { best = t; n = cross(v1 - v0, v2 - v0); }
             }
+            if (any_hit && best < tmax) break;  // shadow rays need any hit, not the nearest
         } else if (sp < 31) {           // children: ni + 1 and `first`
             stack[sp++] = first;
             stack[sp++] = ni + 1;
@@ -225,7 +227,7 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, out vec3 n) {
 #endif
 
 // distance to primitive i along (o, d) within (tmin, tmax), INF if none; n = its front normal there
-float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, out vec3 n) {
+float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, bool any_hit, out vec3 n) {
     ivec4 info = prims[i].info;             // read fields as needed: no whole-struct copies per test
     vec3 ro = info.w > 0 ? o - prim_offset(i, time) : o;  // objects only translate: move the ray instead
     n = vec3(0.0);
@@ -241,7 +243,7 @@ float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, out ve
     }
 #if HAS_MESH
     else {
-        t = hit_mesh(ro, d, prims[i].info2.y, tmin, tmax, n);
+        t = hit_mesh(ro, d, prims[i].info2.y, tmin, tmax, any_hit, n);
     }
 #endif
     return t;
@@ -253,7 +255,7 @@ bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) 
     hit.n = vec3(0.0);
     for (int i = 0; i < N_PRIMS; ++i) {
         vec3 n;
-        float t = hit_prim(i, o, d, tmin, hit.t, time, n);
+        float t = hit_prim(i, o, d, tmin, hit.t, time, false, n);
         if (t < hit.t) { hit.t = t; hit.prim = i; hit.n = n; }
     }
     return hit.prim >= 0;
@@ -264,7 +266,7 @@ bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) 
 bool occluded(vec3 o, vec3 d, float tmax, float time, int skip) {
     for (int i = 0; i < N_PRIMS; ++i) {
         vec3 n;
-        if (i != skip && hit_prim(i, o, d, 0.0, tmax, time, n) < tmax) return true;
+        if (i != skip && hit_prim(i, o, d, 0.0, tmax, time, true, n) < tmax) return true;
     }
     return false;
 }
