@@ -1,0 +1,54 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchmanifold import metrics as M
+
+
+def _srgb_np(x):
+    x = np.clip(x, 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
+
+
+def test_psnr_matches_numpy_formula():
+    g = torch.Generator().manual_seed(0)
+    ref = torch.rand(2, 3, 16, 16, generator=g) * 1.5
+    img = ref + 0.05 * torch.randn(2, 3, 16, 16, generator=g)
+    per = [10 * math.log10(1 / np.mean((_srgb_np(a) - _srgb_np(b)) ** 2)) for a, b in zip(img.numpy(), ref.numpy())]
+    assert M.psnr(img, ref) == pytest.approx(np.mean(per), abs=1e-3)
+    assert M.psnr(img[0], ref[0]) == pytest.approx(per[0], abs=1e-3)
+    lin = 10 * math.log10(float(ref.max()) ** 2 / float(((img - ref) ** 2).mean()))
+    assert M.psnr_linear(img, ref) == pytest.approx(lin, abs=1e-3)
+    rel = float(((img - ref) ** 2 / (ref**2 + 1e-2)).mean())
+    assert M.relmse(img, ref) == pytest.approx(rel, rel=1e-5)
+
+
+def test_identical_and_masked():
+    ref = torch.rand(1, 3, 24, 24)
+    assert M.ssim(ref, ref) == pytest.approx(1.0, abs=1e-5)
+    assert M.relmse(ref, ref) == 0
+    noisy = ref.clone()
+    noisy[..., :12] += 0.2
+    mask = torch.zeros(24, 24)
+    mask[:, 12:] = 1
+    assert M.psnr(noisy, ref, mask=mask) > 100  # the error lies outside the mask
+    assert M.psnr(noisy, ref) < 30
+
+
+@pytest.mark.skipif(not M.flip_available(), reason="flip_evaluator not installed")
+def test_flip_orders_errors():
+    ref = torch.rand(1, 3, 32, 32) * 0.8
+    small, big = ref + 0.01, ref + 0.2
+    assert M.flip(ref, ref) < 1e-6
+    assert M.flip(small, ref) < M.flip(big, ref)
+
+
+def test_errors_name_argument():
+    with pytest.raises(ValueError, match="same shape"):
+        M.psnr(torch.rand(3, 8, 8), torch.rand(3, 8, 9))
+    with pytest.raises(TypeError, match="img"):
+        M.psnr(np.zeros((3, 8, 8)), torch.rand(3, 8, 8))
+    with pytest.raises(ValueError, match="reduction"):
+        M.psnr(torch.rand(3, 8, 8), torch.rand(3, 8, 8), reduction="sum")
