@@ -25,6 +25,7 @@ File format (``torchmanifold/render/scenes/cornell_box.toml`` is a complete exam
     glass = { type = "glass", color = [1, 1, 1], ior = 1.5 }        # also "mirror"
 
     [[objects]]
+    name = "floor"                 # optional, for people; RenderResult.object_id is the list index
     type = "quad"                  # parallelogram origin + s*u + t*v; the front face is u x v
     origin = [-1, 0, -1]
     u = [0, 0, 2]

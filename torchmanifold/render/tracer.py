@@ -123,6 +123,18 @@ class PathTracer:
         if self.ctx.version_code < 430:
             raise ValueError(f"ctx must support OpenGL 4.3 compute shaders, got version {self.ctx.version_code}")
 
+        # output buffers in batches of frames: one storage block may not exceed the driver's limit
+        # (128 MiB on llvmpipe; 12 frames of 14 features at 512x512 would not fit)
+        limit = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 27))
+        if max_buffer_bytes is not None:
+            limit = min(limit, _check_int("max_buffer_bytes", max_buffer_bytes, 1))
+        frame_bytes = 4 * self.width * self.height * max(3, len(features))
+        if frame_bytes > limit:
+            raise ValueError(
+                f"width x height: one frame needs {frame_bytes} bytes per output buffer, over this GL driver's "
+                f"storage-block limit of {limit}; render a smaller image or fewer features")
+        self.frames_per_batch = min(limit // frame_bytes, 65535)  # 65535: the least dispatch-size limit
+
         make_current(self.ctx)
         packed = pack_scene(scene)
         self.has_mesh = packed["has_mesh"]
@@ -143,16 +155,6 @@ class PathTracer:
             self._scene_bufs[10] = self.ctx.buffer(packed["nodes"].tobytes())
             self._scene_bufs[11] = self.ctx.buffer(packed["tris"].tobytes())
         self._times_buf: moderngl.Buffer | None = None
-        # output buffers in batches of frames: one storage block may not exceed the driver's limit
-        # (128 MiB on llvmpipe; 12 frames of 14 features at 512x512 would not fit)
-        limit = self.ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 27)
-        limit = min(int(limit), max_buffer_bytes) if max_buffer_bytes is not None else int(limit)
-        frame_bytes = 4 * self.width * self.height * max(3, len(features))
-        if frame_bytes > limit:
-            raise ValueError(
-                f"width x height: one frame needs {frame_bytes} bytes per output buffer, over this GL driver's "
-                f"storage-block limit of {limit}; render a smaller image or fewer features")
-        self.frames_per_batch = limit // frame_bytes
         self._batches: list[dict[str, moderngl.Buffer]] = []
         self._batch_frames: list[int] = []  # frames each batch holds
         self._last: dict | None = None
@@ -239,7 +241,6 @@ class PathTracer:
         else:
             tw, th = (tile, tile) if isinstance(tile, int) else tuple(tile)
             tw, th = _check_int("tile width", tw, 1), _check_int("tile height", th, 1)
-        n = len(times_np)
         make_current(self.ctx)
         self._dispatch(times_np, spp, seed, sample_offset, tw, th, progress)
 
