@@ -39,6 +39,8 @@ class Clip:
         albedo: optional (T, 3, H, W) raw albedo in [0, 1] (OIDN's auxiliary input).
         normal: optional (T, 3, H, W) raw normals in [-1, 1] (OIDN's auxiliary input).
         features: optional (T, F, H, W) raw features named ``feature_names`` (the pipeline's input).
+        emission: optional (T, 3, H, W) emitted radiance at the first hit, part of ``values`` (the pipeline
+            keeps it out of the filter).
     """
 
     values: torch.Tensor
@@ -49,6 +51,7 @@ class Clip:
     normal: Optional[torch.Tensor] = None
     features: Optional[torch.Tensor] = None
     feature_names: tuple = ()
+    emission: Optional[torch.Tensor] = None
 
     def __post_init__(self):
         if self.values.dim() != 4 or self.guide.dim() != 4:
@@ -65,8 +68,8 @@ class Clip:
         """The frames within ``radius`` of ``query`` as a new clip, and the query's index inside it."""
         lo, hi = max(0, query - radius), min(self.values.shape[0], query + radius + 1)
         pick = (lambda x: None if x is None else x[lo:hi])
-        return Clip(self.values[lo:hi], self.guide[lo:hi], self.times[lo:hi], self.guide_names,
-                    pick(self.albedo), pick(self.normal), pick(self.features), self.feature_names), query - lo
+        return Clip(self.values[lo:hi], self.guide[lo:hi], self.times[lo:hi], self.guide_names, pick(self.albedo),
+                    pick(self.normal), pick(self.features), self.feature_names, pick(self.emission)), query - lo
 
 
 @dataclass
@@ -204,7 +207,8 @@ def _pipeline(clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings
 
     if clip.features is None:
         raise ValueError("the pipeline needs the clip's raw features (Clip.features)")
-    out = denoise_frames(clip.values, clip.features, clip.feature_names, settings=DenoiseSettings(**settings))
+    out = denoise_frames(clip.values, clip.features, clip.feature_names, clip.emission,
+                         settings=DenoiseSettings(**settings))
     return out[query]
 
 

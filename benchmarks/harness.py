@@ -51,12 +51,13 @@ class Dataset:
     """A clip to denoise: noisy colour, named features, the reference, and plain path tracing at more samples.
 
     color (T, 3, H, W), features (T, F, H, W) with ``names``, reference (T, 3, H, W); ``spp_frames`` maps
-    spp -> ((T, 3, H, W) frames, render ms per frame or None where unknown), 1 spp included.
+    spp -> ((T, 3, H, W) frames, render ms per frame or None where unknown), 1 spp included; ``emission``
+    (T, 3, H, W) the part of ``color`` emitted at the first hit, where the renderer reports it.
     """
 
-    def __init__(self, name, color, features, names, reference, times, spp_frames):
+    def __init__(self, name, color, features, names, reference, times, spp_frames, emission=None):
         self.name, self.color, self.features, self.names = name, color, features, tuple(names)
-        self.reference, self.times, self.spp_frames = reference, times, spp_frames
+        self.reference, self.times, self.spp_frames, self.emission = reference, times, spp_frames, emission
 
     @property
     def trace_ms(self) -> float:
@@ -140,16 +141,17 @@ def render_builtin(size: int, frames: int, ref_spp: int, more_spp=(2, 4, 8), see
     tracing at ``more_spp`` samples, each with its measured render time per frame.
 
     Cached in ``results/cache/`` (never committed) so the benchmark files of one run render it once."""
-    key = _render_key(size, frames, ref_spp, tuple(more_spp), seed, scene)
+    key = _render_key("v2", size, frames, ref_spp, tuple(more_spp), seed, scene)  # v2: with emission
     cache = RESULTS / "cache" / f"{scene}-{key}.pt"
     if cache.exists():
         d = torch.load(cache)
-        return Dataset(scene, d["color"], d["features"], d["names"], d["reference"], d["times"], d["spp"])
+        return Dataset(scene, d["color"], d["features"], d["names"], d["reference"], d["times"], d["spp"],
+                       d["emission"])
     ds = _render_builtin(size, frames, ref_spp, more_spp, seed, scene)
     cache.parent.mkdir(parents=True, exist_ok=True)
     (cache.parent / ".gitignore").write_text("*\n")
     torch.save({"color": ds.color, "features": ds.features, "names": ds.names, "reference": ds.reference,
-                "times": ds.times, "spp": ds.spp_frames}, cache)
+                "times": ds.times, "spp": ds.spp_frames, "emission": ds.emission}, cache)
     return ds
 
 
@@ -169,7 +171,7 @@ def _render_builtin(size, frames, ref_spp, more_spp, seed, scene) -> Dataset:
             noisy = res
     ref = tracer.render(times=times, spp=ref_spp, seed=seed + 1000, sample_offset=0)
     return Dataset(scene, noisy.color, noisy.features, noisy.feature_names, ref.color, torch.tensor(times),
-                   spp_frames)
+                   spp_frames, noisy.emission)
 
 
 # ---------------------------------------------------------------------------------------------------- guides
@@ -208,7 +210,7 @@ def clip_for(ds: Dataset, use=DEFAULT_FEATURES, sigmas=None, demod: bool = True)
     values, alb = demodulate(ds) if demod else (ds.color, None)
     clip = Clip(values.contiguous(), guide, ds.times, names,
                 albedo=None if ds.albedo is None else ds.albedo.clamp(0, 1), normal=ds.normal,
-                features=ds.features, feature_names=ds.names)
+                features=ds.features, feature_names=ds.names, emission=ds.emission)
     return clip, alb
 
 
@@ -219,7 +221,7 @@ def prepare(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor]
     if method.raw_input:
         # OIDN and our pipeline take the renderer's colour and do their own preprocessing.
         clip = Clip(ds.color, clip.guide, clip.times, clip.guide_names, clip.albedo, clip.normal, clip.features,
-                    clip.feature_names)
+                    clip.feature_names, clip.emission)
         alb = None
 
     def one(q):
