@@ -41,6 +41,7 @@ from tqdm import tqdm  # noqa: E402
 from demo import controls  # noqa: E402
 from demo.overlay import render_overlay  # noqa: E402
 from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
+from demo.pipeline_engine import PipelineProgression  # noqa: E402
 from demo.progression import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams, Progression  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
@@ -115,8 +116,9 @@ class DemoApp(WindowConfig):
             tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
             temporal_mode=args.temporal_mode,
         )
-        self.progression = Progression(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
-                                       threads=args.threads or None)
+        engine = PipelineProgression if args.engine == "pipeline" else Progression
+        self.progression = engine(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
+                                  threads=args.threads or None)
         self.make_current()
         self.panels = PanelRenderer(self.ctx, args.width, args.height)
         if reference is not None:
@@ -167,7 +169,12 @@ class DemoApp(WindowConfig):
         lo, hi = self.frame_times[0], self.frame_times[-1]
         t = lo + (min(max(x, x0), x1) - x0) / (x1 - x0) * (hi - lo)
         self.playing = False
-        self.show_time = round(t * 4) / 4
+        self.set_time(round(t * 4) / 4)
+
+    def set_time(self, t: float) -> None:
+        """Show time ``t``; an in-between time starts being tracked before the next iteration."""
+        self.show_time = t
+        self.progression.track(t)
 
     def on_mouse_drag_event(self, x: int, y: int, dx: int, dy: int) -> None:
         self.on_mouse_press_event(x, y, 1)
@@ -186,7 +193,7 @@ class DemoApp(WindowConfig):
             self.playing = False
             step = 0.25 if action == "scrub_forward" else -0.25
             lo, hi = self.frame_times[0], self.frame_times[-1]
-            self.show_time = min(hi, max(lo, round((self.show_time + step) * 4) / 4))
+            self.set_time(min(hi, max(lo, round((self.show_time + step) * 4) / 4)))
         elif action == "pause_progression":
             self.progressing = not self.progressing
         elif action == "restart":
@@ -313,7 +320,8 @@ class DemoApp(WindowConfig):
             f"time window +-{p.time_window} ({p.temporal_mode})   tree height {p.tree_height}   clamp "
             + (f"{p.clamp:g}" if p.clamp else "off"),
             f"feature set {p.feature_set}: {guide}",
-            f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure {self.exposure:.2f}",
+            f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure "
+            f"{self.exposure:.2f}   engine {self.argv.engine}",
             "",
             "H: help   SPACE: play/pause   arrows: scrub   R: restart",
         ]
@@ -354,6 +362,10 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--scale", type=int, default=3, help="panel zoom factor (default 3)")
     g.add_argument("--clip", type=int, default=3, help="clip length in frames (default 3)")
     g.add_argument("--clip-fps", type=float, default=4.0, help="playback speed in frames/s (default 4)")
+    g.add_argument("--engine", default="pipeline", choices=("pipeline", "thin"),
+                   help="pipeline: torchmanifold.pipeline.ProgressiveRenderer drives the iterations (default); "
+                        "thin: the demo's own loop over tracer + filter (colour-guided set, in-between frames "
+                        "join without a restart)")
     g.add_argument("--scene", default=None,
                    help="built-in scene name (cornell_box, torus_box) or a scene TOML file (default: cornell_box)")
     g.add_argument("--seed", type=int, default=0)

@@ -59,7 +59,7 @@ class FilterParams:
 
     sigma_s: float = 3.0
     sigma_r: float = 0.3
-    a: float = 2.0 / 3.0
+    a: float = 0.8  # the pipeline's measured default (torchmanifold.pipeline.DEFAULT_ALPHA)
     time_window: int = 1
     tree_height: int = 2
     feature_set: str = "albedo+normal+depth"
@@ -163,7 +163,7 @@ class Progression:
         if threads is not None and not (isinstance(threads, int) and threads >= 1):
             raise ValueError(f"threads: expected an int >= 1 or None, got {threads!r}")
         self.threads = threads
-        self.feature_names: list[str] = []
+        self.feature_names: list[str] = list(getattr(tracer, "feature_names", []))
         self.restart()
 
     # ----------------------------------------------------------------------------------- state
@@ -338,12 +338,13 @@ class Progression:
         return self.raw_sum[self._nearest_frame(t)] / self.iteration
 
     def gaussian(self, t: float) -> torch.Tensor:
-        """Raw average blurred with a Gaussian of the current spatial bandwidth ``(3,H,W)``."""
+        """Raw average blurred with a Gaussian of a third of the current spatial bandwidth ``(3,H,W)``
+        (the pipeline's baseline setting, its best on the built-in scene)."""
         from kornia.filters import gaussian_blur2d
 
         frame = self._nearest_frame(t)
         if frame not in self._gauss_cache:  # once per iteration, not once per displayed frame
-            sigma_s, _ = self.params.bandwidth(max(self.iteration, 1))
+            sigma_s = self.params.bandwidth(max(self.iteration, 1))[0] / 3.0
             k = 2 * int(math.ceil(3 * sigma_s)) + 1
             self._gauss_cache[frame] = gaussian_blur2d(self.raw(t)[None], (k, k), (sigma_s, sigma_s),
                                                        border_type="reflect")[0]
@@ -359,12 +360,16 @@ class Progression:
             return torch.zeros(3, self.tracer.height, self.tracer.width)
         return tr.ours_sum / tr.count
 
+    def _feature_mean(self, frame: int) -> torch.Tensor:
+        """Mean features ``(D,H,W)`` of clip frame index ``frame`` over the samples so far."""
+        return self.feat_sum[frame] / self.iteration
+
     def feature_view(self, t: float, group: str) -> torch.Tensor | None:
         """Display-ready ``(3,H,W)`` in [0,1] of feature ``group`` at the nearest frame, None if absent."""
         chans = [c for c in FEATURE_GROUPS[group] if c in self.feature_names]
         if not chans or self.iteration == 0:
             return None
-        f = self.feat_sum[self._nearest_frame(t)] / self.iteration
+        f = self._feature_mean(self._nearest_frame(t))
         x = f[[self.feature_names.index(c) for c in chans]]
         if group == "Z":
             finite = x[x.isfinite() & (x > 0)]

@@ -129,3 +129,41 @@ def test_spacetime_keeps_moving_object_sharper(tracer):
     ghost_window = (window - alone.ours(2.0)).abs().sum(0)[moved].mean()
     ghost_spacetime = (spacetime - alone.ours(2.0)).abs().sum(0)[moved].mean()
     assert ghost_spacetime < ghost_window
+
+
+def test_pipeline_engine_is_the_progressive_renderer(tracer):
+    """The adapter drives torchmanifold.pipeline's ProgressiveRenderer: same samples, same result."""
+    from torchmanifold.pipeline import BandwidthSchedule
+    from torchmanifold.pipeline.progressive import ProgressiveRenderer
+
+    from demo.pipeline_engine import PipelineProgression
+
+    params = FilterParams(sigma_r=0.45, a=0.7)
+    prog = PipelineProgression(tracer, [0.0, 1.0], params, seed=5)
+    pr = ProgressiveRenderer(tracer, [0.0, 1.0], settings=prog.settings(), alpha=0.7, seed=5)
+    pr.schedule = BandwidthSchedule(params.sigma_s, 0.45 / 0.3, 0.7)
+    for _ in range(2):
+        prog.step()
+        state = pr.step()
+    assert prog.iteration == prog.spp == 2
+    for k, t in enumerate([0.0, 1.0]):
+        assert torch.equal(prog.ours(t), state.ours[k])
+        assert torch.equal(prog.raw(t), state.raw[k])
+        assert torch.equal(prog.gaussian(t), state.gaussian[k])
+    # the feature view shows the mean of the very samples the pipeline used
+    mean = sum(tracer.render(times=[1.0], spp=1, seed=5, sample_offset=i).features[0] for i in range(2)) / 2
+    n = [prog.feature_names.index(c) for c in ("Nx", "Ny", "Nz")]
+    assert torch.allclose(prog.feature_view(1.0, "normal"), (0.5 + 0.5 * mean[n]).clamp(0, 1), atol=1e-6)
+
+
+def test_pipeline_engine_in_between_time_restarts_with_it(tracer):
+    from demo.pipeline_engine import PipelineProgression
+
+    prog = PipelineProgression(tracer, [0.0, 1.0], FilterParams(time_window=1))
+    prog.step()
+    prog.track(0.5)
+    assert prog.iteration == 0  # the pipeline keeps one running sum per query time: it starts over
+    prog.step()
+    mid = prog.ours(0.5)
+    assert mid.isfinite().all() and mid.mean() > 0
+    assert not torch.equal(mid, prog.ours(0.0)) and not torch.equal(mid, prog.ours(1.0))
