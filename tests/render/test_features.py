@@ -208,3 +208,19 @@ def test_frames_split_over_buffer_batches(ctx):
     assert torch.equal(c.color, a.color[:3]) and len(split.buffers) == 2
     with pytest.raises(ValueError, match="storage-block limit"):
         PathTracer(scene, 64, 64, ctx=ctx, max_buffer_bytes=1000)
+
+
+def test_camera_motion_moves_static_points_the_other_way(ctx):
+    """Camera keyframes: eye and target slide +x at 0.05/frame over a static wall 2 units away."""
+    dist, fov, speed = 2.0, 30.0, 0.05
+    d = plane_scene_dict(dist, fov=fov, light=False)
+    del d["camera"]["eye"], d["camera"]["target"]
+    d["camera"]["keyframes"] = [{"time": 0, "eye": [0, 0, dist], "target": [0, 0, 0]},
+                                {"time": 10, "eye": [10 * speed, 0, dist], "target": [10 * speed, 0, 0]}]
+    tr = PathTracer(scene_from_dict(d), W, H, features=["Z", "T"], ctx=ctx)
+    res = tr.render([1.0, 9.5], spp=1)
+    focal = (W / 2) / math.tan(math.radians(fov) / 2)
+    torch.testing.assert_close(res.motion[0, 0], torch.full((H, W), -speed * focal / dist), atol=1e-3, rtol=1e-4)
+    # at 9.5 the next frame (10.5) is past the last key: the camera holds still
+    torch.testing.assert_close(res.motion[1, 0], torch.full((H, W), -0.5 * speed * focal / dist), atol=1e-3, rtol=1e-4)
+    assert res.motion[:, 1].abs().max() < 1e-3
