@@ -153,20 +153,24 @@ def progressive_chart(pr: dict, out: Path) -> None:
 
 
 def ablation_chart(ab: dict, out: Path) -> None:
+    """Horizontal bars: each feature set's PSNR minus the colour-only guide's, per scene (scenes differ in level)."""
     scenes = list(ab["scenes"])
     sets = list(dict.fromkeys(s for sc in scenes for s in ab["scenes"][sc]["sets"]))
-    fig, ax = plt.subplots(figsize=(max(6, 1.1 * len(sets) * len(scenes)), 4))
-    width = 0.8 / len(scenes)
+    fig, ax = plt.subplots(figsize=(8, 0.32 * len(sets) * len(scenes) + 1.5))
+    height = 0.8 / len(scenes)
+    y = np.arange(len(sets))
     for j, sc in enumerate(scenes):
-        vals = [ab["scenes"][sc]["sets"].get(s, {}).get("psnr", np.nan) for s in sets]
-        ax.bar(np.arange(len(sets)) + j * width, vals, width, label=sc)
-    ax.set_xticks(np.arange(len(sets)) + 0.4 - width / 2, sets, rotation=20, ha="right", fontsize=8)
-    lo = np.nanmin([v.get("psnr", np.nan) for sc in scenes for v in ab["scenes"][sc]["sets"].values()])
-    ax.set_ylim(lo - 1, None)
-    ax.set_ylabel("PSNR, clamped sRGB (dB)")
-    ax.legend()
-    ax.grid(alpha=0.3, axis="y")
-    ax.set_title("feature ablation: which guide channels help (ours, tree height 2)")
+        rows = ab["scenes"][sc]["sets"]
+        base = rows["colour"]["psnr"]
+        vals = [rows[s]["psnr"] - base if s in rows else np.nan for s in sets]
+        ax.barh(y + j * height, vals, height, label=f"{sc} (colour only {base:.2f} dB)")
+    ax.set_yticks(y + 0.4 - height / 2, sets, fontsize=8)
+    ax.invert_yaxis()
+    ax.axvline(0, color="k", lw=0.8)
+    ax.set_xlabel("PSNR gain over the colour-only guide (dB)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="x")
+    ax.set_title("feature ablation: which guide channels help (ours)")
     fig.tight_layout()
     fig.savefig(out / "ablation.png", dpi=110)
     plt.close(fig)
