@@ -12,13 +12,13 @@ where one exists the clean reference. ``judge`` turns a method's output into a v
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable, Optional
 
 import torch
 
 from baselines import Clip
+from torchmanifold.metrics import psnr_linear
 
 SIGMA_S, SIGMA_R = 8.0, 0.3
 
@@ -192,15 +192,6 @@ class Verdict:
         return "ok exact" if self.psnr > 100 else f"ok {self.psnr:.1f}"
 
 
-def psnr(out: torch.Tensor, ref: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
-    """PSNR with peak 1 on linear values, over ``mask`` (H, W) when given."""
-    err = (out.double() - ref.double()) ** 2
-    if mask is not None:
-        err = err[:, mask]
-    mse = float(err.mean())
-    return math.inf if mse == 0 else -10.0 * math.log10(mse)
-
-
 def judge(problem: Problem, run: Callable[[], torch.Tensor]) -> Verdict:
     """Run a method on a problem and decide whether it failed (see the module docstring)."""
     values = problem.clip.values
@@ -228,5 +219,6 @@ def judge(problem: Problem, run: Callable[[], torch.Tensor]) -> Verdict:
     slack = 0.5 * max(hi - lo, abs(lo), abs(hi), 1e-3)
     if float(out64.min()) < lo - slack or float(out64.max()) > hi + slack:
         return Verdict(True, f"blown up to [{float(out64.min()):.3g}, {float(out64.max()):.3g}]")
-    score = None if problem.reference is None else psnr(out64, problem.reference, problem.mask)
+    score = None if problem.reference is None else psnr_linear(out64, problem.reference.double(), problem.mask,
+                                                               peak=1.0)
     return Verdict(False, psnr=score)
