@@ -30,11 +30,11 @@ def _check_shapes(values: Tensor, guide: Tensor) -> None:
 def _vjp(grad: Tensor, values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float, tree_height: int,
          power_iterations: int, adjust_outliers: bool) -> Tensor:
     # Linear in values for a fixed guide; the point only decides which samples are finite (splat).
+    # torch.func.vjp: plain autograd is switched off inside an op's kernel (below the Autograd key)
     guide = guide.detach()
-    primal = values.detach()
     _, vjp_fn = torch.func.vjp(
-        lambda v: adaptive_manifold_torch(v, guide, sigma_s, sigma_r, tree_height, power_iterations,
-                                          adjust_outliers), primal)
+        lambda x: adaptive_manifold_torch(x, guide, sigma_s, sigma_r, tree_height, power_iterations,
+                                          adjust_outliers), values.detach())
     return vjp_fn(grad.contiguous())[0]
 
 

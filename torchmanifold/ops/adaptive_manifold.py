@@ -67,21 +67,27 @@ def _check_int(name: str, value, minimum: int) -> int:
 def _guide_scales(guide_sigmas, sigma_r: float, channels: int) -> Tensor:
     """sigma_r / sigma_c per guide channel as a float64 (D,) tensor."""
     if isinstance(guide_sigmas, Tensor):
-        sig = guide_sigmas.detach().to("cpu", torch.float64)
-        if sig.dim() != 1:
-            raise ValueError(f"guide_sigmas must be a (D,) tensor, got shape {tuple(sig.shape)}")
-    elif isinstance(guide_sigmas, Sequence) and not isinstance(guide_sigmas, str):
-        if not all(isinstance(s, numbers.Real) and not isinstance(s, bool) for s in guide_sigmas):
-            raise TypeError("guide_sigmas must be a sequence of numbers or a (D,) tensor")
-        sig = torch.tensor([float(s) for s in guide_sigmas], dtype=torch.float64)
-    else:
+        if guide_sigmas.dim() != 1:
+            raise ValueError(f"guide_sigmas must be a (D,) tensor, got shape {tuple(guide_sigmas.shape)}")
+        if guide_sigmas.numel() != channels:
+            raise ValueError(f"guide_sigmas must have one sigma per guide channel (D={channels}), "
+                             f"got {guide_sigmas.numel()}")
+        sig = guide_sigmas.detach().to(torch.float64)
+        if not torch.compiler.is_compiling():  # a data-dependent check: eager only
+            if not bool(torch.isfinite(sig).all()) or not bool((sig > 0).all()):
+                raise ValueError(f"guide_sigmas must be positive and finite, got {sig.tolist()}")
+        return sigma_r / sig
+    if not isinstance(guide_sigmas, Sequence) or isinstance(guide_sigmas, str):
         raise TypeError(f"guide_sigmas must be None, a sequence of numbers or a (D,) tensor, "
                         f"got {type(guide_sigmas).__name__}")
-    if sig.numel() != channels:
-        raise ValueError(f"guide_sigmas must have one sigma per guide channel (D={channels}), got {sig.numel()}")
-    if not bool(torch.isfinite(sig).all()) or not bool((sig > 0).all()):
-        raise ValueError(f"guide_sigmas must be positive and finite, got {sig.tolist()}")
-    return sigma_r / sig
+    if not all(isinstance(s, numbers.Real) and not isinstance(s, bool) for s in guide_sigmas):
+        raise TypeError("guide_sigmas must be a sequence of numbers or a (D,) tensor")
+    sig = [float(s) for s in guide_sigmas]
+    if len(sig) != channels:
+        raise ValueError(f"guide_sigmas must have one sigma per guide channel (D={channels}), got {len(sig)}")
+    if not all(math.isfinite(s) and s > 0 for s in sig):
+        raise ValueError(f"guide_sigmas must be positive and finite, got {sig}")
+    return torch.tensor([sigma_r / s for s in sig], dtype=torch.float64)
 
 
 def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
@@ -167,7 +173,7 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
     work = torch.float64 if out_dtype == torch.float64 else torch.float32
     v, g = values.to(work), guide.to(work)
     if guide_sigmas is not None:
-        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[1]).to(g.device, work)
+        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[1]).to(device=g.device, dtype=work)
         g = g * scales[:, None, None]
 
     if values.numel() == 0:
