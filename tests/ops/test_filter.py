@@ -95,7 +95,9 @@ def test_guide_sigmas_scale_the_guide():
     scaled = g * (0.3 / torch.tensor(sig, dtype=torch.float64))[:, None, None]
     a = adaptive_manifold_filter(v, g, 6.0, 0.3, guide_sigmas=sig)
     b = adaptive_manifold_filter(v, scaled, 6.0, 0.3)
-    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    c = adaptive_manifold_filter(v, g, 6.0, 0.3, guide_sigmas=torch.tensor(sig, dtype=torch.float64))
+    torch.testing.assert_close(a, c, rtol=1e-12, atol=1e-12)
     # sigma_c == sigma_r leaves the guide as is
     torch.testing.assert_close(adaptive_manifold_filter(v, g, 6.0, 0.3, guide_sigmas=[0.3, 0.3, 0.3]),
                                adaptive_manifold_filter(v, g, 6.0, 0.3), rtol=0, atol=0)
