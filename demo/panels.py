@@ -68,6 +68,12 @@ class Layout:
         tx, ty, tw, th = self.text_rect()
         return tx + 16, tx + tw - 16, ty + th - 18
 
+    def uv_rect(self, rect: tuple[int, int, int, int]) -> tuple[float, float, float, float]:
+        """Window rect -> (u, v, du, dv) of the window-sized overlay texture (v from the top)."""
+        width, height = self.window_size
+        x, y, w, h = rect
+        return x / width, y / height, w / width, h / height
+
     def gl_viewport(self, rect: tuple[int, int, int, int], buffer_size: tuple[int, int]) -> tuple[int, int, int, int]:
         """Top-left window rect -> GL viewport in framebuffer pixels (handles HiDPI buffers)."""
         width, height = self.window_size
@@ -143,12 +149,14 @@ class PanelRenderer:
         self.program["u_exposure"] = exposure
         self.vao.render(moderngl.TRIANGLE_STRIP)
 
-    def draw_overlay(self, viewport) -> None:
+    def draw_overlay(self, viewport, uv_rect=(0.0, 0.0, 1.0, 1.0)) -> None:
+        """Blend the overlay's ``uv_rect`` (u, v, du, dv; v from the top) into ``viewport``."""
         if self.overlay is None:
             return
         self.ctx.viewport = viewport
         self.overlay.use(2)
         self.program["u_mode"] = MODE_OVERLAY
+        self.program["u_sub"] = tuple(float(x) for x in uv_rect)
         self.ctx.enable(moderngl.BLEND)
         self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
         self.vao.render(moderngl.TRIANGLE_STRIP)

@@ -46,6 +46,9 @@ class _FeatureTap:
 class PipelineProgression(Progression):
     """:class:`~demo.progression.Progression` whose iterations run ``ProgressiveRenderer.step()``."""
 
+    #: the pipeline's raw / Gaussian at an in-between time: linear between the bracketing frames
+    raw_in_between = "lerp"
+
     def __init__(self, tracer, frame_times, params: FilterParams | None = None, seed: int = 0,
                  reference: torch.Tensor | None = None, max_extra_times: int = 4, threads: int | None = None):
         self._tap = _FeatureTap(tracer)

@@ -144,6 +144,9 @@ class Progression:
     Memory: one running sum per clip frame and per tracked in-between time, plus the last samples.
     """
 
+    #: what raw / Gaussian show at an in-between time: the nearest rendered frame
+    raw_in_between = "nearest"
+
     def __init__(self, tracer, frame_times, params: FilterParams | None = None, seed: int = 0,
                  reference: torch.Tensor | None = None, max_extra_times: int = 4, threads: int | None = None):
         self.tracer = tracer

@@ -13,6 +13,7 @@ uniform sampler2D u_image;     // packed panel slots side by side (linear RGB)
 uniform sampler2D u_reference; // reference frame (linear RGB), same size as one slot
 uniform sampler2D u_overlay;   // RGBA8 text and plot layer
 uniform vec2 u_slot;           // (slot index, number of slots) of u_image to show
+uniform vec4 u_sub;            // overlay: (u, v, du, dv) of the texture drawn into this viewport
 uniform int u_mode;            // 0 tone-mapped image, 1 display-ready image, 2 error heat map, 3 overlay
 uniform float u_exposure;
 uniform float u_heat_gain;     // heat map saturates at |error| = 1/u_heat_gain (sRGB units)
@@ -51,7 +52,7 @@ void main() {
         float err = dot(abs(ours - ref), vec3(1.0 / 3.0));
         frag = vec4(heat(err * u_heat_gain), 1.0);
     } else {
-        frag = texture(u_overlay, st);
+        frag = texture(u_overlay, u_sub.xy + st * u_sub.zw);
     }
 }
 #endif
