@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from demo.progression import FEATURE_GROUPS, FilterParams, Progression, StepTiming, torch_threads
+from demo.progression import FilterParams, Progression, StepTiming, psnr, torch_threads
 
 
 class _FeatureTap:
@@ -141,10 +141,4 @@ class PipelineProgression(Progression):
         idx = [self._q(t) for t in self.frame_times]
         s = self._state
         for name in ("raw", "gaussian", "ours"):
-            self.history[name].append((self.iteration, _psnr(getattr(s, name)[idx], self.reference)))
-
-
-def _psnr(img, ref) -> float:
-    from demo.progression import psnr
-
-    return psnr(img, ref)
+            self.history[name].append((self.iteration, psnr(getattr(s, name)[idx], self.reference)))
