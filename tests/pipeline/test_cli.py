@@ -1,0 +1,125 @@
+"""The two commands end to end at tiny sizes, and their bad-input errors."""
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from conftest import DATA
+from torchmanifold.cli import main
+from torchmanifold.io import read_exr, write_exr
+
+
+def test_render_end_to_end(tmp_path, capsys):
+    out = tmp_path / "render"
+    rc = main(["render", "--out", str(out), "--frames", "2", "--iterations", "2", "--width", "24",
+               "--height", "16", "--reference-spp", "8", "--inbetween", "1", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    q = 3  # 2 frames + 1 in-between
+    assert sorted(p.name for p in (out / "frames").iterdir()) == [f"frame_{i:04d}.exr" for i in range(q)]
+    assert len(list((out / "png").glob("*.png"))) == q
+    for name in ("clip.mp4", "compare.mp4", "chart.png", "metrics.json"):
+        assert (out / name).stat().st_size > 0, name
+    m = json.loads((out / "metrics.json").read_text())
+    assert [r["iteration"] for r in m["per_iteration"]] == [1, 2]
+    for method in ("raw", "gaussian", "ours"):
+        for r in m["per_iteration"]:
+            assert math.isfinite(r[method]["psnr"]) and 0 < r[method]["ssim"] <= 1
+            assert r[method]["seconds"] > 0
+    assert m["per_iteration"][1]["raw"]["psnr"] > m["per_iteration"][0]["raw"]["psnr"]
+    assert m["spp_plain_to_match_ours_final"] >= 1
+    f = read_exr(out / "frames" / "frame_0000.exr")
+    assert {"R", "G", "B", "raw.R", "reference.R", "albedo.R", "N.X", "Z"} <= set(f)
+    assert f["R"].shape == (16, 24)
+    # --out reuse needs --overwrite
+    assert main(["render", "--out", str(out), "--frames", "1", "--iterations", "1", "--width", "8",
+                 "--height", "8", "--reference-spp", "0", "--quiet"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def _link_frames(tmp_path, n=2):
+    src = tmp_path / "in"
+    src.mkdir()
+    paths = []
+    for i in range(n):
+        p = src / f"frame_{i:04d}.exr"
+        shutil.copy(DATA / f"frame_{i:04d}.exr", p)
+        paths.append(p)
+    return paths
+
+
+def test_denoise_end_to_end(tmp_path, capsys, mitsuba_available):
+    from torchmanifold import metrics as M
+
+    paths = _link_frames(tmp_path)
+    before = {p: p.read_bytes() for p in paths}
+    out = tmp_path / "out"
+    rc = main(["denoise", *map(str, paths), "--out", str(out), "--temporal-radius", "0", "--tree-height", "2",
+               "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["frames"] == 2 and "P.X" in summary["feature_channels"]
+    for i, p in enumerate(paths):
+        assert p.read_bytes() == before[p]  # inputs untouched
+        d = read_exr(out / p.name)
+        assert sorted(d) == ["B", "G", "R"]
+        ref = read_exr(DATA / f"reference_{i:04d}.exr")
+        den = np.stack([d[c] for c in "RGB"])
+        raw = np.stack([read_exr(p)[c] for c in "RGB"])
+        r = np.stack([ref[c] for c in "RGB"])
+        import torch
+
+        assert M.psnr(torch.from_numpy(den), torch.from_numpy(r)) > M.psnr(torch.from_numpy(raw), torch.from_numpy(r)) + 5
+    assert not (out / ".partial").exists()
+
+
+def test_denoise_bad_inputs(tmp_path, capsys, mitsuba_available):
+    paths = _link_frames(tmp_path)
+    out = tmp_path / "out"
+
+    def run(*args):
+        rc = main(["denoise", *map(str, args), "--quiet"])
+        return rc, capsys.readouterr().err
+
+    rc, err = run(tmp_path / "missing.exr", "--out", out)
+    assert rc == 2 and "missing.exr" in err and "not found" in err
+    junk = tmp_path / "junk.exr"
+    junk.write_bytes(b"not an exr at all")
+    rc, err = run(paths[0], junk, "--out", out)
+    assert rc == 2 and "junk.exr" in err and "not a readable EXR" in err
+    small = tmp_path / "small.exr"
+    d = read_exr(paths[1])
+    write_exr(small, {k: v[:64, :64] for k, v in d.items()})
+    rc, err = run(paths[0], small, "--out", out)
+    assert rc == 2 and "small.exr" in err and "size" in err
+    nocolor = tmp_path / "nocolor.exr"
+    write_exr(nocolor, {k: v for k, v in d.items() if k != "G"})
+    rc, err = run(nocolor, "--out", out)
+    assert rc == 2 and "nocolor.exr" in err and "'G'" in err
+    rc, err = run(paths[0], "--features", "N.X", "Q.W", "--out", out)
+    assert rc == 2 and "Q.W" in err and paths[0].name in err
+    rc, err = run(paths[0], "--guide", "Q.W", "--out", out)
+    assert rc == 2 and "Q.W" in err
+    # nothing was written half-way by any failure
+    assert not out.exists() or not any(p for p in out.iterdir() if p.suffix == ".exr")
+    out.mkdir(exist_ok=True)
+    (out / "keep.txt").write_text("x")
+    rc, err = run(paths[0], "--out", out)
+    assert rc == 2 and "--overwrite" in err
+
+
+def test_denoise_nonfinite_reported(tmp_path, capsys, mitsuba_available):
+    paths = _link_frames(tmp_path, 1)
+    d = read_exr(paths[0])
+    d["R"][5:9, 5:9] = np.nan
+    d["N.X"][100, 100] = np.inf
+    write_exr(paths[0], d)
+    out = tmp_path / "out"
+    rc = main(["denoise", str(paths[0]), "--out", str(out), "--temporal-radius", "0", "--tree-height", "2",
+               "--quiet"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "17 non-finite samples" in cap.err
+    res = read_exr(out / paths[0].name)
+    assert all(np.isfinite(v).all() for v in res.values())
