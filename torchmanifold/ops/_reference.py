@@ -1,7 +1,8 @@
 """Pure-PyTorch Adaptive Manifolds filter: the reference the C++ kernel must match, and the fallback.
 
 NOTE FOR THE C++ KERNEL (A2): every numbered choice below is fixed. If one changes, this note says so.
-(v1, first version; no changes since.)
+(v1, first version; no change to the algorithm since. Only the public API's default ``power_iterations``
+went from 10 to 32, see step 8; the op's arguments are unchanged.)
 
 Algorithm (Gastal & Oliveira 2012, see docs/adaptive-manifolds.md), per image, tree height H,
 values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
@@ -38,7 +39,9 @@ values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
     overflow only; the direction is unchanged). M = sum r r^T (unweighted). Power iteration from the
     fixed start v = ones(D)/sqrt(D): ``power_iterations`` times u = M v, v = u/|u|. If at any step
     |u| <= eps(dtype) * trace(M) (or not finite) the node falls back to v = e_k, k = argmax diag(M)
-    (first on ties). cluster- = {v.r < 0}, cluster+ = {v.r >= 0}; children of node k are 2k (-) and 2k+1 (+).
+    (first on ties). From the all-ones start, 10 steps can stop near the second eigenvector (the top
+    residual direction of an RGB guide is often red minus blue, orthogonal to ones) and cost several dB,
+    hence the API default of 32 steps. cluster- = {v.r < 0}, cluster+ = {v.r >= 0}; children of node k are 2k (-) and 2k+1 (+).
     theta = 1 - w. Child: T = 1_cluster * theta; num = h(down(T * gs); s'), den = h(down(T); s');
     eta_child = num / den where den > 0, else the parent manifold at low res (down(eta_1) for the root).
     A child is pruned (never splats/slices, no children) if sum(T) == 0 over the image or its parent is
