@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-SMALL = ["--width", "40", "--height", "40", "--scale", "2", "--clip", "2", "--reference-spp", "32", "--paused"]
+SMALL = ["--width", "48", "--height", "32", "--scale", "2", "--clip", "2", "--reference-spp", "32", "--paused"]
 
 
 def srgb_u8(linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:

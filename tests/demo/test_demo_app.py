@@ -63,6 +63,22 @@ def test_panels_show_the_progression_state(headless_run):
         assert np.percentile(diff, 99) <= 2.0, f"panel {i}: max diff {diff.max()}"
 
 
+def test_heat_map_follows_the_error_of_ours(headless_run):
+    """The heat map is computed in the shader; its brightness must rank pixels like numpy's |error|."""
+    from scipy.stats import spearmanr
+
+    app, shot = headless_run
+    img = np.asarray(Image.open(shot).convert("RGB"))
+    prog, t = app.progression, app.show_time
+    ref = srgb_u8(prog.reference[prog.frame_times.index(t)].permute(1, 2, 0).numpy())
+    ours = srgb_u8(prog.ours(t).permute(1, 2, 0).numpy())
+    err = upscale(np.abs(ours - ref).mean(-1), app.layout.scale)
+    heat = crop(img, app.layout.panel_rect(3)) @ np.array([0.2126, 0.7152, 0.0722])
+    unsaturated = err < 0.9 * 255 / 5.0  # the ramp saturates at |error| = 1/5 (u_heat_gain)
+    rho = spearmanr(err[unsaturated], heat[unsaturated]).statistic
+    assert rho > 0.9, rho
+
+
 def test_overlay_has_plot_and_text(headless_run):
     app, shot = headless_run
     img = np.asarray(Image.open(shot).convert("RGB")).astype(np.int32)
