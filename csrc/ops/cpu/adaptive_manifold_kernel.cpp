@@ -84,29 +84,28 @@ class ImageFilter {
   void run() {
     prepare();
     clock_.lap("prepare");
-    w_.resize(N_);
     std::fill(S_, S_ + C_ * N_, T(0));
     S0_.assign(N_, T(0));
     if (opt_.adjust_outliers) minD_.assign(N_, std::numeric_limits<T>::infinity());
 
-    // 7. Depth first, pre-order (k, 2k, 2k+1): each node depends only on its parent, so this
-    // equals the reference's breadth-first levels. Entries own their low-res manifold.
-    struct Entry {
-      int64_t id;
-      std::vector<T> eta;
-    };
-    std::vector<Entry> stack;
-    stack.push_back({1, {}});
-    while (!stack.empty()) {
-      Entry e = std::move(stack.back());
-      stack.pop_back();
-      process_node(e.id, e.eta, stack);
-    }
+    // 7. Breadth first, one level at a time like the reference; within a level every full-res
+    // pass handles all of the level's nodes row by row, so the guide is read once per level.
+    std::vector<Node> level;
+    level.push_back({1, {}});
+    for (int64_t depth = 0; depth < opt_.tree_height && !level.empty(); ++depth)
+      level = process_level(level, depth);
     finish();
     clock_.lap("finish");
   }
 
  private:
+  // A manifold of the tree: heap id (children 2k, 2k+1) and its low-res (D, Hl, Wl) map
+  // (empty for the root, which lives at full resolution in eta1_).
+  struct Node {
+    int64_t id;
+    std::vector<T> eta;
+  };
+
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
     at::parallel_for(0, H_, grain_for(W_ * work_per_row), fn);
@@ -270,25 +269,26 @@ class ImageFilter {
     }
   }
 
-  template <typename Stack>
-  void process_node(int64_t id, std::vector<T>& eta_low, Stack& stack) {
-    const bool root = id == 1;
-    int64_t depth = 0;
-    for (int64_t k = id; k > 1; k >>= 1) ++depth;
+  std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
+    const int64_t n = static_cast<int64_t>(level.size());
+    const bool root = depth == 0;  // then n == 1 and level[0] is the root
     const bool leaf = depth + 1 >= opt_.tree_height;
     const bool want_m = !leaf && opt_.power_iterations > 0;
-    if (root) eta_low.assign(D_ * Nl_, T(0));
-    const T* eta_src = root ? nullptr : eta_low.data();
+    if (root) level[0].eta.assign(D_ * Nl_, T(0));
+    std::vector<const T*> eta_src(n);
+    for (int64_t k = 0; k < n; ++k) eta_src[k] = root ? nullptr : level[k].eta.data();
     const int64_t msize = D_ * (D_ + 1) / 2;  // upper triangle of M
-    std::vector<double> mpart(want_m ? groups_ * msize : 0, 0.0);
+    std::vector<double> mpart(want_m ? n * groups_ * msize : 0, 0.0);
+    const int64_t pnode = (C_ + 1) * Nl_;
+    w_.resize(n * N_);
 
     // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); M = sum r r^T ----
     Scratch<T> P;
-    P.assign((C_ + 1) * Nl_, T(0));
+    P.assign(n * pnode, T(0));
     at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
-      std::vector<T> res(D_ * W_), tmp(D_ * Wl_), dist(W_), ws(W_), mrow(msize);
+      std::vector<T> res(D_ * W_), tmp(Wl_), dist(W_), ws(W_), mrow(want_m ? n * msize : 0);
       for (int64_t grp = gb; grp < ge; ++grp) {
-        if (want_m) std::fill(mrow.begin(), mrow.end(), T(0));
+        std::fill(mrow.begin(), mrow.end(), T(0));
         for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
           const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
           for (int64_t i = i0; i < i1; ++i) {
@@ -296,128 +296,136 @@ class ImageFilter {
             if (root)
               for (int64_t d = 0; d < D_; ++d)
                 block_sum_row(eta1_.data() + d * N_ + row, W_, df_, Wl_,
-                              eta_low.data() + d * Nl_ + bi * Wl_);
-            std::fill(dist.begin(), dist.end(), T(0));
-            residual_row(eta_src, i, tmp.data(), res.data(), dist.data());
-            T* wr = w_.data() + row;
-            const uint8_t* sr = ms_.data() + row;
-            for (int64_t j = 0; j < W_; ++j) {
-              const T w = exp_nonpositive(-dist[j] * inv_r2_);
-              wr[j] = w;
-              ws[j] = sr[j] ? w : T(0);
+                              level[0].eta.data() + d * Nl_ + bi * Wl_);
+            for (int64_t k = 0; k < n; ++k) {
+              std::fill(dist.begin(), dist.end(), T(0));
+              residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data());
+              T* wr = w_.data() + k * N_ + row;
+              const uint8_t* sr = ms_.data() + row;
+              for (int64_t j = 0; j < W_; ++j) {
+                const T w = exp_nonpositive(-dist[j] * inv_r2_);
+                wr[j] = w;
+                ws[j] = sr[j] ? w : T(0);
+              }
+              if (opt_.adjust_outliers) {
+                T* mr = minD_.data() + row;
+                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
+              }
+              T* pk = P.data() + k * pnode;
+              for (int64_t c = 0; c < C_; ++c)
+                block_dot_row(ws.data(), fp_.data() + c * N_ + row, W_, df_, Wl_,
+                              pk + c * Nl_ + bi * Wl_);
+              block_sum_row(ws.data(), W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
+              if (want_m) accumulate_m(level[k].id, row, res.data(), mrow.data() + k * msize);
             }
-            if (opt_.adjust_outliers) {
-              T* mr = minD_.data() + row;
-              for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
-            }
-            for (int64_t c = 0; c < C_; ++c)
-              block_dot_row(ws.data(), fp_.data() + c * N_ + row, W_, df_, Wl_,
-                            P.data() + c * Nl_ + bi * Wl_);
-            block_sum_row(ws.data(), W_, df_, Wl_, P.data() + C_ * Nl_ + bi * Wl_);
-            if (want_m) accumulate_m(id, row, res.data(), mrow.data());
           }
           // Area means over the pixels that exist in each block.
           const int64_t rows = i1 - i0;
           for (int64_t bj = 0; bj < Wl_; ++bj) {
             const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
-            for (int64_t c = 0; c <= C_; ++c) P[c * Nl_ + bi * Wl_ + bj] /= cnt;
+            for (int64_t k = 0; k < n; ++k)
+              for (int64_t c = 0; c <= C_; ++c) P[k * pnode + c * Nl_ + bi * Wl_ + bj] /= cnt;
             if (root)
-              for (int64_t d = 0; d < D_; ++d) eta_low[d * Nl_ + bi * Wl_ + bj] /= cnt;
+              for (int64_t d = 0; d < D_; ++d) level[0].eta[d * Nl_ + bi * Wl_ + bj] /= cnt;
           }
         }
-        if (want_m)
-          for (int64_t k = 0; k < msize; ++k) mpart[grp * msize + k] = static_cast<double>(mrow[k]);
+        for (int64_t k = 0; k < n && want_m; ++k)
+          for (int64_t m = 0; m < msize; ++m)
+            mpart[(k * groups_ + grp) * msize + m] = static_cast<double>(mrow[k * msize + m]);
       }
     });
+    clock_.lap("pass A", depth);
 
-    clock_.lap("pass A", id);
-    // ---- low-res blur of [P, P0] steered by the node's manifold ----
-    {
+    // ---- per node: low-res blur of [P, P0] steered by its manifold; 8. split direction ----
+    std::vector<std::vector<T>> v(n);
+    for (int64_t k = 0; k < n; ++k) {
       std::vector<T> ah(Nl_), av(Nl_);
-      domain_transform_coefficients(eta_low.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
+      domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
                                     av.data());
-      domain_transform_planes(P.data(), C_ + 1, Hl_, Wl_, ah.data(), av.data());
+      domain_transform_planes(P.data() + k * pnode, C_ + 1, Hl_, Wl_, ah.data(), av.data());
+      if (!leaf) v[k] = split_direction(mpart.data() + k * groups_ * msize);
     }
-
-    // ---- 8. split direction ----
-    std::vector<T> v;
-    if (!leaf) v = split_direction(mpart);
-    clock_.lap("blur+split", id);
+    clock_.lap("blur+split", depth);
 
     // ---- pass B: slice; internal nodes also label, theta and the children's sums ----
-    Scratch<T> Q;  // [side][D + 1][Nl]: down(T gs) planes then down(T)
+    Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
-    if (!leaf) Q.assign(2 * qside, T(0));
+    if (!leaf) Q.assign(n * 2 * qside, T(0));
     at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
-      std::vector<T> up((C_ + 1) * W_), tmp(std::max(C_ + 1, D_) * Wl_), t0(W_), t1(W_);
+      std::vector<T> up((C_ + 1) * W_), tmp((C_ + 1) * Wl_), t0(W_), t1(W_);
       std::vector<T> res(leaf ? 0 : D_ * W_);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
-          upsample_row(P.data(), C_ + 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
-          const T* wr = w_.data() + row;
-          for (int64_t c = 0; c <= C_; ++c) {
-            T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
-            const T* u = up.data() + c * W_;
-            for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * u[j];
+          for (int64_t k = 0; k < n; ++k) {
+            upsample_row(P.data() + k * pnode, C_ + 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(),
+                         up.data());
+            const T* wr = w_.data() + k * N_ + row;
+            for (int64_t c = 0; c <= C_; ++c) {
+              T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
+              const T* u = up.data() + c * W_;
+              for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * u[j];
+            }
+            if (leaf) continue;
+            // t0 first holds the projection v . r, then theta on the - side.
+            residual_row(eta_src[k], i, tmp.data(), res.data(), nullptr);
+            std::fill(t0.begin(), t0.end(), T(0));
+            for (int64_t d = 0; d < D_; ++d) {
+              const T* rr = res.data() + d * W_;
+              const T vd = v[k][d];
+              for (int64_t j = 0; j < W_; ++j) t0[j] += vd * rr[j];
+            }
+            const int64_t id = level[k].id;
+            int32_t* lr = label_.data() + row;
+            for (int64_t j = 0; j < W_; ++j) {
+              const bool in = lr[j] == id;
+              const bool plus = t0[j] >= T(0);
+              const T theta = T(1) - wr[j];
+              t0[j] = in && !plus ? theta : T(0);
+              t1[j] = in && plus ? theta : T(0);
+              if (in) lr[j] = static_cast<int32_t>(2 * id + (plus ? 1 : 0));
+            }
+            T* q = Q.data() + k * 2 * qside;
+            for (int64_t d = 0; d < D_; ++d) {
+              const T* gr = gs_ + d * N_ + row;
+              block_dot_row(t0.data(), gr, W_, df_, Wl_, q + d * Nl_ + bi * Wl_);
+              block_dot_row(t1.data(), gr, W_, df_, Wl_, q + qside + d * Nl_ + bi * Wl_);
+            }
+            block_sum_row(t0.data(), W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
+            block_sum_row(t1.data(), W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
           }
-          if (leaf) continue;
-          // t0 first holds the projection v . r, then theta on the - side.
-          residual_row(eta_src, i, tmp.data(), res.data(), nullptr);
-          std::fill(t0.begin(), t0.end(), T(0));
-          for (int64_t d = 0; d < D_; ++d) {
-            const T* rr = res.data() + d * W_;
-            const T vd = v[d];
-            for (int64_t j = 0; j < W_; ++j) t0[j] += vd * rr[j];
-          }
-          int32_t* lr = label_.data() + row;
-          for (int64_t j = 0; j < W_; ++j) {
-            const bool in = lr[j] == id;
-            const bool plus = t0[j] >= T(0);
-            const T theta = T(1) - wr[j];
-            t0[j] = in && !plus ? theta : T(0);
-            t1[j] = in && plus ? theta : T(0);
-            if (in) lr[j] = static_cast<int32_t>(2 * id + (plus ? 1 : 0));
-          }
-          for (int64_t d = 0; d < D_; ++d) {
-            const T* gr = gs_ + d * N_ + row;
-            block_dot_row(t0.data(), gr, W_, df_, Wl_, Q.data() + d * Nl_ + bi * Wl_);
-            block_dot_row(t1.data(), gr, W_, df_, Wl_, Q.data() + qside + d * Nl_ + bi * Wl_);
-          }
-          block_sum_row(t0.data(), W_, df_, Wl_, Q.data() + D_ * Nl_ + bi * Wl_);
-          block_sum_row(t1.data(), W_, df_, Wl_, Q.data() + qside + D_ * Nl_ + bi * Wl_);
         }
         if (leaf) continue;
         const int64_t rows = i1 - i0;
         for (int64_t bj = 0; bj < Wl_; ++bj) {
           const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
-          for (int64_t s = 0; s < 2; ++s)
+          for (int64_t s = 0; s < 2 * n; ++s)
             for (int64_t d = 0; d <= D_; ++d) Q[s * qside + d * Nl_ + bi * Wl_ + bj] /= cnt;
         }
       }
     });
-    clock_.lap("pass B", id);
-    if (leaf) return;
+    clock_.lap("pass B", depth);
+    std::vector<Node> next;
+    if (leaf) return next;
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
-    std::vector<T> kids[2];
-    for (int64_t s = 0; s < 2; ++s) {
-      T* q = Q.data() + s * qside;
-      const T* q0 = q + D_ * Nl_;
-      // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
-      if (!std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); })) continue;
-      lowpass_planes(q, D_ + 1, Hl_, Wl_, ss_low_);
-      std::vector<T>& eta = kids[s];
-      eta.resize(D_ * Nl_);
-      for (int64_t d = 0; d < D_; ++d)
-        for (int64_t i = 0; i < Nl_; ++i)
-          eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : eta_low[d * Nl_ + i];
-    }
-    clock_.lap("children", id);
-    // Push + first so the - child (2k) is processed first.
-    for (int64_t s = 1; s >= 0; --s)
-      if (!kids[s].empty()) stack.push_back({2 * id + s, std::move(kids[s])});
+    for (int64_t k = 0; k < n; ++k)
+      for (int64_t s = 0; s < 2; ++s) {
+        T* q = Q.data() + (2 * k + s) * qside;
+        const T* q0 = q + D_ * Nl_;
+        // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
+        if (!std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); })) continue;
+        lowpass_planes(q, D_ + 1, Hl_, Wl_, ss_low_);
+        std::vector<T> eta(D_ * Nl_);
+        const std::vector<T>& parent = level[k].eta;
+        for (int64_t d = 0; d < D_; ++d)
+          for (int64_t i = 0; i < Nl_; ++i)
+            eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : parent[d * Nl_ + i];
+        next.push_back({2 * level[k].id + s, std::move(eta)});
+      }
+    clock_.lap("children", depth);
+    return next;
   }
 
   // m += sum over the row's cluster pixels of r r^T (upper triangle, row-major). The reference
@@ -441,7 +449,7 @@ class ImageFilter {
 
   // 8. Power iteration u = M v, v = u/|u| from ones/sqrt(D); the largest-variance channel when it
   // collapses. M is the fixed-order sum of per-group partials.
-  std::vector<T> split_direction(const std::vector<double>& mpart) {
+  std::vector<T> split_direction(const double* mpart) {
     const int64_t msize = D_ * (D_ + 1) / 2;
     std::vector<double> v(D_, 1.0 / std::sqrt(static_cast<double>(D_)));
     std::vector<T> out(D_, T(0));
