@@ -177,6 +177,19 @@ def test_scrub_shows_in_between_frame(live_app):
     assert app.show_time == 0.0
 
 
+def test_playback_steps_through_the_clip_and_wraps(live_app):
+    app = live_app
+    app.set_time(0.0)
+    app.apply_action("play")
+    app.clip_fps = 1e9  # every call is "late enough" to advance
+    seen = []
+    for _ in range(4):
+        app._advance_playback()
+        seen.append(app.show_time)
+    app.apply_action("play")
+    assert seen == [0.0, 1.0, 0.0, 1.0]  # the first call starts the clock; a 2-frame clip wraps
+
+
 def test_click_on_clip_bar_scrubs(live_app):
     app = live_app
     x0, x1, y = app.layout.timeline_span()
