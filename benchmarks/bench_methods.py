@@ -30,11 +30,10 @@ _SCALING: dict = {}
 
 @pytest.fixture(scope="session")
 def datasets(quick):
-    """name -> (Dataset, frames to score). Rendered/loaded once per session."""
+    """name -> Dataset, every frame scored. Loaded/rendered once per session."""
     out = {}
     if harness.DATA.is_dir():
-        ds = harness.load_mitsuba([5, 6] if quick else None, crop=64 if quick else None)
-        out["mitsuba"] = ds
+        out["mitsuba"] = harness.load_mitsuba([5, 6] if quick else None, crop=64 if quick else None)
     ok, _ = harness.tracer_available()
     if ok:
         out["cornell_box"] = harness.builtin_dataset(quick)
@@ -53,7 +52,7 @@ def _write(quick):
 def _entry(ds_name: str, ds) -> dict:
     if ds_name not in _RESULTS:
         _RESULTS[ds_name] = {"size": list(ds.color.shape[-2:]), "frames": ds.times.tolist(),
-                             "features": list(harness.DEFAULT_FEATURES), "methods": {}, "render": {}}
+                             "features": list(harness.DEFAULT_FEATURES), "methods": {}}
     return _RESULTS[ds_name]
 
 
