@@ -251,13 +251,11 @@ def run_method(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tens
 
 
 def scores(out: torch.Tensor, ref: torch.Tensor, with_flip: bool = True) -> dict:
-    """Mean PSNR (clamped sRGB, the data README's score), relMSE and FLIP over frames (F, 3, H, W)."""
+    """``torchmanifold.metrics.evaluate`` over frames (F, 3, H, W): PSNR (clamped sRGB, the data README's
+    score), linear PSNR, relMSE, SSIM and FLIP, each a mean over frames."""
     from torchmanifold import metrics
 
-    res = {"psnr": float(metrics.psnr(out, ref)), "relmse": float(metrics.relmse(out, ref))}
-    if with_flip and metrics.flip_available():
-        res["flip"] = float(metrics.flip(out, ref))
-    return res
+    return {k: float(v) for k, v in metrics.evaluate(out, ref, with_flip=with_flip).items()}
 
 
 def timing_summary(secs: list) -> dict:
