@@ -248,14 +248,15 @@ def summary(folder: Path, rel: str) -> str:
                 lines += [f"Our tracer renders one 1-spp frame in {ds['trace_ms_1spp']:.0f} ms; filter times below "
                           "add to it, and `raw-Nspp` rows are plain path tracing at N spp (their render time).", ""]
             lines += key_numbers(ds) + [""]
-            lines += ["| method | ms/frame (min) | ms/frame (median) | PSNR dB | relMSE | FLIP | Pareto |",
-                      "|---|---|---|---|---|---|---|"]
+            lines += ["| method | ms/frame (min) | ms/frame (median) | PSNR dB | relMSE | SSIM | FLIP | Pareto |",
+                      "|---|---|---|---|---|---|---|---|"]
             rows = sorted(ds["methods"].items(), key=lambda kv: -(kv[1].get("psnr") or -1e9))
             for n, r in rows:
                 bad = f" ({100 * r['nonfinite_fraction']:.1f}% NaN/Inf, scored with the input there)" \
                     if r.get("nonfinite_fraction") else ""
                 lines.append(f"| {n}{bad} | {_f(r['ms_min'], 1)} | {_f(r['ms_median'], 1)} | {_f(r.get('psnr'))} | "
-                             f"{_f(r.get('relmse'), 4)} | {_f(r.get('flip'), 4)} | {'yes' if front.get(n) else ''} |")
+                             f"{_f(r.get('relmse'), 4)} | {_f(r.get('ssim'), 4)} | {_f(r.get('flip'), 4)} | "
+                             f"{'yes' if front.get(n) else ''} |")
             lines.append("")
     if pr:
         progressive_chart(pr, folder)
