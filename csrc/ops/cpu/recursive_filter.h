@@ -25,6 +25,14 @@ inline int64_t grain_for(int64_t work_per_item) {
   return std::max<int64_t>(1, 32768 / std::max<int64_t>(1, work_per_item));
 }
 
+// Below this much work a filter runs on the calling thread: the low-res filters take a few
+// milliseconds at most, less than one barrier costs when the machine is oversubscribed.
+constexpr int64_t kSerialWork = int64_t(1) << 21;
+
+inline int64_t grain_lines(int64_t lines, int64_t work_per_line) {
+  return lines * work_per_line < kSerialWork ? std::max<int64_t>(1, lines) : grain_for(work_per_line);
+}
+
 // ---- constant-coefficient low-pass h ---------------------------------------------------------
 
 template <typename T>
@@ -90,7 +98,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
                     bool rows_done = false) {
   const T a = lowpass_coefficient<T>(sigma);
   if (planes >= 2 * at::get_num_threads()) {
-    at::parallel_for(0, planes, 1, [&](int64_t b, int64_t e) {
+    at::parallel_for(0, planes, grain_lines(planes, 4 * h * w), [&](int64_t b, int64_t e) {
       for (int64_t pl = b; pl < e; ++pl) {
         T* p = data + pl * h * w;
         if (w > 1 && !rows_done) lowpass_rows(p, 0, h, w, a);
@@ -100,7 +108,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
     return;
   }
   if (w > 1 && !rows_done) {
-    at::parallel_for(0, planes * h, grain_for(4 * w), [&](int64_t b, int64_t e) {
+    at::parallel_for(0, planes * h, grain_lines(planes * h, 2 * w), [&](int64_t b, int64_t e) {
       // split [b, e) at plane boundaries
       for (int64_t line = b; line < e;) {
         const int64_t pl = line / h, r0 = line % h, r1 = std::min(h, r0 + (e - line));
@@ -111,7 +119,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
   }
   if (h > 1) {
     const int64_t strips = (w + kStrip - 1) / kStrip;
-    at::parallel_for(0, planes * strips, grain_for(4 * h * kStrip), [&](int64_t b, int64_t e) {
+    at::parallel_for(0, planes * strips, grain_lines(planes * strips, 2 * h * kStrip), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t plane = t / strips, s = t % strips;
         const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
@@ -132,7 +140,7 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
   const int64_t plane = h * w;
   const T k = static_cast<T>((ss / sr) * (ss / sr));
   const T c = static_cast<T>(-std::sqrt(2.0) / ss);
-  at::parallel_for(0, h, grain_for(4 * w * (d + 1)), [&](int64_t b, int64_t e) {
+  at::parallel_for(0, h, grain_lines(h, 4 * w * (d + 1)), [&](int64_t b, int64_t e) {
     for (int64_t i = b; i < e; ++i) {
       T* rh = ah + i * w;
       T* rv = av + i * w;
@@ -168,7 +176,7 @@ template <typename T>
 void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, const T* ah,
                              const T* av) {
   if (w > 1) {
-    at::parallel_for(0, planes * h, grain_for(6 * w), [&](int64_t b, int64_t e) {
+    at::parallel_for(0, planes * h, grain_lines(planes * h, 3 * w), [&](int64_t b, int64_t e) {
       for (int64_t line = b; line < e; ++line) {
         const int64_t i = line % h;
         T* y = data + line * w;
@@ -180,7 +188,7 @@ void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, cons
   }
   if (h > 1) {
     const int64_t strips = (w + kStrip - 1) / kStrip;
-    at::parallel_for(0, planes * strips, grain_for(6 * h * kStrip), [&](int64_t b, int64_t e) {
+    at::parallel_for(0, planes * strips, grain_lines(planes * strips, 3 * h * kStrip), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t plane = t / strips, s = t % strips;
         const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
