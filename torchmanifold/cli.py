@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--overwrite", action="store_true", help="reuse a non-empty --out")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
-    _add_filter_args(r, temporal_radius=1, mode="window")
+    _add_filter_args(r, temporal_radius=1, mode="spacetime")
 
     d = sub.add_parser("denoise", help="denoise EXR frames rendered elsewhere",
                        description="Denoise one multi-channel EXR per frame (colour R,G,B plus feature "

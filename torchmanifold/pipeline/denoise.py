@@ -148,7 +148,8 @@ class DenoiseSettings:
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
-        dtype: working precision (float64 keeps S/S0 exact where the weights get tiny).
+        dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
+            samples near it, float64 keeps S/S0 exact where the weights get tiny.
     """
 
     sigma_s: float = 5.0
@@ -163,7 +164,7 @@ class DenoiseSettings:
     temporal_radius: int = 0
     sigma_t: float = 1.0
     mode: str = "spacetime"
-    dtype: torch.dtype = torch.float64
+    dtype: torch.dtype = torch.float32
 
     def check(self) -> "DenoiseSettings":
         def pos(name, v, allow_zero=False):
@@ -203,6 +204,12 @@ def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
             raise ValueError(f"guide: feature channel {g!r} not found; available: {list(names)}")
         idx.append(canon.index(c))
     return idx
+
+
+def _box_max(x: Tensor, r: int) -> Tensor:
+    """Max over a (2r+1)^2 box, separably (rows then columns)."""
+    mp = torch.nn.functional.max_pool2d
+    return mp(mp(x, (1, 2 * r + 1), 1, (0, r)), (2 * r + 1, 1), 1, (r, 0))
 
 
 def _bracket(frame_times: list[float], q: float) -> tuple[int, int, float]:
@@ -260,7 +267,31 @@ class _Filter:
         num, den = y[:, :-1], y[:, -1:]
         ok = den > 1e-8
         # no valid sample under the kernel: fall back to the interpolated (masked) input
-        return torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
+        out = torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
+        return self._guard(out, values, mask)
+
+    def _guard(self, out: Tensor, values: Tensor, mask: Tensor) -> Tensor:
+        """A normalised filter is a convex combination: keep the result inside the range of the valid
+        samples near the pixel. In float32 a pixel far from every manifold (weights ~1e-38) can come back
+        as garbage; this bounds it (float64 needs no guard)."""
+        if values.dtype == torch.float64:
+            return out
+        r = max(1, int(math.ceil(2 * self.sigma_s)))
+        big = torch.finfo(values.dtype).max
+        hi = torch.where(mask > 0, values, -big)
+        lo = torch.where(mask > 0, -values, -big)
+        hi, lo = _box_max(hi, r), -_box_max(lo, r)
+        hi, lo = self.at_queries_max(hi), -self.at_queries_max(-lo)
+        ok = hi > -big / 2
+        return torch.where(ok, torch.minimum(torch.maximum(out, lo), hi), out)
+
+    def at_queries_max(self, x: Tensor) -> Tensor:
+        """Largest of the window's frames around each query (the bound of what the filter may mix)."""
+        outs = []
+        for q in self.qt:
+            ids = self._window(q) if self.st.temporal_radius > 0 or q not in self.ft else [self.ft.index(q)]
+            outs.append(x[ids].amax(0))
+        return torch.stack(outs)
 
     def at_queries(self, x: Tensor) -> Tensor:
         """Per-frame data ``(T, C, H, W)`` at the query times, linear between bracketing frames."""

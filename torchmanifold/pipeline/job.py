@@ -137,7 +137,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
         scene: a :class:`~torchmanifold.render.Scene`, a scene file path, or ``None`` for the built-in scene.
         frames, iterations, width, height, seed: the clip and the number of progressive iterations.
         reference_spp: samples per pixel of the converged reference (0 = no reference, no metrics).
-        settings: filter settings (default: time window of +-1 frame, ``"window"`` mode).
+        settings: filter settings (default: +-1 frame in ``"spacetime"`` mode: no ghosts behind moving objects).
         alpha: bandwidth schedule's ``a`` (default :data:`~torchmanifold.pipeline.schedule.DEFAULT_ALPHA`).
         inbetween: extra frames output between each pair of rendered frames (interpolated in time).
         fps: frame rate of the MP4s.
@@ -168,7 +168,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     else:
         scene_obj, scene_name = load_scene(scene), str(scene)
     out = prepare_out(out, overwrite)
-    settings = settings or DenoiseSettings(temporal_radius=1, mode="window")
+    settings = settings or DenoiseSettings(temporal_radius=1, mode="spacetime")
 
     tracer = PathTracer(scene_obj, width, height)
     times = [float(t) for t in range(frames)]

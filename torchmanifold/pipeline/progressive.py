@@ -100,7 +100,7 @@ class ProgressiveRenderer:
         self.query_times = times if query_times is None else [float(q) for q in query_times]
         if not self.query_times or any(not math.isfinite(q) for q in self.query_times):
             raise ValueError("query_times must be a non-empty sequence of finite numbers")
-        self.settings = (settings or DenoiseSettings(temporal_radius=1, mode="window")).check()
+        self.settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
         self.schedule = BandwidthSchedule(self.settings.sigma_s, 1.0, alpha)
         self.gaussian_sigma = 1.0 if gaussian_sigma is None else float(gaussian_sigma)
         self.seed = int(seed)
