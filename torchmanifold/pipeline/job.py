@@ -24,8 +24,8 @@ from torchmanifold.pipeline.progressive import ProgressiveRenderer
 __all__ = ["prepare_out", "render_job", "denoise_files", "moving_mask", "spp_to_match", "write_chart",
            "RENDER_DEFAULTS"]
 
-#: defaults of the render job: about two minutes on a loaded 2-core CPU (see README / report)
-RENDER_DEFAULTS = dict(frames=6, iterations=12, width=128, height=96, reference_spp=128, seed=0)
+#: defaults of the render job: about two minutes on a shared 2-core CPU (reference ~75 s, 16 iterations ~25 s)
+RENDER_DEFAULTS = dict(frames=8, iterations=16, width=128, height=96, reference_spp=256, seed=0)
 
 METHODS = ("raw", "gaussian", "ours")
 
