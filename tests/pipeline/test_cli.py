@@ -123,3 +123,22 @@ def test_denoise_nonfinite_reported(tmp_path, capsys, mitsuba_available):
     assert "17 non-finite samples" in cap.err
     res = read_exr(out / paths[0].name)
     assert all(np.isfinite(v).all() for v in res.values())
+
+
+def test_denoise_our_tracer_frames_keeps_emission(tmp_path, capsys):
+    """EXRs from our tracer carry emission.R/G/B: the light stays exactly as rendered, walls get denoised."""
+    import torch
+
+    from torchmanifold.render import PathTracer, default_scene, write_frame_exr
+
+    res = PathTracer(default_scene(), 48, 32).render(times=[0.0, 1.0], spp=1, seed=3)
+    paths = [write_frame_exr(tmp_path / f"f{i}.exr", res, i) for i in range(2)]
+    out = tmp_path / "out"
+    assert main(["denoise", *map(str, paths), "--out", str(out), "--quiet"]) == 0, capsys.readouterr().err
+    d = read_exr(out / "f0.exr")
+    den = torch.from_numpy(np.stack([d[c] for c in "RGB"]))
+    light = res.emission[0].sum(0) > 0
+    assert light.any()
+    # at emitter pixels the output is at least the emission (nothing blurred away) and not far above it
+    assert (den[:, light] >= res.emission[0][:, light] - 1e-3).all()
+    assert torch.isfinite(den).all()

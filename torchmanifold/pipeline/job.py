@@ -284,7 +284,10 @@ def _read_frame(path: Path, color_channels: Sequence[str], feature_channels: Seq
     h, w = color.shape[1:]
     feats = (torch.from_numpy(np.stack([chans[c] for c in feature_channels])) if feature_channels
              else torch.zeros(0, h, w))
-    return color, feats, list(feature_channels)
+    # emitted radiance at the first hit (our tracer writes it): kept apart from the filter
+    em_names = ("emission.R", "emission.G", "emission.B")
+    emission = torch.from_numpy(np.stack([chans[c] for c in em_names])) if all(c in chans for c in em_names) else None
+    return color, feats, list(feature_channels), emission
 
 
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
@@ -301,7 +304,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         settings: :class:`DenoiseSettings` (default: ``DenoiseSettings(temporal_radius=1)``).
         color_channels: the three colour channels to denoise.
         feature_channels: guide/albedo channels; ``None`` picks the known ones each file has
-            (``albedo.*``, ``N.*``, ``P.*``, ``Z``, ...); all frames must have the same.
+            (``albedo.*``, ``N.*``, ``P.*``, ``Z``, ...); all frames must have the same. Channels
+            ``emission.R/G/B`` (our tracer's EXRs), when present, are kept out of the filter.
         overwrite: reuse a non-empty ``out``.
         progress: tqdm progress bar over frames.
 
@@ -358,8 +362,10 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
                 del cache[k]
             color = torch.stack([cache[k][0] for k in ids])
             feats = torch.stack([cache[k][1] for k in ids])
-            y, st = denoise_frames(color, feats, fnames, settings=settings, frame_times=ids, query_times=[t],
-                                   return_stats=True)
+            ems = [cache[k][3] for k in ids]
+            emission = torch.stack(ems) if all(e is not None for e in ems) else None
+            y, st = denoise_frames(color, feats, fnames, emission, settings=settings, frame_times=ids,
+                                   query_times=[t], return_stats=True)
             own = ids.index(t)  # count the frame's own samples once
             stats_sum["nonfinite_color"] += int((~torch.isfinite(color[own])).sum())
             stats_sum["nonfinite_features"] += int((~torch.isfinite(feats[own])).sum())
