@@ -286,7 +286,9 @@ class ImageFilter {
     Scratch<T> P;
     P.assign(n * pnode, T(0));
     at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
-      std::vector<T> res(D_ * W_), tmp(Wl_), dist(W_), ws(W_), mrow(want_m ? n * msize : 0);
+      // res has D rounded up to 4 rows, the extra ones zero, for gram_upper_row's tiles
+      std::vector<T> res((D_ + 3) / 4 * 4 * W_, T(0)), tmp(Wl_), dist(W_), ws(W_),
+          mrow(want_m ? n * msize : 0);
       for (int64_t grp = gb; grp < ge; ++grp) {
         std::fill(mrow.begin(), mrow.end(), T(0));
         for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
@@ -437,14 +439,7 @@ class ImageFilter {
       T* rr = res + d * W_;  // res is scratch now: mask it
       for (int64_t j = 0; j < W_; ++j) rr[j] = lr[j] == id ? rr[j] : T(0);
     }
-    int64_t k = 0;
-    for (int64_t a = 0; a < D_; ++a) {
-      const T* ra = res + a * W_;
-      for (int64_t b = a; b < D_; ++b, ++k) {
-        const T* rb = res + b * W_;
-        m[k] += dot_lanes(ra, rb, W_);
-      }
-    }
+    gram_upper_row(res, D_, W_, m);
   }
 
   // 8. Power iteration u = M v, v = u/|u| from ones/sqrt(D); the largest-variance channel when it

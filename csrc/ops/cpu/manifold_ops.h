@@ -9,6 +9,11 @@
 #include <cstring>
 #include <vector>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#include <xmmintrin.h>
+#endif
+
 namespace torchmanifold {
 namespace cpu {
 
@@ -182,6 +187,116 @@ inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t
     acc[full] += s;
   }
 }
+
+#if defined(__SSE2__)
+// float32 with df a multiple of 4 (the common df = 4, 8, ...): each block is df/4 vectors summed
+// into one, four blocks' vectors are transposed and added, so four block sums take one store.
+// Plain mul/add intrinsics (no FMA contraction): the same bits on every machine and thread split.
+template <bool kDot>
+inline void block_reduce_row_sse(const float* a, const float* b, int64_t w, int64_t df,
+                                 int64_t wl, float* acc) {
+  const int64_t full = w / df;
+  auto block = [&](int64_t bj) {
+    const float* pa = a + bj * df;
+    const float* pb = kDot ? b + bj * df : nullptr;
+    __m128 s = kDot ? _mm_mul_ps(_mm_loadu_ps(pa), _mm_loadu_ps(pb)) : _mm_loadu_ps(pa);
+    for (int64_t k = 4; k < df; k += 4)
+      s = _mm_add_ps(s, kDot ? _mm_mul_ps(_mm_loadu_ps(pa + k), _mm_loadu_ps(pb + k))
+                             : _mm_loadu_ps(pa + k));
+    return s;
+  };
+  int64_t bj = 0;
+  for (; bj + 4 <= full; bj += 4) {
+    __m128 s0 = block(bj), s1 = block(bj + 1), s2 = block(bj + 2), s3 = block(bj + 3);
+    _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
+    const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
+    _mm_storeu_ps(acc + bj, _mm_add_ps(_mm_loadu_ps(acc + bj), sum));
+  }
+  for (; bj < full; ++bj) {
+    alignas(16) float l[4];
+    _mm_store_ps(l, block(bj));
+    acc[bj] += (l[0] + l[1]) + (l[2] + l[3]);
+  }
+  if (full < wl) {
+    float s = 0.0f;
+    for (int64_t j = full * df; j < w; ++j) s += kDot ? a[j] * b[j] : a[j];
+    acc[full] += s;
+  }
+}
+
+inline void block_sum_row(const float* x, int64_t w, int64_t df, int64_t wl, float* acc) {
+  if (df % 4 == 0) return block_reduce_row_sse<false>(x, nullptr, w, df, wl, acc);
+  block_sum_row<float>(x, w, df, wl, acc);
+}
+
+inline void block_dot_row(const float* a, const float* b, int64_t w, int64_t df, int64_t wl,
+                          float* acc) {
+  if (df % 4 == 0) return block_reduce_row_sse<true>(a, b, w, df, wl, acc);
+  block_dot_row<float>(a, b, w, df, wl, acc);
+}
+#endif
+
+// m += the upper triangle (row-major) of sum_j r[:, j] r[:, j]^T for d rows of length w (row
+// stride w), float32 partial sums. res must hold round_up(d, 4) rows, the extra ones zero.
+// Generic: one lane-interleaved dot product per entry.
+template <typename T>
+inline void gram_upper_row(const T* res, int64_t d, int64_t w, T* m) {
+  int64_t k = 0;
+  for (int64_t a = 0; a < d; ++a)
+    for (int64_t b = a; b < d; ++b, ++k) m[k] += dot_lanes(res + a * w, res + b * w, w);
+}
+
+#if defined(__SSE2__)
+// float32: 2 x 4 tiles of entries share their loads (6 vector loads per 8 multiply-adds instead of
+// 16), each entry a 4-lane accumulator reduced in a fixed order; entries below the diagonal that a
+// tile also covers are dropped.
+inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
+  const int64_t dp = (d + 3) / 4 * 4;
+  const int64_t wv = w / 4 * 4;
+  float tile[8];
+  auto hsum = [](__m128 v) {
+    alignas(16) float l[4];
+    _mm_store_ps(l, v);
+    return (l[0] + l[1]) + (l[2] + l[3]);
+  };
+  // tri[a][b] index of the upper-triangle entry
+  auto idx = [d](int64_t a, int64_t b) { return a * d - a * (a - 1) / 2 + (b - a); };
+  for (int64_t a = 0; a < d; a += 2) {
+    const float* ra0 = res + a * w;
+    const float* ra1 = a + 1 < dp ? ra0 + w : ra0;
+    for (int64_t b = a / 4 * 4; b < d; b += 4) {
+      const float* rb = res + b * w;
+      __m128 c00 = _mm_setzero_ps(), c01 = c00, c02 = c00, c03 = c00;
+      __m128 c10 = c00, c11 = c00, c12 = c00, c13 = c00;
+      for (int64_t j = 0; j < wv; j += 4) {
+        const __m128 x0 = _mm_loadu_ps(ra0 + j), x1 = _mm_loadu_ps(ra1 + j);
+        const __m128 y0 = _mm_loadu_ps(rb + j), y1 = _mm_loadu_ps(rb + w + j);
+        const __m128 y2 = _mm_loadu_ps(rb + 2 * w + j), y3 = _mm_loadu_ps(rb + 3 * w + j);
+        c00 = _mm_add_ps(c00, _mm_mul_ps(x0, y0));
+        c01 = _mm_add_ps(c01, _mm_mul_ps(x0, y1));
+        c02 = _mm_add_ps(c02, _mm_mul_ps(x0, y2));
+        c03 = _mm_add_ps(c03, _mm_mul_ps(x0, y3));
+        c10 = _mm_add_ps(c10, _mm_mul_ps(x1, y0));
+        c11 = _mm_add_ps(c11, _mm_mul_ps(x1, y1));
+        c12 = _mm_add_ps(c12, _mm_mul_ps(x1, y2));
+        c13 = _mm_add_ps(c13, _mm_mul_ps(x1, y3));
+      }
+      tile[0] = hsum(c00), tile[1] = hsum(c01), tile[2] = hsum(c02), tile[3] = hsum(c03);
+      tile[4] = hsum(c10), tile[5] = hsum(c11), tile[6] = hsum(c12), tile[7] = hsum(c13);
+      for (int64_t j = wv; j < w; ++j)
+        for (int q = 0; q < 4; ++q) {
+          tile[q] += ra0[j] * rb[q * w + j];
+          tile[4 + q] += ra1[j] * rb[q * w + j];
+        }
+      for (int p = 0; p < 2; ++p)
+        for (int q = 0; q < 4; ++q) {
+          const int64_t aa = a + p, bb = b + q;
+          if (aa < d && bb < d && bb >= aa) m[idx(aa, bb)] += tile[4 * p + q];
+        }
+    }
+  }
+}
+#endif
 
 }  // namespace cpu
 }  // namespace torchmanifold
