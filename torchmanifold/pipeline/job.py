@@ -99,7 +99,8 @@ def write_chart(path: Path, rows: list[dict], title: str = "") -> None:
         axes[1].plot([r[m]["seconds"] for r in rows], ps, style, ms=3, label=m)
     axes[0].set_xscale("log", base=2)
     axes[0].set_xlabel("iteration (samples per pixel per frame)")
-    axes[1].set_xlabel("wall time (s)")
+    axes[1].set_xscale("log")
+    axes[1].set_xlabel("cumulative wall time (s), render + filter")
     for ax in axes:
         ax.set_ylabel("PSNR (dB, clamped sRGB)")
         ax.grid(alpha=0.3)
