@@ -108,7 +108,7 @@ class ImageFilter {
 
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
-    at::parallel_for(0, H_, grain_for(W_ * work_per_row), fn);
+    parallel_work(0, H_, W_ * work_per_row, fn);
   }
 
   // 2., 3., 6.: masks, sanitised samples, the per-channel offset c, the root manifold and gs.
@@ -118,7 +118,7 @@ class ImageFilter {
     eta1_.resize(D_ * N_);
     std::vector<uint8_t> line_ok(D_ * H_, 1);
     const T a = lowpass_coefficient<T>(opt_.sigma_s);
-    at::parallel_for(0, D_ * H_, grain_for(6 * W_), [&](int64_t b, int64_t e) {
+    parallel_work(0, D_ * H_, 6 * W_, [&](int64_t b, int64_t e) {
       for (int64_t line = b; line < e; ++line) {
         const T* src = g_in_ + line * W_;
         T* dst = eta1_.data() + line * W_;
@@ -178,7 +178,7 @@ class ImageFilter {
     std::vector<T> lo(chunks * C_, std::numeric_limits<T>::infinity());
     std::vector<T> hi(chunks * C_, -std::numeric_limits<T>::infinity());
     std::vector<uint8_t> chunk_ok(chunks, 1);
-    at::parallel_for(0, chunks, grain_for(kReduceRows * W_ * C_), [&](int64_t b, int64_t e) {
+    parallel_work(0, chunks, 3 * kReduceRows * W_ * C_, [&](int64_t b, int64_t e) {
       for (int64_t ch = b; ch < e; ++ch) {
         const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
         for (int64_t c = 0; c < C_; ++c) {
@@ -285,7 +285,9 @@ class ImageFilter {
     // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); M = sum r r^T ----
     Scratch<T> P;
     P.assign(n * pnode, T(0));
-    at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
+    const int64_t group_px = bpg_ * df_ * W_ * n;
+    const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0) + (root ? D_ : 0));
+    parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
       // res has D rounded up to 4 rows, the extra ones zero, for gram_upper_row's tiles
       std::vector<T> res((D_ + 3) / 4 * 4 * W_, T(0)), tmp(Wl_), dist(W_), ws(W_),
           mrow(want_m ? n * msize : 0);
@@ -353,7 +355,7 @@ class ImageFilter {
     Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
     if (!leaf) Q.assign(n * 2 * qside, T(0));
-    at::parallel_for(0, groups_, 1, [&](int64_t gb, int64_t ge) {
+    parallel_work(0, groups_, group_px * (4 * (C_ + 1) + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
       std::vector<T> up((C_ + 1) * W_), tmp((C_ + 1) * Wl_), t0(W_), t1(W_);
       std::vector<T> res(leaf ? 0 : D_ * W_);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
