@@ -17,6 +17,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
+
 #: Feature groups by name; the guide of a feature set is made of the groups the scene provides.
 FEATURE_GROUPS = {
     "T": ("T",),
@@ -59,7 +61,7 @@ class FilterParams:
 
     sigma_s: float = 3.0
     sigma_r: float = 0.3
-    a: float = 0.8  # the pipeline's measured default (torchmanifold.pipeline.DEFAULT_ALPHA)
+    a: float = DEFAULT_ALPHA  # the pipeline's measured default
     time_window: int = 1
     tree_height: int = 2
     feature_set: str = "albedo+normal+depth"
