@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-DATA = Path("/work/shared/data/mitsuba/cbox_glossy_tex")
-if not DATA.exists():  # the repository's own copy, if the shared one is not mounted
-    DATA = Path(__file__).resolve().parents[2] / "data" / "mitsuba" / "cbox_glossy_tex"
+# shared/ lies beside the repository (CI's clean clone and a developer's checkout alike).
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "mitsuba" / "cbox_glossy_tex"
+if not DATA.is_dir():
+    DATA = Path("/work/shared/data/mitsuba/cbox_glossy_tex")
 
 
 def make_natural(H, W, seed=0, noise=0.05, dtype=torch.float64):
