@@ -269,6 +269,23 @@ class ImageFilter {
     }
   }
 
+  // proj = v . (gs - eta) at full-res row i, channel by channel without storing the residual
+  // (same operations and order as residual_row then a dot with v). er: W scratch.
+  void projection_row(const T* eta_low, int64_t i, const T* v, T* tmp, T* er_buf, T* proj) const {
+    const int64_t row = i * W_;
+    std::fill(proj, proj + W_, T(0));
+    for (int64_t d = 0; d < D_; ++d) {
+      const T* gr = gs_ + d * N_ + row;
+      const T* er = eta1_.data() + d * N_ + row;
+      if (eta_low) {
+        upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, er_buf);
+        er = er_buf;
+      }
+      const T vd = v[d];
+      for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (gr[j] - er[j]);
+    }
+  }
+
   std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
     const int64_t n = static_cast<int64_t>(level.size());
     const bool root = depth == 0;  // then n == 1 and level[0] is the root
@@ -357,7 +374,7 @@ class ImageFilter {
     if (!leaf) Q.assign(n * 2 * qside, T(0));
     parallel_work(0, groups_, group_px * (4 * (C_ + 1) + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
       std::vector<T> up((C_ + 1) * W_), tmp((C_ + 1) * Wl_), t0(W_), t1(W_);
-      std::vector<T> res(leaf ? 0 : D_ * W_);
+      std::vector<T> res(leaf ? 0 : W_);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t i = i0; i < i1; ++i) {
@@ -373,13 +390,7 @@ class ImageFilter {
             }
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
-            residual_row(eta_src[k], i, tmp.data(), res.data(), nullptr);
-            std::fill(t0.begin(), t0.end(), T(0));
-            for (int64_t d = 0; d < D_; ++d) {
-              const T* rr = res.data() + d * W_;
-              const T vd = v[k][d];
-              for (int64_t j = 0; j < W_; ++j) t0[j] += vd * rr[j];
-            }
+            projection_row(eta_src[k], i, v[k].data(), tmp.data(), res.data(), t0.data());
             const int64_t id = level[k].id;
             int32_t* lr = label_.data() + row;
             for (int64_t j = 0; j < W_; ++j) {
