@@ -404,8 +404,8 @@ class ImageFilter {
             T* q = Q.data() + k * 2 * qside;
             for (int64_t d = 0; d < D_; ++d) {
               const T* gr = gs_ + d * N_ + row;
-              block_dot_row(t0.data(), gr, W_, df_, Wl_, q + d * Nl_ + bi * Wl_);
-              block_dot_row(t1.data(), gr, W_, df_, Wl_, q + qside + d * Nl_ + bi * Wl_);
+              block_dot2_row(t0.data(), t1.data(), gr, W_, df_, Wl_, q + d * Nl_ + bi * Wl_,
+                             q + qside + d * Nl_ + bi * Wl_);
             }
             block_sum_row(t0.data(), W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
             block_sum_row(t1.data(), W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
@@ -506,16 +506,31 @@ class ImageFilter {
 
   // 9., 10. In place: S_ is the output tensor.
   void finish() {
+    // Row by row, branch-free inner loops so they vectorise; same operations per element.
     rows_parallel(C_ + 2, [&](int64_t b, int64_t e) {
-      for (int64_t i = b * W_; i < e * W_; ++i) {
-        const T s0 = S0_[i];
-        const T alpha = opt_.adjust_outliers && mv_[i] ? exp_nonpositive(-minD_[i] * half_inv_r2_)
-                                                       : T(1);
+      std::vector<T> alpha(W_), inv(W_);
+      for (int64_t r = b; r < e; ++r) {
+        const int64_t row = r * W_;
+        const T* s0 = S0_.data() + row;
+        if (opt_.adjust_outliers) {
+          const T* md = minD_.data() + row;
+          const uint8_t* mv = mv_.data() + row;
+          for (int64_t j = 0; j < W_; ++j) {
+            const T x = exp_nonpositive(-md[j] * half_inv_r2_);
+            alpha[j] = mv[j] ? x : T(1);
+          }
+        }
         for (int64_t c = 0; c < C_; ++c) {
-          const T fs = f_s_[c * N_ + i];
-          T g = s0 > T(0) ? c_[c] + S_[c * N_ + i] / s0 : fs;
-          if (opt_.adjust_outliers) g = fs + alpha * (g - fs);
-          S_[c * N_ + i] = g;
+          const T* fs = f_s_ + c * N_ + row;
+          T* out = S_ + c * N_ + row;
+          const T cc = c_[c];
+          for (int64_t j = 0; j < W_; ++j) {
+            const T ok = s0[j] > T(0) ? s0[j] : T(1);  // no 0/0 in the unused lane
+            T g = s0[j] > T(0) ? cc + out[j] / ok : fs[j];
+            out[j] = g;
+          }
+          if (opt_.adjust_outliers)
+            for (int64_t j = 0; j < W_; ++j) out[j] = fs[j] + alpha[j] * (out[j] - fs[j]);
         }
       }
     });

@@ -316,5 +316,53 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
 }
 #endif
 
+// acc0 += block sums of a0 * b and acc1 += those of a1 * b: b read once.
+template <typename T>
+inline void block_dot2_row(const T* a0, const T* a1, const T* b, int64_t w, int64_t df,
+                           int64_t wl, T* acc0, T* acc1) {
+  block_dot_row(a0, b, w, df, wl, acc0);
+  block_dot_row(a1, b, w, df, wl, acc1);
+}
+
+#if defined(__SSE2__)
+inline void block_dot2_row(const float* a0, const float* a1, const float* b, int64_t w,
+                           int64_t df, int64_t wl, float* acc0, float* acc1) {
+  if (df != 4) {
+    block_dot_row(a0, b, w, df, wl, acc0);
+    block_dot_row(a1, b, w, df, wl, acc1);
+    return;
+  }
+  // Same operations as block_reduce_row_sse<true> for each output.
+  const int64_t full = w / 4;
+  int64_t bj = 0;
+  for (; bj + 4 <= full; bj += 4) {
+    const float* pb = b + bj * 4;
+    const __m128 y0 = _mm_loadu_ps(pb), y1 = _mm_loadu_ps(pb + 4);
+    const __m128 y2 = _mm_loadu_ps(pb + 8), y3 = _mm_loadu_ps(pb + 12);
+    {
+      const float* pa = a0 + bj * 4;
+      __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
+      __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
+      _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
+      const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
+      _mm_storeu_ps(acc0 + bj, _mm_add_ps(_mm_loadu_ps(acc0 + bj), sum));
+    }
+    {
+      const float* pa = a1 + bj * 4;
+      __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
+      __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
+      _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
+      const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
+      _mm_storeu_ps(acc1 + bj, _mm_add_ps(_mm_loadu_ps(acc1 + bj), sum));
+    }
+  }
+  if (bj < wl) {  // the last few blocks, partial one included
+    const int64_t j0 = bj * 4;
+    block_dot_row(a0 + j0, b + j0, w - j0, int64_t(4), wl - bj, acc0 + bj);
+    block_dot_row(a1 + j0, b + j0, w - j0, int64_t(4), wl - bj, acc1 + bj);
+  }
+}
+#endif
+
 }  // namespace cpu
 }  // namespace torchmanifold
