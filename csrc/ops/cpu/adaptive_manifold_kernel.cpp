@@ -247,11 +247,24 @@ class ImageFilter {
   // Residual r = gs - eta at full-res row i into res (D, W), and dist += |r|^2 when dist is
   // given; eta_low is the low-res manifold (upsampled through tmp) or, for the root, null (eta_1
   // at full res). One channel at a time so the row stays in L1.
-  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist) const {
+  // keep = false: only dist is wanted, res is a one-row scratch and r is not stored.
+  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist, bool keep = true) const {
     const int64_t row = i * W_;
     for (int64_t d = 0; d < D_; ++d) {
       const T* gr = gs_ + d * N_ + row;
-      T* rr = res + d * W_;
+      T* rr = keep ? res + d * W_ : res;
+      if (dist && !keep) {
+        const T* er = eta1_.data() + d * N_ + row;
+        if (eta_low) {
+          upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
+          er = rr;
+        }
+        for (int64_t j = 0; j < W_; ++j) {
+          const T r = gr[j] - er[j];
+          dist[j] += r * r;
+        }
+        continue;
+      }
       const T* er = eta1_.data() + d * N_ + row;
       if (eta_low) {
         upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
@@ -320,7 +333,7 @@ class ImageFilter {
                               level[0].eta.data() + d * Nl_ + bi * Wl_);
             for (int64_t k = 0; k < n; ++k) {
               std::fill(dist.begin(), dist.end(), T(0));
-              residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data());
+              residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data(), want_m);
               T* wr = w_.data() + k * N_ + row;
               const uint8_t* sr = ms_.data() + row;
               for (int64_t j = 0; j < W_; ++j) {
