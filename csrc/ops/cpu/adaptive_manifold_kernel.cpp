@@ -122,12 +122,23 @@ class ImageFilter {
       for (int64_t line = b; line < e; ++line) {
         const T* src = g_in_ + line * W_;
         T* dst = eta1_.data() + line * W_;
-        T bad = T(0);  // x - x is 0 for finite x, NaN otherwise; branch-free so it vectorises
-        for (int64_t j = 0; j < W_; ++j) {
+        // x - x is 0 for finite x, NaN otherwise; 8 independent lanes so it vectorises (one
+        // in-order sum would be a serial chain of adds).
+        constexpr int L = 8;
+        T bad[L] = {};
+        int64_t j = 0;
+        for (; j + L <= W_; j += L)
+          for (int l = 0; l < L; ++l) {
+            dst[j + l] = src[j + l];
+            bad[l] += src[j + l] - src[j + l];
+          }
+        for (; j < W_; ++j) {
           dst[j] = src[j];
-          bad += src[j] - src[j];
+          bad[0] += src[j] - src[j];
         }
-        line_ok[line] = bad == T(0);
+        bool ok = true;
+        for (int l = 0; l < L; ++l) ok = ok && bad[l] == T(0);
+        line_ok[line] = ok;
       }
       // The row pass of h while the lines are in cache (used only if the guide is finite).
       if (W_ > 1)
