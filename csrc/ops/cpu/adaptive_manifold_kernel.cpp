@@ -194,8 +194,13 @@ class ImageFilter {
         const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
         for (int64_t c = 0; c < C_; ++c) {
           const T* x = f_in_ + c * N_;
+          T bad[8] = {};  // x - x: 0 when finite; lanes so it vectorises
+          int64_t i = p0;
+          for (; i + 8 <= p1; i += 8)
+            for (int l = 0; l < 8; ++l) bad[l] += x[i + l] - x[i + l];
+          for (; i < p1; ++i) bad[0] += x[i] - x[i];
           bool ok = true;
-          for (int64_t i = p0; i < p1; ++i) ok = ok && std::isfinite(x[i]);
+          for (int l = 0; l < 8; ++l) ok = ok && bad[l] == T(0);
           if (!ok) {
             chunk_ok[ch] = 0;
             for (int64_t i = p0; i < p1; ++i)
@@ -206,7 +211,18 @@ class ImageFilter {
           const T* x = f_in_ + c * N_;
           T l = lo[ch * C_ + c], h = hi[ch * C_ + c];
           if (chunk_ok[ch] && all_g_) {
-            for (int64_t i = p0; i < p1; ++i) l = std::min(l, x[i]), h = std::max(h, x[i]);
+            // 8 lanes (min/max are exact in any order); x < l ? x : l keeps NaN-free data exact
+            T ll[8], hh[8];
+            for (int q = 0; q < 8; ++q) ll[q] = l, hh[q] = h;
+            int64_t i = p0;
+            for (; i + 8 <= p1; i += 8)
+              for (int q = 0; q < 8; ++q) {
+                const T y = x[i + q];
+                ll[q] = y < ll[q] ? y : ll[q];
+                hh[q] = y > hh[q] ? y : hh[q];
+              }
+            for (; i < p1; ++i) l = std::min(l, x[i]), h = std::max(h, x[i]);
+            for (int q = 0; q < 8; ++q) l = std::min(l, ll[q]), h = std::max(h, hh[q]);
           } else {
             for (int64_t i = p0; i < p1; ++i)
               if (mg_[i] && mv_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
