@@ -363,11 +363,9 @@ class ImageFilter {
               residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data(), want_m);
               T* wr = w_.data() + k * N_ + row;
               const uint8_t* sr = ms_.data() + row;
-              for (int64_t j = 0; j < W_; ++j) {
-                const T w = exp_nonpositive(-dist[j] * inv_r2_);
-                wr[j] = w;
-                ws[j] = sr[j] ? w : T(0);
-              }
+              // two plain loops: the exp vectorises only without the mask beside it
+              for (int64_t j = 0; j < W_; ++j) wr[j] = exp_nonpositive(-dist[j] * inv_r2_);
+              for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
               if (opt_.adjust_outliers) {
                 T* mr = minD_.data() + row;
                 for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
@@ -488,9 +486,12 @@ class ImageFilter {
   // it, and here a float32 r is squared in float32 per row, then summed in double.
   void accumulate_m(int64_t id, int64_t row, T* res, T* m) const {
     const int32_t* lr = label_.data() + row;
-    for (int64_t d = 0; d < D_; ++d) {
+    const int32_t id32 = static_cast<int32_t>(id);
+    int32_t out = 0;  // pixels of the row outside the cluster (none at the root, usually)
+    for (int64_t j = 0; j < W_; ++j) out += lr[j] != id32;
+    for (int64_t d = 0; d < D_ && out > 0; ++d) {
       T* rr = res + d * W_;  // res is scratch now: mask it
-      for (int64_t j = 0; j < W_; ++j) rr[j] = lr[j] == id ? rr[j] : T(0);
+      for (int64_t j = 0; j < W_; ++j) rr[j] = lr[j] == id32 ? rr[j] : T(0);
     }
     gram_upper_row(res, D_, W_, m);
   }
