@@ -36,6 +36,7 @@ from torchmanifold.ops._reference import (
     downsample,
     downsample_factor,
     recursive_lowpass,
+    s0_floor,
     upsample,
 )
 from torchmanifold.ops.adaptive_manifold import (
@@ -169,7 +170,7 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         eta_full = upsample(eta_low, df, (H, W))
         label = 2 * label + torch.gather(positive, 0, label.unsqueeze(0)).squeeze(0).long()
 
-    ok = S0 > 0
+    ok = S0 > s0_floor(wd)
     out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), fb)
     if adjust_outliers:
         alpha = torch.exp(min_d * (-0.5 * inv_r2))

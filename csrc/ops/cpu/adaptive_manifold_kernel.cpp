@@ -10,7 +10,7 @@
 //     chunks, combined in order, so it is independent of the thread count);
 //   pass B (slice + split): S += w up(blur P), S0 += w up(blur P0); for internal nodes the
 //     cluster label, theta = 1 - w and the masked area sums that build both children.
-// Output S / S0 (input where S0 == 0), optionally pulled towards the input by alpha.
+// Output S / S0 (input where S0 <= tiny/eps), optionally pulled towards the input by alpha.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -549,6 +549,9 @@ class ImageFilter {
   void finish() {
     // Row by row, branch-free inner loops so they vectorise; same operations per element.
     // work per pixel: an exp (~20 operations) and a division per channel (~12)
+    // Below tiny/eps, S and S0 are sums of subnormal terms with absolute rounding: their ratio is
+    // no longer a weighted mean of the samples, so such pixels keep the input (as where S0 == 0).
+    const T s0_floor = std::numeric_limits<T>::min() / std::numeric_limits<T>::epsilon();
     rows_parallel(20 + 12 * C_, [&](int64_t b, int64_t e) {
       std::vector<T> alpha(W_);
       for (int64_t r = b; r < e; ++r) {
@@ -567,8 +570,8 @@ class ImageFilter {
           T* out = S_ + c * N_ + row;
           const T cc = c_[c];
           for (int64_t j = 0; j < W_; ++j) {
-            const T ok = s0[j] > T(0) ? s0[j] : T(1);  // no 0/0 in the unused lane
-            T g = s0[j] > T(0) ? cc + out[j] / ok : fs[j];
+            const T ok = s0[j] > s0_floor ? s0[j] : T(1);  // no 0/0 in the unused lane
+            T g = s0[j] > s0_floor ? cc + out[j] / ok : fs[j];
             out[j] = g;
           }
           if (opt_.adjust_outliers)
