@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import make_natural, psnr
+from _ops_inputs import make_natural, psnr
 from torchmanifold.ops import adaptive_manifold_filter, automatic_tree_height, bilateral_brute_force
 from torchmanifold.ops._reference import _dominant_direction
 

@@ -4,9 +4,8 @@ import math
 import shutil
 
 import numpy as np
-import pytest
 
-from conftest import DATA
+from _pipeline_data import DATA
 from torchmanifold.cli import main
 from torchmanifold.io import read_exr, write_exr
 

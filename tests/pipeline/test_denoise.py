@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from conftest import FEATURES, load_clip
+from _pipeline_data import FEATURES, load_clip
 from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
 from torchmanifold.pipeline.denoise import default_guide_sigmas
