@@ -163,3 +163,25 @@ def test_constant_per_image_and_channel():
     v[1] *= 7.0
     g = torch.rand(2, 6, 15, 16)
     assert torch.equal(adaptive_manifold_torch(v, g, 5.0, 0.2, 4, 10, True), v)
+
+
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+@pytest.mark.parametrize("sigma_r", [0.3, 0.1])
+def test_underflowing_weights_stay_in_the_samples_range(backend, sigma_r):
+    # A real 1-spp frame filtered as irradiance with a sharp guide: many pixels lie so far from every
+    # manifold that S and S0 are subnormal. Their ratio must not leave the range of the samples
+    # (before the S0 floor, float32 gave -18 from samples in [0, 79]).
+    from _ops_inputs import DATA
+    from torchmanifold.io import read_exr
+
+    d = read_exr(DATA / "frame_0006.exr")
+    stack = lambda names: torch.stack([torch.from_numpy(d[n]) for n in names])[None]  # noqa: E731
+    albedo = stack(["albedo.R", "albedo.G", "albedo.B"])
+    values = stack(["R", "G", "B"]) / albedo.clamp_min(1e-3)
+    guide = torch.cat([albedo / 0.1, stack(["N.X", "N.Y", "N.Z"]) / 0.3, stack(["P.X", "P.Y", "P.Z"]) / 0.05], 1)
+    for dtype in (torch.float32, torch.float64):
+        out = adaptive_manifold_filter(values.to(dtype), guide.to(dtype), 5.0, sigma_r, backend=backend)
+        lo, hi = values.amin((2, 3), keepdim=True), values.amax((2, 3), keepdim=True)
+        slack = 1e-5 * (hi - lo)
+        assert torch.isfinite(out).all()
+        assert (out.double() >= lo - slack).all() and (out.double() <= hi + slack).all(), dtype
