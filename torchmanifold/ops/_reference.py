@@ -66,7 +66,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = ["adaptive_manifold_torch", "downsample_factor", "downsample", "upsample", "recursive_lowpass",
-           "s0_floor"]
+           "root_manifold", "s0_floor"]
 
 
 def s0_floor(dtype: torch.dtype) -> float:
@@ -160,6 +160,23 @@ def _dominant_direction(M: Tensor, iterations: int) -> Tensor:
     return torch.where(collapsed.unsqueeze(-1), fallback, v)
 
 
+
+def root_manifold(g0: Tensor, valid: Tensor, sigma_s: float) -> tuple[Tensor, Tensor]:
+    """Step 6: eta_1 = h(valid * g0) / h(valid) and the guide with invalid pixels put on it.
+
+    g0 (B, D, H, W) sanitised guide, valid (B, H, W) bool. Returns (eta_1, gs), both (B, D, H, W).
+    """
+    if bool(valid.all()):  # h(1) == 1 exactly, so the all-valid case skips the denominator
+        eta1 = recursive_lowpass(g0, sigma_s)
+    else:
+        vf = valid.to(g0.dtype).unsqueeze(1)
+        rt = recursive_lowpass(torch.cat([g0 * vf, vf], 1), sigma_s)
+        D = g0.shape[1]
+        den = rt[:, D:]
+        eta1 = torch.where(den > 0, rt[:, :D] / torch.where(den > 0, den, 1.0), 0.0)
+    return eta1, torch.where(valid.unsqueeze(1), g0, eta1)
+
+
 def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
                             tree_height: int, power_iterations: int, adjust_outliers: bool) -> Tensor:
     """Adaptive-manifold filter in pure PyTorch (any device), same contract as the C++ op.
@@ -207,15 +224,8 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
         c = c[:, :, None, None]
     fp = (f_s - c) * ms.unsqueeze(1)
 
-    # 6. root manifold (h(1) == 1 exactly, so the all-valid case skips the denominator)
-    if bool(mg.all()):
-        eta1 = recursive_lowpass(g0, sigma_s)
-    else:
-        mgf = mg.to(wd).unsqueeze(1)
-        rt = recursive_lowpass(torch.cat([g0 * mgf, mgf], 1), sigma_s)
-        den = rt[:, Dg:]
-        eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
-    gs = torch.where(mg.unsqueeze(1), g0, eta1)
+    # 6. root manifold
+    eta1, gs = root_manifold(g0, mg, sigma_s)
 
     S = torch.zeros_like(fp)
     S0 = torch.zeros((B, 1, H, W), dtype=wd, device=f.device)

@@ -36,6 +36,7 @@ from torchmanifold.ops._reference import (
     downsample,
     downsample_factor,
     recursive_lowpass,
+    root_manifold,
     s0_floor,
     upsample,
 )
@@ -110,14 +111,7 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
     fb = torch.where(wsum > 0, (wv * f_s).sum(1) / torch.where(wsum > 0, wsum, 1.0), zero)
     has_sample = (wsum > 0).all(1)  # (B,H,W)
 
-    if bool(mq.all()):
-        eta1 = recursive_lowpass(q0, sigma_s)
-    else:
-        mqf = mq.to(wd).unsqueeze(1)
-        rt = recursive_lowpass(torch.cat([q0 * mqf, mqf], 1), sigma_s)
-        den = rt[:, Dg:]
-        eta1 = torch.where(den > 0, rt[:, :Dg] / torch.where(den > 0, den, 1.0), 0.0)
-    gs = torch.where(mq.unsqueeze(1), q0, eta1)
+    eta1, gs = root_manifold(q0, mq, sigma_s)
 
     S = torch.zeros((B, C, H, W), dtype=wd, device=dev)
     S0 = torch.zeros((B, 1, H, W), dtype=wd, device=dev)
