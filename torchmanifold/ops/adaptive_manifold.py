@@ -56,6 +56,15 @@ def _check_sigma(name: str, value) -> float:
     return value
 
 
+def _check_dtype_device(values: Tensor, guide: Tensor) -> None:
+    if values.dtype not in _FLOATS:
+        raise TypeError(f"values must be float16, bfloat16, float32 or float64, got {values.dtype}")
+    if guide.dtype != values.dtype:
+        raise ValueError(f"guide must have the dtype of values ({values.dtype}), got {guide.dtype}")
+    if guide.device != values.device:
+        raise ValueError(f"guide must be on the device of values ({values.device}), got {guide.device}")
+
+
 def _check_int(name: str, value, minimum: int) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise TypeError(f"{name} must be an int >= {minimum}, got {type(value).__name__}")
@@ -153,12 +162,7 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
     if values.shape[2] < 1 or values.shape[3] < 1 or guide.shape[1] < 1:
         raise ValueError(f"H, W and the guide channels D must be >= 1, got values {tuple(values.shape)}, "
                          f"guide {tuple(guide.shape)}")
-    if values.dtype not in _FLOATS:
-        raise TypeError(f"values must be float16, bfloat16, float32 or float64, got {values.dtype}")
-    if guide.dtype != values.dtype:
-        raise ValueError(f"guide must have the dtype of values ({values.dtype}), got {guide.dtype}")
-    if guide.device != values.device:
-        raise ValueError(f"guide must be on the device of values ({values.device}), got {guide.device}")
+    _check_dtype_device(values, guide)
     sigma_s = _check_sigma("sigma_s", sigma_s)
     sigma_r = _check_sigma("sigma_r", sigma_r)
     if tree_height is None:

@@ -42,7 +42,7 @@ from torchmanifold.ops._reference import (
 )
 from torchmanifold.ops.adaptive_manifold import (
     _BACKENDS,
-    _FLOATS,
+    _check_dtype_device,
     _check_int,
     _check_sigma,
     _guide_scales,
@@ -259,12 +259,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         raise ValueError(f"guide must be (B, T, D, H, W), got shape {tuple(guide.shape)}")
     if values.shape[:2] != guide.shape[:2] or values.shape[3:] != guide.shape[3:]:
         raise ValueError(f"values {tuple(values.shape)} and guide {tuple(guide.shape)} must share B, T, H, W")
-    if values.dtype not in _FLOATS:
-        raise TypeError(f"values must be float16, bfloat16, float32 or float64, got {values.dtype}")
-    if guide.dtype != values.dtype:
-        raise ValueError(f"guide must have the dtype of values ({values.dtype}), got {guide.dtype}")
-    if guide.device != values.device:
-        raise ValueError(f"guide must be on the device of values ({values.device}), got {guide.device}")
+    _check_dtype_device(values, guide)
     ft = _times("frame_times", frame_times, values.device)
     qt = _times("query_times", query_times, values.device)
     if ft.numel() != values.shape[1]:
