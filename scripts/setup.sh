@@ -16,19 +16,27 @@ if [ -n "$missing" ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends $missing >/dev/null
 fi
 
+# pip, without the index's "Location ... is ignored" noise; its real output (and errors) still shows.
+pip_quiet() {
+  local log; log=$(mktemp)
+  if ! .venv/bin/python -m pip "$@" >"$log" 2>&1; then grep -v "is ignored: it is neither" "$log"; rm -f "$log"; return 1; fi
+  grep -v -e "is ignored: it is neither" -e "^ *$" "$log" || true
+  rm -f "$log"
+}
+
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 stamp=.venv/.requirements.sha
 want=$(cat requirements.txt | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "[setup] installing Python dependencies into .venv"
-  .venv/bin/python -m pip install -q --upgrade pip setuptools wheel ninja
+  pip_quiet install -q --upgrade pip setuptools wheel ninja
   # torch first and pinned, so nothing later pulls a multi-GB CUDA build.
-  .venv/bin/python -m pip install -q torch==2.13.0
-  .venv/bin/python -m pip install -q -r requirements.txt
+  pip_quiet install -q torch==2.13.0
+  pip_quiet install -q -r requirements.txt
   echo "$want" > "$stamp"
 fi
 
 # The C++ extension; ninja keeps rebuilds incremental. No build isolation: build against the venv's torch.
 echo "[setup] building torchmanifold._C"
-.venv/bin/python -m pip install -q --no-build-isolation --no-deps -e . 
+pip_quiet install -q --no-build-isolation --no-deps -e .
