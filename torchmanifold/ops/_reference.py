@@ -66,7 +66,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = ["adaptive_manifold_torch", "downsample_factor", "downsample", "upsample", "recursive_lowpass",
-           "root_manifold", "s0_floor"]
+           "normalise", "root_manifold", "s0_floor"]
 
 
 def s0_floor(dtype: torch.dtype) -> float:
@@ -177,6 +177,23 @@ def root_manifold(g0: Tensor, valid: Tensor, sigma_s: float) -> tuple[Tensor, Te
     return eta1, torch.where(valid.unsqueeze(1), g0, eta1)
 
 
+
+def normalise(S: Tensor, S0: Tensor, c: Tensor, fallback: Tensor, min_d: Tensor, valid: Tensor,
+              inv_r2: float, adjust_outliers: bool) -> Tensor:
+    """Steps 9-10: out = c + S / S0 where S0 is above :func:`s0_floor`, else ``fallback``; then the
+    optional outlier pull towards ``fallback`` (alpha = 1 where ``valid`` is False).
+
+    S (B, C, H, W), S0 (B, 1, H, W), c broadcastable to S, fallback (B, C, H, W), min_d and valid (B, H, W).
+    """
+    ok = S0 > s0_floor(S0.dtype)
+    out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), fallback)
+    if adjust_outliers:
+        alpha = torch.exp(min_d * (-0.5 * inv_r2))
+        alpha = torch.where(valid, alpha, 1.0).unsqueeze(1)
+        out = fallback + alpha * (out - fallback)
+    return out
+
+
 def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
                             tree_height: int, power_iterations: int, adjust_outliers: bool) -> Tensor:
     """Adaptive-manifold filter in pure PyTorch (any device), same contract as the C++ op.
@@ -277,10 +294,4 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
         pick = torch.gather(positive, 0, label.unsqueeze(0)).squeeze(0)
         label = 2 * label + pick.long()
 
-    ok = S0 > s0_floor(wd)
-    out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), f_s)
-    if adjust_outliers:
-        alpha = torch.exp(min_d * (-0.5 * inv_r2))
-        alpha = torch.where(mv, alpha, 1.0).unsqueeze(1)
-        out = f_s + alpha * (out - f_s)
-    return out.to(out_dtype)
+    return normalise(S, S0, c, f_s, min_d, mv, inv_r2, adjust_outliers).to(out_dtype)

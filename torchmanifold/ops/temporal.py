@@ -35,9 +35,9 @@ from torchmanifold.ops._reference import (
     _dominant_direction,
     downsample,
     downsample_factor,
+    normalise,
     recursive_lowpass,
     root_manifold,
-    s0_floor,
     upsample,
 )
 from torchmanifold.ops.adaptive_manifold import (
@@ -164,13 +164,7 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         eta_full = upsample(eta_low, df, (H, W))
         label = 2 * label + torch.gather(positive, 0, label.unsqueeze(0)).squeeze(0).long()
 
-    ok = S0 > s0_floor(wd)
-    out = torch.where(ok, c + S / torch.where(ok, S0, 1.0), fb)
-    if adjust_outliers:
-        alpha = torch.exp(min_d * (-0.5 * inv_r2))
-        alpha = torch.where(has_sample, alpha, 1.0).unsqueeze(1)
-        out = fb + alpha * (out - fb)
-    return out.to(out_dtype)
+    return normalise(S, S0, c, fb, min_d, has_sample, inv_r2, adjust_outliers).to(out_dtype)
 
 
 def _times(name: str, times, device) -> Tensor:
