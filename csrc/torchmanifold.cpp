@@ -23,6 +23,14 @@ std::string build_info() {
 #else
   info += "0";
 #endif
+  // the instruction set the kernel was compiled for (setup.py: -march, TORCHMANIFOLD_MARCH)
+#if defined(__AVX2__) && defined(__FMA__)
+  info += ";isa=avx2+fma";
+#elif defined(__SSE2__)
+  info += ";isa=sse2";
+#else
+  info += ";isa=generic";
+#endif
   info += ";parallel=" + at::get_parallel_info();
   return info;
 }

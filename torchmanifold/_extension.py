@@ -17,7 +17,12 @@ except ImportError as exc:  # pragma: no cover - exercised only on a broken inst
 
 
 def build_info() -> dict:
-    """How the extension was built: ``{"openmp": bool, "parallel": str}``."""
+    """How the extension was built: ``{"openmp": bool, "isa": str, "parallel": str}``.
+
+    ``isa`` is the instruction set the CPU kernel was compiled for (``avx2+fma``, ``sse2`` or
+    ``generic``; see ``TORCHMANIFOLD_MARCH`` in setup.py), ``parallel`` ATen's parallel settings.
+    """
     raw = torch.ops.torchmanifold._build_info()
-    fields = dict(item.split("=", 1) for item in raw.split(";", 1))
-    return {"openmp": fields["openmp"] == "1", "parallel": fields["parallel"]}
+    # the last field (ATen's description) may itself contain ';'
+    fields = dict(item.split("=", 1) for item in raw.split(";", 2))
+    return {"openmp": fields["openmp"] == "1", "isa": fields["isa"], "parallel": fields["parallel"]}

@@ -1,8 +1,10 @@
 """Pure-PyTorch Adaptive Manifolds filter: the reference the C++ kernel must match, and the fallback.
 
 NOTE FOR THE C++ KERNEL (A2): every numbered choice below is fixed. If one changes, this note says so.
-(v1, first version; no change to the algorithm since. Only the public API's default ``power_iterations``
-went from 10 to 32, see step 8; the op's arguments are unchanged.)
+(v2. v1 -> v2: the root manifold is built on the low-res grid like every other manifold (step 6), which
+removes the only full-resolution D-channel intermediate; PSNR against brute force is equal or up to
+0.07 dB higher on every accuracy case. The public API's default ``power_iterations`` went from 10 to 32,
+see step 8; the op's arguments are unchanged.)
 
 Algorithm (Gastal & Oliveira 2012, see docs/adaptive-manifolds.md), per image, tree height H,
 values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
@@ -19,16 +21,18 @@ values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
     [0, size - 1] (PyTorch ``interpolate(scale_factor=df, align_corners=False)`` then crop).
  5. h(x; s): a = exp(-sqrt(2) / s); rows forward y[j] = x[j] + a (y[j-1] - x[j]), y[0] = x[0];
     rows backward y[j] += a (y[j+1] - y[j]); then columns forward and backward the same way.
- 6. Root manifold (full res): eta_1 = h(mg * g0; sigma_s) / h(mg; sigma_s) (== h(g) when every
-    pixel is valid, as h reproduces constants exactly); 0 where the denominator is 0. The sanitised
-    guide is ``gs = g0`` where mg, else ``eta_1`` (an invalid guide sits on the root manifold).
+ 6. Root manifold (low res, like the others): eta_1 = h(down(mg * g0); s') / h(down(mg); s') with
+    s' = sigma_s / df (== h(down(g); s') when every pixel is valid, as h reproduces constants exactly);
+    0 where the denominator is 0. The sanitised guide is ``gs = g0`` where mg, else ``up(eta_1)`` (an
+    invalid guide sits on the root manifold). The paper builds eta_1 at full resolution; its
+    sigma_s-wide low-pass keeps nothing the df-times coarser grid cannot hold, and the full-res version
+    costs a D x H x W buffer that is written once and read three times.
  7. Tree built breadth first, one level at a time, all nodes of a level batched; K = 2**H - 1.
-    For every alive node k with manifold eta_k (root: eta_1 at full res; others at low res,
-    up() to full res):
+    For every alive node k with manifold eta_k (low res, up() to full res):
       D = |gs - eta_k(x)|^2, w = exp(-D / sigma_r^2) (1/sigma_r^2 clamped to the dtype max).
       splat  P = down(ms * w * f'), P0 = down(ms * w)
       blur   P and P0 with the domain-transform recursive filter on the low-res grid, steered by
-             E = eta_k at low res (root: down(eta_1)), s' = sigma_s / df, r' = sigma_r / sqrt(2):
+             E = eta_k at low res, s' = sigma_s / df, r' = sigma_r / sqrt(2):
              between horizontal neighbours j, j+1: a = exp(-sqrt(2)/s' * sqrt(1 + (s'/r')^2 |E[j+1]-E[j]|^2))
              ((s'/r')^2 clamped to the dtype max), forward y[j] += a[j-1](y[j-1]-y[j]), backward
              y[j] += a[j](y[j+1]-y[j]); then columns the same with vertical differences of E.
@@ -43,7 +47,7 @@ values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
     residual direction of an RGB guide is often red minus blue, orthogonal to ones) and cost several dB,
     hence the API default of 32 steps. cluster- = {v.r < 0}, cluster+ = {v.r >= 0}; children of node k are 2k (-) and 2k+1 (+).
     theta = 1 - w. Child: T = 1_cluster * theta; num = h(down(T * gs); s'), den = h(down(T); s');
-    eta_child = num / den where den > 0, else the parent manifold at low res (down(eta_1) for the root).
+    eta_child = num / den where den > 0, else the parent manifold at low res.
     A child is pruned (never splats/slices, no children) if sum(T) == 0 over the image or its parent is
     pruned.
  9. out = c + S / S0 where S0 > s0_floor = tiny / eps of the working dtype (about 1e-31 in float32),
@@ -161,21 +165,25 @@ def _dominant_direction(M: Tensor, iterations: int) -> Tensor:
 
 
 
-def root_manifold(g0: Tensor, valid: Tensor, sigma_s: float) -> tuple[Tensor, Tensor]:
-    """Step 6: eta_1 = h(valid * g0) / h(valid) and the guide with invalid pixels put on it.
+def root_manifold(g0: Tensor, valid: Tensor, sigma_s: float, df: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Step 6: eta_1 = h(down(valid * g0)) / h(down(valid)) on the low-res grid, its upsampling and the
+    guide with invalid pixels put on it.
 
-    g0 (B, D, H, W) sanitised guide, valid (B, H, W) bool. Returns (eta_1, gs), both (B, D, H, W).
+    g0 (B, D, H, W) sanitised guide, valid (B, H, W) bool. Returns (eta_1 low-res (B, D, h, w),
+    eta_1 upsampled (B, D, H, W), gs (B, D, H, W)).
     """
+    H, W = g0.shape[-2:]
+    s_low = sigma_s / df
     if bool(valid.all()):  # h(1) == 1 exactly, so the all-valid case skips the denominator
-        eta1 = recursive_lowpass(g0, sigma_s)
+        eta_low = recursive_lowpass(downsample(g0, df), s_low)
     else:
         vf = valid.to(g0.dtype).unsqueeze(1)
-        rt = recursive_lowpass(torch.cat([g0 * vf, vf], 1), sigma_s)
+        rt = recursive_lowpass(downsample(torch.cat([g0 * vf, vf], 1), df), s_low)
         D = g0.shape[1]
         den = rt[:, D:]
-        eta1 = torch.where(den > 0, rt[:, :D] / torch.where(den > 0, den, 1.0), 0.0)
-    return eta1, torch.where(valid.unsqueeze(1), g0, eta1)
-
+        eta_low = torch.where(den > 0, rt[:, :D] / torch.where(den > 0, den, 1.0), 0.0)
+    eta_full = upsample(eta_low, df, (H, W))
+    return eta_low, eta_full, torch.where(valid.unsqueeze(1), g0, eta_full)
 
 
 def normalise(S: Tensor, S0: Tensor, c: Tensor, fallback: Tensor, min_d: Tensor, valid: Tensor,
@@ -242,15 +250,14 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
     fp = (f_s - c) * ms.unsqueeze(1)
 
     # 6. root manifold
-    eta1, gs = root_manifold(g0, mg, sigma_s)
+    eta_low, eta_full, gs = root_manifold(g0, mg, sigma_s, df)
 
     S = torch.zeros_like(fp)
     S0 = torch.zeros((B, 1, H, W), dtype=wd, device=f.device)
     min_d = torch.full((B, H, W), math.inf, dtype=wd, device=f.device)
 
     # level state: eta_low (n,B,D,h,w), eta_full (n,B,D,H,W), alive (n,B), label (B,H,W)
-    eta_low = downsample(eta1, df).unsqueeze(0)
-    eta_full = eta1.unsqueeze(0)
+    eta_low, eta_full = eta_low.unsqueeze(0), eta_full.unsqueeze(0)
     alive = torch.ones((1, B), dtype=torch.bool, device=f.device)
     label = torch.zeros((B, H, W), dtype=torch.long, device=f.device)
 

@@ -111,13 +111,12 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
     fb = torch.where(wsum > 0, (wv * f_s).sum(1) / torch.where(wsum > 0, wsum, 1.0), zero)
     has_sample = (wsum > 0).all(1)  # (B,H,W)
 
-    eta1, gs = root_manifold(q0, mq, sigma_s)
+    eta_low, eta_full, gs = root_manifold(q0, mq, sigma_s, df)
 
     S = torch.zeros((B, C, H, W), dtype=wd, device=dev)
     S0 = torch.zeros((B, 1, H, W), dtype=wd, device=dev)
     min_d = torch.full((B, H, W), math.inf, dtype=wd, device=dev)
-    eta_low = downsample(eta1, df).unsqueeze(0)
-    eta_full = eta1.unsqueeze(0)
+    eta_low, eta_full = eta_low.unsqueeze(0), eta_full.unsqueeze(0)
     alive = torch.ones((1, B), dtype=torch.bool, device=dev)
     label = torch.zeros((B, H, W), dtype=torch.long, device=dev)
     frames = [t for t in range(T) if float(tau[t]) > 0]

@@ -1,9 +1,10 @@
 // CPU kernel of torchmanifold::adaptive_manifold (Gastal & Oliveira 2012), planar (B,C,H,W).
 //
-// Per image, the manifold tree is walked depth first (pre-order: k, 2k, 2k+1). For every node two
-// fused full-resolution passes run, both split over low-resolution block rows so that each task
-// owns the low-res accumulator rows it writes:
-//   pass A (splat): eta at the pixel (root: full res; else bilinear from the low-res manifold),
+// Per image: one read of the guide builds the root manifold from block means (every manifold lives
+// on the low-resolution grid). The tree is then built breadth first; per level two fused
+// full-resolution passes handle all of its nodes row by row, both split over low-resolution block
+// rows so that each task owns the low-res accumulator rows it writes:
+//   pass A (splat): eta at the pixel (bilinear from the node's low-res manifold),
 //     D = |guide - eta|^2, w = exp(-D / sigma_r^2), min D, P += w f, P0 += w (area means);
 //   low-res domain-transform blur of [P, P0] steered by the node's manifold;
 //   power iteration on the residuals of the node's cluster (per-chunk partial sums over fixed
@@ -36,14 +37,14 @@ namespace {
 // Rows per reduction chunk: fixed, so partial sums never depend on the thread count.
 constexpr int64_t kReduceRows = 16;
 
-// TORCHMANIFOLD_KERNEL_PROFILE=1 prints the calling thread's CPU time per phase to stderr
-// (meaningful with torch.set_num_threads(1)); a development aid, off by default.
+// TORCHMANIFOLD_KERNEL_PROFILE=1 prints the wall time per phase to stderr; a development aid, off
+// by default.
 struct PhaseClock {
   bool on = std::getenv("TORCHMANIFOLD_KERNEL_PROFILE") != nullptr;
   double t = now();
   static double now() {
     timespec ts;
-    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+    clock_gettime(CLOCK_MONOTONIC, &ts);
     return ts.tv_sec + 1e-9 * ts.tv_nsec;
   }
   void lap(const char* what, int64_t id = 0) {
@@ -91,7 +92,7 @@ class ImageFilter {
     // 7. Breadth first, one level at a time like the reference; within a level every full-res
     // pass handles all of the level's nodes row by row, so the guide is read once per level.
     std::vector<Node> level;
-    level.push_back({1, {}});
+    level.push_back({1, std::move(root_eta_)});
     for (int64_t depth = 0; depth < opt_.tree_height && !level.empty(); ++depth)
       level = process_level(level, depth);
     finish();
@@ -99,8 +100,7 @@ class ImageFilter {
   }
 
  private:
-  // A manifold of the tree: heap id (children 2k, 2k+1) and its low-res (D, Hl, Wl) map
-  // (empty for the root, which lives at full resolution in eta1_).
+  // A manifold of the tree: heap id (children 2k, 2k+1) and its low-res (D, Hl, Wl) map.
   struct Node {
     int64_t id;
     std::vector<T> eta;
@@ -113,75 +113,87 @@ class ImageFilter {
 
   // 2., 3., 6.: masks, sanitised samples, the per-channel offset c, the root manifold and gs.
   void prepare() {
-    // Guide: copy into eta1 checking finiteness, then h in place. Only a non-finite guide takes
-    // the masked route h(mg g0) / h(mg).
-    eta1_.resize(D_ * N_);
-    std::vector<uint8_t> line_ok(D_ * H_, 1);
-    const T a = lowpass_coefficient<T>(opt_.sigma_s);
-    parallel_work(0, D_ * H_, 6 * W_, [&](int64_t b, int64_t e) {
-      for (int64_t line = b; line < e; ++line) {
-        const T* src = g_in_ + line * W_;
-        T* dst = eta1_.data() + line * W_;
-        // x - x is 0 for finite x, NaN otherwise; 8 independent lanes so it vectorises (one
-        // in-order sum would be a serial chain of adds).
-        constexpr int L = 8;
-        T bad[L] = {};
-        int64_t j = 0;
-        for (; j + L <= W_; j += L)
-          for (int l = 0; l < L; ++l) {
-            dst[j + l] = src[j + l];
-            bad[l] += src[j + l] - src[j + l];
-          }
-        for (; j < W_; ++j) {
-          dst[j] = src[j];
-          bad[0] += src[j] - src[j];
-        }
+    prepare_guide();
+    clock_.lap("guide");
+    prepare_values();
+  }
+
+  // 6. Block means of the guide for the root manifold, checking finiteness on the same read (the
+  // guide's only full pass before the tree). Only a non-finite guide takes the masked route
+  // h(down(mg g0)) / h(down(mg)) and builds gs at full resolution.
+  void prepare_guide() {
+    root_eta_.assign(D_ * Nl_, T(0));
+    std::vector<uint8_t> block_ok(Hl_, 1);
+    parallel_work(0, Hl_, df_ * W_ * 3 * D_, [&](int64_t b, int64_t e) {
+      for (int64_t bi = b; bi < e; ++bi) {
+        const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         bool ok = true;
-        for (int l = 0; l < L; ++l) ok = ok && bad[l] == T(0);
-        line_ok[line] = ok;
+        for (int64_t d = 0; d < D_; ++d)
+          for (int64_t i = i0; i < i1; ++i) {
+            const T* src = g_in_ + d * N_ + i * W_;
+            ok = ok && all_finite(src, W_);
+            block_sum_row(src, W_, df_, Wl_, root_eta_.data() + d * Nl_ + bi * Wl_);
+          }
+        block_ok[bi] = ok;
+        to_block_means(root_eta_.data() + bi * Wl_, D_, i1 - i0);
       }
-      // The row pass of h while the lines are in cache (used only if the guide is finite).
-      if (W_ > 1)
-        for (int64_t line = b; line < e;) {
-          const int64_t pl = line / H_, r0 = line % H_, r1 = std::min(H_, r0 + (e - line));
-          lowpass_rows(eta1_.data() + pl * N_, r0, r1, W_, a);
-          line += r1 - r0;
-        }
     });
-    all_g_ = std::all_of(line_ok.begin(), line_ok.end(), [](uint8_t m) { return m != 0; });
+    all_g_ = std::all_of(block_ok.begin(), block_ok.end(), [](uint8_t m) { return m != 0; });
     mg_.assign(N_, 1);
     gs_ = g_in_;
-    clock_.lap("guide copy");
     if (all_g_) {
-      lowpass_planes(eta1_.data(), D_, H_, W_, opt_.sigma_s, /*rows_done=*/true);
-      clock_.lap("root lowpass");
-    } else {
-      for (int64_t d = 0; d < D_; ++d)
-        for (int64_t i = 0; i < N_; ++i)
-          if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
-      eta1_.resize((D_ + 1) * N_);
-      rows_parallel(D_ + 1, [&](int64_t b, int64_t e) {
-        for (int64_t d = 0; d < D_; ++d)
-          for (int64_t i = b * W_; i < e * W_; ++i)
-            eta1_[d * N_ + i] = mg_[i] ? g_in_[d * N_ + i] : T(0);
-        for (int64_t i = b * W_; i < e * W_; ++i) eta1_[D_ * N_ + i] = mg_[i] ? T(1) : T(0);
-      });
-      lowpass_planes(eta1_.data(), D_ + 1, H_, W_, opt_.sigma_s);
-      gs_buf_.resize(D_ * N_);
-      rows_parallel(2 * D_, [&](int64_t b, int64_t e) {
-        const T* den = eta1_.data() + D_ * N_;
-        for (int64_t d = 0; d < D_; ++d)
-          for (int64_t i = b * W_; i < e * W_; ++i) {
-            T& eta = eta1_[d * N_ + i];
-            eta = den[i] > T(0) ? eta / den[i] : T(0);
-            // An invalid guide pixel sits on the root manifold.
-            gs_buf_[d * N_ + i] = mg_[i] ? g_in_[d * N_ + i] : eta;
-          }
-      });
-      eta1_.resize(D_ * N_);
-      gs_ = gs_buf_.data();
+      lowpass_planes(root_eta_.data(), D_, Hl_, Wl_, ss_low_);
+      return;
     }
+    for (int64_t d = 0; d < D_; ++d)
+      for (int64_t i = 0; i < N_; ++i)
+        if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
+    // [down(mg g0) planes, down(mg)], low-passed, then their ratio (0 where nothing is valid)
+    std::vector<T> acc((D_ + 1) * Nl_, T(0));
+    std::vector<T> row(W_);
+    for (int64_t bi = 0; bi < Hl_; ++bi) {
+      const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+      for (int64_t d = 0; d <= D_; ++d)
+        for (int64_t i = i0; i < i1; ++i) {
+          const uint8_t* m = mg_.data() + i * W_;
+          const T* src = g_in_ + d * N_ + i * W_;
+          for (int64_t j = 0; j < W_; ++j) row[j] = m[j] ? (d < D_ ? src[j] : T(1)) : T(0);
+          block_sum_row(row.data(), W_, df_, Wl_, acc.data() + d * Nl_ + bi * Wl_);
+        }
+      to_block_means(acc.data() + bi * Wl_, D_ + 1, i1 - i0);
+    }
+    lowpass_planes(acc.data(), D_ + 1, Hl_, Wl_, ss_low_);
+    const T* den = acc.data() + D_ * Nl_;
+    for (int64_t d = 0; d < D_; ++d)
+      for (int64_t i = 0; i < Nl_; ++i)
+        root_eta_[d * Nl_ + i] = den[i] > T(0) ? acc[d * Nl_ + i] / den[i] : T(0);
+    // An invalid guide pixel sits on the root manifold.
+    gs_buf_.resize(D_ * N_);
+    std::vector<T> tmp(Wl_), up(W_);
+    for (int64_t i = 0; i < H_; ++i)
+      for (int64_t d = 0; d < D_; ++d) {
+        upsample_row(root_eta_.data() + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
+        const uint8_t* m = mg_.data() + i * W_;
+        const T* src = g_in_ + d * N_ + i * W_;
+        T* dst = gs_buf_.data() + d * N_ + i * W_;
+        for (int64_t j = 0; j < W_; ++j) dst[j] = m[j] ? src[j] : up[j];
+      }
+    gs_ = gs_buf_.data();
+  }
 
+  // planes rows of a low-res plane stack (stride Nl_), block row starting at p: sums -> means over
+  // the pixels that exist in each block.
+  void to_block_means(T* p, int64_t planes, int64_t rows) const {
+    const T full = static_cast<T>(rows * df_);
+    const T last = static_cast<T>(rows * (W_ - (Wl_ - 1) * df_));  // the last block may be partial
+    for (int64_t c = 0; c < planes; ++c) {
+      T* q = p + c * Nl_;
+      for (int64_t bj = 0; bj + 1 < Wl_; ++bj) q[bj] /= full;
+      q[Wl_ - 1] /= last;
+    }
+  }
+
+  void prepare_values() {
     // Values: finiteness, then c = lo + (hi - lo) / 2 over splat pixels (min/max are order
     // independent), then f' = (f_s - c) ms.
     mv_.assign(N_, 1);
@@ -194,14 +206,7 @@ class ImageFilter {
         const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
         for (int64_t c = 0; c < C_; ++c) {
           const T* x = f_in_ + c * N_;
-          T bad[8] = {};  // x - x: 0 when finite; lanes so it vectorises
-          int64_t i = p0;
-          for (; i + 8 <= p1; i += 8)
-            for (int l = 0; l < 8; ++l) bad[l] += x[i + l] - x[i + l];
-          for (; i < p1; ++i) bad[0] += x[i] - x[i];
-          bool ok = true;
-          for (int l = 0; l < 8; ++l) ok = ok && bad[l] == T(0);
-          if (!ok) {
+          if (!all_finite(x + p0, p1 - p0)) {
             chunk_ok[ch] = 0;
             for (int64_t i = p0; i < p1; ++i)
               if (!std::isfinite(x[i])) mv_[i] = 0;
@@ -245,6 +250,7 @@ class ImageFilter {
       });
       f_s_ = fs_buf_.data();
     }
+    fp_.resize(C_ * N_);
     c_.assign(C_, T(0));
     for (int64_t c = 0; c < C_; ++c) {
       T l = std::numeric_limits<T>::infinity(), h = -l;
@@ -253,58 +259,37 @@ class ImageFilter {
       const T mid = l + (h - l) / T(2);
       c_[c] = std::isfinite(mid) ? mid : T(0);
     }
+    // ms, f' and 8. the root's cluster (the pixels with a finite guide; label 0 is never a node)
     ms_.resize(N_);
-    for (int64_t i = 0; i < N_; ++i) ms_[i] = mg_[i] & mv_[i];
-    fp_.resize(C_ * N_);
-    rows_parallel(C_, [&](int64_t b, int64_t e) {
+    const bool labels = opt_.tree_height > 1;
+    if (labels) label_.resize(N_);
+    rows_parallel(2 * C_ + 2, [&](int64_t b, int64_t e) {
+      const int64_t p0 = b * W_, p1 = e * W_;
+      for (int64_t i = p0; i < p1; ++i) ms_[i] = mg_[i] & mv_[i];
       for (int64_t c = 0; c < C_; ++c) {
         const T* x = f_s_ + c * N_;
         T* y = fp_.data() + c * N_;
         const T cc = c_[c];
-        for (int64_t i = b * W_; i < e * W_; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
+        for (int64_t i = p0; i < p1; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
       }
+      if (labels)
+        for (int64_t i = p0; i < p1; ++i) label_[i] = mg_[i] ? 1 : 0;
     });
-    // 8. The root's cluster is the pixels with a finite guide; label 0 is never a node.
-    if (opt_.tree_height > 1) {
-      label_.resize(N_);
-      for (int64_t i = 0; i < N_; ++i) label_[i] = mg_[i] ? 1 : 0;
-    }
   }
 
-  // Residual r = gs - eta at full-res row i into res (D, W), and dist += |r|^2 when dist is
-  // given; eta_low is the low-res manifold (upsampled through tmp) or, for the root, null (eta_1
-  // at full res). One channel at a time so the row stays in L1.
-  // keep = false: only dist is wanted, res is a one-row scratch and r is not stored.
-  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist, bool keep = true) const {
+  // Residual r = gs - up(eta_low) at full-res row i into res (D, W) and dist += |r|^2, one channel
+  // at a time so the row stays in L1 (tmp: Wl scratch).
+  // keep = false: only dist is wanted, res is a one-row scratch that every channel overwrites.
+  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist, bool keep) const {
     const int64_t row = i * W_;
     for (int64_t d = 0; d < D_; ++d) {
       const T* gr = gs_ + d * N_ + row;
       T* rr = keep ? res + d * W_ : res;
-      if (dist && !keep) {
-        const T* er = eta1_.data() + d * N_ + row;
-        if (eta_low) {
-          upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
-          er = rr;
-        }
-        for (int64_t j = 0; j < W_; ++j) {
-          const T r = gr[j] - er[j];
-          dist[j] += r * r;
-        }
-        continue;
-      }
-      const T* er = eta1_.data() + d * N_ + row;
-      if (eta_low) {
-        upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
-        er = rr;
-      }
-      if (dist) {
-        for (int64_t j = 0; j < W_; ++j) {
-          const T r = gr[j] - er[j];
-          rr[j] = r;
-          dist[j] += r * r;
-        }
-      } else {
-        for (int64_t j = 0; j < W_; ++j) rr[j] = gr[j] - er[j];
+      upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
+      for (int64_t j = 0; j < W_; ++j) {
+        const T r = gr[j] - rr[j];
+        rr[j] = r;
+        dist[j] += r * r;
       }
     }
   }
@@ -316,11 +301,8 @@ class ImageFilter {
     std::fill(proj, proj + W_, T(0));
     for (int64_t d = 0; d < D_; ++d) {
       const T* gr = gs_ + d * N_ + row;
-      const T* er = eta1_.data() + d * N_ + row;
-      if (eta_low) {
-        upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, er_buf);
-        er = er_buf;
-      }
+      const T* er = er_buf;
+      upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, er_buf);
       const T vd = v[d];
       for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (gr[j] - er[j]);
     }
@@ -328,12 +310,10 @@ class ImageFilter {
 
   std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
     const int64_t n = static_cast<int64_t>(level.size());
-    const bool root = depth == 0;  // then n == 1 and level[0] is the root
     const bool leaf = depth + 1 >= opt_.tree_height;
     const bool want_m = !leaf && opt_.power_iterations > 0;
-    if (root) level[0].eta.assign(D_ * Nl_, T(0));
     std::vector<const T*> eta_src(n);
-    for (int64_t k = 0; k < n; ++k) eta_src[k] = root ? nullptr : level[k].eta.data();
+    for (int64_t k = 0; k < n; ++k) eta_src[k] = level[k].eta.data();
     const int64_t msize = D_ * (D_ + 1) / 2;  // upper triangle of M
     std::vector<double> mpart(want_m ? n * groups_ * msize : 0, 0.0);
     const int64_t pnode = (C_ + 1) * Nl_;
@@ -343,7 +323,7 @@ class ImageFilter {
     Scratch<T> P;
     P.assign(n * pnode, T(0));
     const int64_t group_px = bpg_ * df_ * W_ * n;
-    const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0) + (root ? D_ : 0));
+    const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0));
     parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
       // res has D rounded up to 4 rows, the extra ones zero, for gram_upper_row's tiles
       std::vector<T> res((D_ + 3) / 4 * 4 * W_, T(0)), tmp(Wl_), dist(W_), ws(W_),
@@ -354,17 +334,12 @@ class ImageFilter {
           const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
           for (int64_t i = i0; i < i1; ++i) {
             const int64_t row = i * W_;
-            if (root)
-              for (int64_t d = 0; d < D_; ++d)
-                block_sum_row(eta1_.data() + d * N_ + row, W_, df_, Wl_,
-                              level[0].eta.data() + d * Nl_ + bi * Wl_);
             for (int64_t k = 0; k < n; ++k) {
               std::fill(dist.begin(), dist.end(), T(0));
               residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data(), want_m);
               T* wr = w_.data() + k * N_ + row;
               const uint8_t* sr = ms_.data() + row;
-              // two plain loops: the exp vectorises only without the mask beside it
-              for (int64_t j = 0; j < W_; ++j) wr[j] = exp_nonpositive(-dist[j] * inv_r2_);
+              exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
               for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
               if (opt_.adjust_outliers) {
                 T* mr = minD_.data() + row;
@@ -378,15 +353,7 @@ class ImageFilter {
               if (want_m) accumulate_m(level[k].id, row, res.data(), mrow.data() + k * msize);
             }
           }
-          // Area means over the pixels that exist in each block.
-          const int64_t rows = i1 - i0;
-          for (int64_t bj = 0; bj < Wl_; ++bj) {
-            const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
-            for (int64_t k = 0; k < n; ++k)
-              for (int64_t c = 0; c <= C_; ++c) P[k * pnode + c * Nl_ + bi * Wl_ + bj] /= cnt;
-            if (root)
-              for (int64_t d = 0; d < D_; ++d) level[0].eta[d * Nl_ + bi * Wl_ + bj] /= cnt;
-          }
+          for (int64_t k = 0; k < n; ++k) to_block_means(P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
         }
         for (int64_t k = 0; k < n && want_m; ++k)
           for (int64_t m = 0; m < msize; ++m)
@@ -450,12 +417,7 @@ class ImageFilter {
           }
         }
         if (leaf) continue;
-        const int64_t rows = i1 - i0;
-        for (int64_t bj = 0; bj < Wl_; ++bj) {
-          const T cnt = static_cast<T>(rows * (std::min(W_, (bj + 1) * df_) - bj * df_));
-          for (int64_t s = 0; s < 2 * n; ++s)
-            for (int64_t d = 0; d <= D_; ++d) Q[s * qside + d * Nl_ + bi * Wl_ + bj] /= cnt;
-        }
+        for (int64_t s = 0; s < 2 * n; ++s) to_block_means(Q.data() + s * qside + bi * Wl_, D_ + 1, i1 - i0);
       }
     });
     clock_.lap("pass B", depth);
@@ -463,20 +425,24 @@ class ImageFilter {
     if (leaf) return next;
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
-    for (int64_t k = 0; k < n; ++k)
-      for (int64_t s = 0; s < 2; ++s) {
-        T* q = Q.data() + (2 * k + s) * qside;
-        const T* q0 = q + D_ * Nl_;
-        // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
-        if (!std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); })) continue;
-        lowpass_planes(q, D_ + 1, Hl_, Wl_, ss_low_);
-        std::vector<T> eta(D_ * Nl_);
-        const std::vector<T>& parent = level[k].eta;
-        for (int64_t d = 0; d < D_; ++d)
-          for (int64_t i = 0; i < Nl_; ++i)
-            eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : parent[d * Nl_ + i];
-        next.push_back({2 * level[k].id + s, std::move(eta)});
-      }
+    // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
+    std::vector<uint8_t> alive(2 * n);
+    for (int64_t c = 0; c < 2 * n; ++c) {
+      const T* q0 = Q.data() + c * qside + D_ * Nl_;
+      alive[c] = std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); });
+    }
+    lowpass_planes(Q.data(), 2 * n * (D_ + 1), Hl_, Wl_, ss_low_);  // all children in one go
+    for (int64_t c = 0; c < 2 * n; ++c) {
+      if (!alive[c]) continue;
+      const T* q = Q.data() + c * qside;
+      const T* q0 = q + D_ * Nl_;
+      const std::vector<T>& parent = level[c / 2].eta;
+      std::vector<T> eta(D_ * Nl_);
+      for (int64_t d = 0; d < D_; ++d)
+        for (int64_t i = 0; i < Nl_; ++i)
+          eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : parent[d * Nl_ + i];
+      next.push_back({2 * level[c / 2].id + c % 2, std::move(eta)});
+    }
     clock_.lap("children", depth);
     return next;
   }
@@ -560,10 +526,8 @@ class ImageFilter {
         if (opt_.adjust_outliers) {
           const T* md = minD_.data() + row;
           const uint8_t* mv = mv_.data() + row;
-          for (int64_t j = 0; j < W_; ++j) {
-            const T x = exp_nonpositive(-md[j] * half_inv_r2_);
-            alpha[j] = mv[j] ? x : T(1);
-          }
+          exp_neg_scaled_row(md, half_inv_r2_, alpha.data(), W_);
+          for (int64_t j = 0; j < W_; ++j) alpha[j] = mv[j] ? alpha[j] : T(1);
         }
         for (int64_t c = 0; c < C_; ++c) {
           const T* fs = f_s_ + c * N_ + row;
@@ -595,7 +559,8 @@ class ImageFilter {
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide
   std::vector<T> c_;
-  Scratch<T> fs_buf_, gs_buf_, fp_, eta1_, w_, minD_, S0_;
+  std::vector<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
+  Scratch<T> fs_buf_, gs_buf_, fp_, w_, minD_, S0_;
   Scratch<uint8_t> mg_, mv_, ms_;
   Scratch<int32_t> label_;
   PhaseClock clock_;

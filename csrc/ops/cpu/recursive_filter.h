@@ -25,11 +25,11 @@ inline int64_t grain_for(int64_t work_per_item) {
   return std::max<int64_t>(1, 32768 / std::max<int64_t>(1, work_per_item));
 }
 
-// Below this much work (~16M elementary operations, a few ms) a loop runs on the calling thread:
-// with more runnable threads than cores one parallel region can cost more than that, and the
-// progressive pipeline's 64..256 px images then run whole filters serially (measured at 256 px,
-// 14 guide channels, 2 threads on the loaded 2-core VM: 48 ms with 8M, 29 ms serial).
-constexpr int64_t kSerialWork = int64_t(1) << 24;
+// Below this much work (~4M elementary operations, about a millisecond) a loop runs on the calling
+// thread: a parallel region costs tens of microseconds when the cores are free and can cost
+// milliseconds when they are not (the progressive pipeline's llvmpipe threads), so only work that
+// dwarfs that is split.
+constexpr int64_t kSerialWork = int64_t(1) << 22;
 
 inline int64_t grain_lines(int64_t lines, int64_t work_per_line) {
   return lines * work_per_line < kSerialWork ? std::max<int64_t>(1, lines) : grain_for(work_per_line);
