@@ -85,18 +85,25 @@ class ImageFilter {
   void run() {
     prepare();
     clock_.lap("prepare");
-    std::fill(S_, S_ + C_ * N_, T(0));
-    S0_.assign(N_, T(0));
-    if (opt_.adjust_outliers) minD_.assign(N_, std::numeric_limits<T>::infinity());
+    // S (in the output), S0 and min D are written by the root's passes, not cleared first.
+    S0_.resize(N_);
+    if (opt_.adjust_outliers) minD_.resize(N_);
 
     // 7. Breadth first, one level at a time like the reference; within a level every full-res
     // pass handles all of the level's nodes row by row, so the guide is read once per level.
+    // The last level's slice pass also normalises each row (9., 10.); a tree that ends early
+    // (every child pruned) is normalised in a pass of its own.
     std::vector<Node> level;
     level.push_back({1, std::move(root_eta_)});
     for (int64_t depth = 0; depth < opt_.tree_height && !level.empty(); ++depth)
       level = process_level(level, depth);
-    finish();
-    clock_.lap("finish");
+    if (!finished_) {
+      rows_parallel(20 + 12 * C_, [&](int64_t b, int64_t e) {
+        std::vector<T> alpha(W_);
+        for (int64_t i = b; i < e; ++i) finish_row(i, alpha.data());
+      });
+      clock_.lap("finish");
+    }
   }
 
  private:
@@ -277,35 +284,56 @@ class ImageFilter {
     });
   }
 
-  // Residual r = gs - up(eta_low) at full-res row i into res (D, W) and dist += |r|^2, one channel
-  // at a time so the row stays in L1 (tmp: Wl scratch).
-  // keep = false: only dist is wanted, res is a one-row scratch that every channel overwrites.
-  void residual_row(const T* eta_low, int64_t i, T* tmp, T* res, T* dist, bool keep) const {
+  // Residual r = gs - up(eta) at full-res row i and dist += |r|^2, one channel at a time so the
+  // row stays in L1; with res given ((D, W)) r is kept for the Gram matrix. eta: the node's
+  // manifold through a RowUpsampler.
+  void residual_row(RowUpsampler<T>& eta, int64_t i, T* res, T* dist) const {
     const int64_t row = i * W_;
+    const T fy = eta.seek(i);
     for (int64_t d = 0; d < D_; ++d) {
       const T* gr = gs_ + d * N_ + row;
-      T* rr = keep ? res + d * W_ : res;
-      upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, rr);
-      for (int64_t j = 0; j < W_; ++j) {
-        const T r = gr[j] - rr[j];
-        rr[j] = r;
-        dist[j] += r * r;
+      const T* b = eta.base(d);
+      const T* db = eta.delta(d);
+      if (res) {
+        T* rr = res + d * W_;
+        for (int64_t j = 0; j < W_; ++j) {
+          const T r = gr[j] - (b[j] + fy * db[j]);
+          rr[j] = r;
+          dist[j] += r * r;
+        }
+      } else {
+        for (int64_t j = 0; j < W_; ++j) {
+          const T r = gr[j] - (b[j] + fy * db[j]);
+          dist[j] += r * r;
+        }
       }
     }
   }
 
-  // proj = v . (gs - eta) at full-res row i, channel by channel without storing the residual
-  // (same operations and order as residual_row then a dot with v). er: W scratch.
-  void projection_row(const T* eta_low, int64_t i, const T* v, T* tmp, T* er_buf, T* proj) const {
+  // proj = v . (gs - up(eta)) at full-res row i, channel by channel without storing the residual
+  // (the same r as residual_row, then a dot with v).
+  void projection_row(RowUpsampler<T>& eta, int64_t i, const T* v, T* proj) const {
     const int64_t row = i * W_;
+    const T fy = eta.seek(i);
     std::fill(proj, proj + W_, T(0));
     for (int64_t d = 0; d < D_; ++d) {
       const T* gr = gs_ + d * N_ + row;
-      const T* er = er_buf;
-      upsample_row(eta_low + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp, er_buf);
+      const T* b = eta.base(d);
+      const T* db = eta.delta(d);
       const T vd = v[d];
-      for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (gr[j] - er[j]);
+      for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (gr[j] - (b[j] + fy * db[j]));
     }
+  }
+
+  // A RowUpsampler per node of the level for a task's rows.
+  std::vector<RowUpsampler<T>> upsamplers(const std::vector<const T*>& low, int64_t planes) const {
+    std::vector<RowUpsampler<T>> ups;
+    ups.reserve(low.size());
+    for (const T* l : low) {
+      ups.emplace_back(planes, Hl_, Wl_, W_, ty_, tx_);
+      ups.back().reset(l);
+    }
+    return ups;
   }
 
   std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
@@ -326,8 +354,9 @@ class ImageFilter {
     const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0));
     parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
       // res has D rounded up to 4 rows, the extra ones zero, for gram_upper_row's tiles
-      std::vector<T> res((D_ + 3) / 4 * 4 * W_, T(0)), tmp(Wl_), dist(W_), ws(W_),
+      std::vector<T> res(want_m ? (D_ + 3) / 4 * 4 * W_ : 0, T(0)), dist(W_), ws(W_),
           mrow(want_m ? n * msize : 0);
+      std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
       for (int64_t grp = gb; grp < ge; ++grp) {
         std::fill(mrow.begin(), mrow.end(), T(0));
         for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
@@ -336,14 +365,17 @@ class ImageFilter {
             const int64_t row = i * W_;
             for (int64_t k = 0; k < n; ++k) {
               std::fill(dist.begin(), dist.end(), T(0));
-              residual_row(eta_src[k], i, tmp.data(), res.data(), dist.data(), want_m);
+              residual_row(eta[k], i, want_m ? res.data() : nullptr, dist.data());
               T* wr = w_.data() + k * N_ + row;
               const uint8_t* sr = ms_.data() + row;
               exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
               for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
               if (opt_.adjust_outliers) {
                 T* mr = minD_.data() + row;
-                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
+                if (depth == 0)
+                  std::copy(dist.begin(), dist.end(), mr);
+                else
+                  for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
               }
               T* pk = P.data() + k * pnode;
               for (int64_t c = 0; c < C_; ++c)
@@ -378,24 +410,30 @@ class ImageFilter {
     const int64_t qside = (D_ + 1) * Nl_;
     if (!leaf) Q.assign(n * 2 * qside, T(0));
     parallel_work(0, groups_, group_px * (4 * (C_ + 1) + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
-      std::vector<T> up((C_ + 1) * W_), tmp((C_ + 1) * Wl_), t0(W_), t1(W_);
-      std::vector<T> res(leaf ? 0 : W_);
+      std::vector<T> t0(W_), t1(W_), alpha(leaf ? W_ : 0);
+      std::vector<const T*> blurred(n);
+      for (int64_t k = 0; k < n; ++k) blurred[k] = P.data() + k * pnode;
+      std::vector<RowUpsampler<T>> up = upsamplers(blurred, C_ + 1);
+      std::vector<RowUpsampler<T>> eta = upsamplers(leaf ? std::vector<const T*>() : eta_src, D_);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
           for (int64_t k = 0; k < n; ++k) {
-            upsample_row(P.data() + k * pnode, C_ + 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(),
-                         up.data());
+            const T fy = up[k].seek(i);
             const T* wr = w_.data() + k * N_ + row;
             for (int64_t c = 0; c <= C_; ++c) {
               T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
-              const T* u = up.data() + c * W_;
-              for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * u[j];
+              const T* b = up[k].base(c);
+              const T* db = up[k].delta(c);
+              if (depth == 0)  // the root: S and S0 start here
+                for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
+              else
+                for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
             }
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
-            projection_row(eta_src[k], i, v[k].data(), tmp.data(), res.data(), t0.data());
+            projection_row(eta[k], i, v[k].data(), t0.data());
             const int64_t id = level[k].id;
             int32_t* lr = label_.data() + row;
             for (int64_t j = 0; j < W_; ++j) {
@@ -415,6 +453,7 @@ class ImageFilter {
             block_sum_row(t0.data(), W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
             block_sum_row(t1.data(), W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
           }
+          if (leaf) finish_row(i, alpha.data());
         }
         if (leaf) continue;
         for (int64_t s = 0; s < 2 * n; ++s) to_block_means(Q.data() + s * qside + bi * Wl_, D_ + 1, i1 - i0);
@@ -422,6 +461,7 @@ class ImageFilter {
     });
     clock_.lap("pass B", depth);
     std::vector<Node> next;
+    finished_ = leaf;
     if (leaf) return next;
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
@@ -511,38 +551,30 @@ class ImageFilter {
     return out;
   }
 
-  // 9., 10. In place: S_ is the output tensor.
-  void finish() {
-    // Row by row, branch-free inner loops so they vectorise; same operations per element.
-    // work per pixel: an exp (~20 operations) and a division per channel (~12)
-    // Below tiny/eps, S and S0 are sums of subnormal terms with absolute rounding: their ratio is
-    // no longer a weighted mean of the samples, so such pixels keep the input (as where S0 == 0).
+  // 9., 10. Full-res row i, in place (S_ is the output tensor); alpha: W scratch.
+  // Branch-free inner loops so they vectorise; same operations per element.
+  // Below tiny/eps, S and S0 are sums of subnormal terms with absolute rounding: their ratio is
+  // no longer a weighted mean of the samples, so such pixels keep the input (as where S0 == 0).
+  void finish_row(int64_t i, T* alpha) {
     const T s0_floor = std::numeric_limits<T>::min() / std::numeric_limits<T>::epsilon();
-    rows_parallel(20 + 12 * C_, [&](int64_t b, int64_t e) {
-      std::vector<T> alpha(W_);
-      for (int64_t r = b; r < e; ++r) {
-        const int64_t row = r * W_;
-        const T* s0 = S0_.data() + row;
-        if (opt_.adjust_outliers) {
-          const T* md = minD_.data() + row;
-          const uint8_t* mv = mv_.data() + row;
-          exp_neg_scaled_row(md, half_inv_r2_, alpha.data(), W_);
-          for (int64_t j = 0; j < W_; ++j) alpha[j] = mv[j] ? alpha[j] : T(1);
-        }
-        for (int64_t c = 0; c < C_; ++c) {
-          const T* fs = f_s_ + c * N_ + row;
-          T* out = S_ + c * N_ + row;
-          const T cc = c_[c];
-          for (int64_t j = 0; j < W_; ++j) {
-            const T ok = s0[j] > s0_floor ? s0[j] : T(1);  // no 0/0 in the unused lane
-            T g = s0[j] > s0_floor ? cc + out[j] / ok : fs[j];
-            out[j] = g;
-          }
-          if (opt_.adjust_outliers)
-            for (int64_t j = 0; j < W_; ++j) out[j] = fs[j] + alpha[j] * (out[j] - fs[j]);
-        }
+    const int64_t row = i * W_;
+    const T* s0 = S0_.data() + row;
+    if (opt_.adjust_outliers) {
+      const uint8_t* mv = mv_.data() + row;
+      exp_neg_scaled_row(minD_.data() + row, half_inv_r2_, alpha, W_);
+      for (int64_t j = 0; j < W_; ++j) alpha[j] = mv[j] ? alpha[j] : T(1);
+    }
+    for (int64_t c = 0; c < C_; ++c) {
+      const T* fs = f_s_ + c * N_ + row;
+      T* out = S_ + c * N_ + row;
+      const T cc = c_[c];
+      for (int64_t j = 0; j < W_; ++j) {
+        const T ok = s0[j] > s0_floor ? s0[j] : T(1);  // no 0/0 in the unused lane
+        out[j] = s0[j] > s0_floor ? cc + out[j] / ok : fs[j];
       }
-    });
+      if (opt_.adjust_outliers)
+        for (int64_t j = 0; j < W_; ++j) out[j] = fs[j] + alpha[j] * (out[j] - fs[j]);
+    }
   }
 
   const int64_t C_, D_, H_, W_, N_;
@@ -555,6 +587,7 @@ class ImageFilter {
   T inv_r2_, half_inv_r2_;
   double ss_low_, sr_low_;
   bool all_g_ = true, all_v_ = true;
+  bool finished_ = false;  // the output is normalised
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide

@@ -217,6 +217,66 @@ inline void upsample_row(const T* low, int64_t planes, int64_t hl, int64_t wl, i
   for (int64_t p = 0; p < planes; ++p) upsample_cols(tmp + p * wl, wl, w, tx, out + p * w);
 }
 
+// Bilinear upsampling of `planes` low-res (hl, wl) planes one full-res row at a time. The two
+// low-res rows a full-res row lies between are upsampled horizontally only when they change (every
+// df rows) and kept as base = up(row y0) and delta = up(row y1) - base, so each full-res value is
+// base + fy * delta: one multiply-add, where interpolating every row from scratch cost about four
+// operations per value (a third of a splat pass).
+template <typename T>
+class RowUpsampler {
+ public:
+  RowUpsampler(int64_t planes, int64_t hl, int64_t wl, int64_t w, const Taps<T>& ty,
+               const Taps<T>& tx)
+      : planes_(planes), hl_(hl), wl_(wl), w_(w), ty_(ty), tx_(tx), base_(planes * w),
+        delta_(planes * w), other_(w) {}
+
+  // Serve the planes at `low` ((planes, hl, wl), contiguous) from now on.
+  void reset(const T* low) {
+    low_ = low;
+    y0_ = y1_ = -1;
+  }
+
+  // Makes base()/delta() serve full-res row i; returns its vertical weight fy.
+  T seek(int64_t i) {
+    const int64_t y0 = ty_.i0[i], y1 = ty_.i1[i];
+    if (y0 != y0_ || y1 != y1_) {
+      y0_ = y0, y1_ = y1;
+      for (int64_t p = 0; p < planes_; ++p) {
+        const T* plane = low_ + p * hl_ * wl_;
+        T* b = base_.data() + p * w_;
+        T* d = delta_.data() + p * w_;
+        horizontal(plane + y0 * wl_, b);
+        if (y1 == y0) {
+          std::fill(d, d + w_, T(0));
+          continue;
+        }
+        horizontal(plane + y1 * wl_, other_.data());
+        for (int64_t j = 0; j < w_; ++j) d[j] = other_[j] - b[j];
+      }
+    }
+    return ty_.f[i];
+  }
+
+  const T* base(int64_t p) const { return base_.data() + p * w_; }
+  const T* delta(int64_t p) const { return delta_.data() + p * w_; }
+
+ private:
+  void horizontal(const T* row, T* out) const {
+    if (w_ == wl_) {  // df == 1
+      std::copy(row, row + w_, out);
+      return;
+    }
+    upsample_cols(row, wl_, w_, tx_, out);
+  }
+
+  const int64_t planes_, hl_, wl_, w_;
+  const Taps<T>& ty_;
+  const Taps<T>& tx_;
+  std::vector<T> base_, delta_, other_;
+  const T* low_ = nullptr;
+  int64_t y0_ = -1, y1_ = -1;
+};
+
 // sum a[j] b[j] with 16 interleaved partial sums combined in a fixed order: the compiler keeps
 // the lanes in vector registers without reassociating anything, so it is fast and reproducible.
 template <typename T>

@@ -25,11 +25,10 @@ inline int64_t grain_for(int64_t work_per_item) {
   return std::max<int64_t>(1, 32768 / std::max<int64_t>(1, work_per_item));
 }
 
-// Below this much work (~4M elementary operations, about a millisecond) a loop runs on the calling
-// thread: a parallel region costs tens of microseconds when the cores are free and can cost
-// milliseconds when they are not (the progressive pipeline's llvmpipe threads), so only work that
-// dwarfs that is split.
-constexpr int64_t kSerialWork = int64_t(1) << 22;
+// Below this much work (~512K elementary operations, a few hundred microseconds) a loop runs on
+// the calling thread: a parallel region costs tens of microseconds when the cores are free, more
+// when they are not. (The progressive pipeline runs torch on one thread by default, see cli.py.)
+constexpr int64_t kSerialWork = int64_t(1) << 19;
 
 inline int64_t grain_lines(int64_t lines, int64_t work_per_line) {
   return lines * work_per_line < kSerialWork ? std::max<int64_t>(1, lines) : grain_for(work_per_line);
