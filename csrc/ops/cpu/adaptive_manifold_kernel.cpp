@@ -110,7 +110,7 @@ class ImageFilter {
   // A manifold of the tree: heap id (children 2k, 2k+1) and its low-res (D, Hl, Wl) map.
   struct Node {
     int64_t id;
-    std::vector<T> eta;
+    Scratch<T> eta;
   };
 
   template <typename F>
@@ -472,17 +472,24 @@ class ImageFilter {
       alive[c] = std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); });
     }
     lowpass_planes(Q.data(), 2 * n * (D_ + 1), Hl_, Wl_, ss_low_);  // all children in one go
-    for (int64_t c = 0; c < 2 * n; ++c) {
-      if (!alive[c]) continue;
-      const T* q = Q.data() + c * qside;
-      const T* q0 = q + D_ * Nl_;
-      const std::vector<T>& parent = level[c / 2].eta;
-      std::vector<T> eta(D_ * Nl_);
-      for (int64_t d = 0; d < D_; ++d)
-        for (int64_t i = 0; i < Nl_; ++i)
-          eta[d * Nl_ + i] = q0[i] > T(0) ? q[d * Nl_ + i] / q0[i] : parent[d * Nl_ + i];
-      next.push_back({2 * level[c / 2].id + c % 2, std::move(eta)});
-    }
+    std::vector<int64_t> made;  // the children's indices in Q
+    for (int64_t c = 0; c < 2 * n; ++c)
+      if (alive[c]) {
+        made.push_back(c);
+        next.push_back({2 * level[c / 2].id + c % 2, Scratch<T>()});
+        next.back().eta.resize(D_ * Nl_);
+      }
+    const int64_t m = static_cast<int64_t>(made.size());
+    parallel_work(0, m * D_, 2 * Nl_, [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t) {
+        const int64_t c = made[t / D_], d = t % D_;
+        const T* q = Q.data() + c * qside + d * Nl_;
+        const T* q0 = Q.data() + c * qside + D_ * Nl_;
+        const T* parent = level[c / 2].eta.data() + d * Nl_;
+        T* eta = next[t / D_].eta.data() + d * Nl_;
+        for (int64_t i = 0; i < Nl_; ++i) eta[i] = q0[i] > T(0) ? q[i] / q0[i] : parent[i];
+      }
+    });
     clock_.lap("children", depth);
     return next;
   }
@@ -592,7 +599,7 @@ class ImageFilter {
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide
   std::vector<T> c_;
-  std::vector<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
+  Scratch<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
   Scratch<T> fs_buf_, gs_buf_, fp_, w_, minD_, S0_;
   Scratch<uint8_t> mg_, mv_, ms_;
   Scratch<int32_t> label_;

@@ -70,6 +70,16 @@ class Scratch {
   Scratch() = default;
   Scratch(const Scratch&) = delete;
   Scratch& operator=(const Scratch&) = delete;
+  Scratch(Scratch&& o) noexcept : block_(std::move(o.block_)), n_(o.n_) { o.n_ = 0; }
+  Scratch& operator=(Scratch&& o) noexcept {
+    if (this != &o) {
+      BufferPool::instance().release(std::move(block_));
+      block_ = std::move(o.block_);
+      n_ = o.n_;
+      o.n_ = 0;
+    }
+    return *this;
+  }
   ~Scratch() { BufferPool::instance().release(std::move(block_)); }
 
   void resize(int64_t n) {
