@@ -270,17 +270,28 @@ class ImageFilter {
     ms_.resize(N_);
     const bool labels = opt_.tree_height > 1;
     if (labels) label_.resize(N_);
+    const bool all_valid = all_g_ && all_v_;  // then every mask is 1: plain loops
     rows_parallel(2 * C_ + 2, [&](int64_t b, int64_t e) {
       const int64_t p0 = b * W_, p1 = e * W_;
-      for (int64_t i = p0; i < p1; ++i) ms_[i] = mg_[i] & mv_[i];
+      if (all_valid)
+        std::fill(ms_.data() + p0, ms_.data() + p1, uint8_t(1));
+      else
+        for (int64_t i = p0; i < p1; ++i) ms_[i] = mg_[i] & mv_[i];
       for (int64_t c = 0; c < C_; ++c) {
         const T* x = f_s_ + c * N_;
         T* y = fp_.data() + c * N_;
         const T cc = c_[c];
-        for (int64_t i = p0; i < p1; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
+        if (all_valid)
+          for (int64_t i = p0; i < p1; ++i) y[i] = x[i] - cc;
+        else
+          for (int64_t i = p0; i < p1; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
       }
-      if (labels)
-        for (int64_t i = p0; i < p1; ++i) label_[i] = mg_[i] ? 1 : 0;
+      if (labels) {
+        if (all_g_)
+          std::fill(label_.data() + p0, label_.data() + p1, int32_t(1));
+        else
+          for (int64_t i = p0; i < p1; ++i) label_[i] = mg_[i] ? 1 : 0;
+      }
     });
   }
 
@@ -487,7 +498,10 @@ class ImageFilter {
         const T* q0 = Q.data() + c * qside + D_ * Nl_;
         const T* parent = level[c / 2].eta.data() + d * Nl_;
         T* eta = next[t / D_].eta.data() + d * Nl_;
-        for (int64_t i = 0; i < Nl_; ++i) eta[i] = q0[i] > T(0) ? q[i] / q0[i] : parent[i];
+        for (int64_t i = 0; i < Nl_; ++i) {
+          const T den = q0[i] > T(0) ? q0[i] : T(1);  // no 0/0 in the unused lane: vectorises
+          eta[i] = q0[i] > T(0) ? q[i] / den : parent[i];
+        }
       }
     });
     clock_.lap("children", depth);

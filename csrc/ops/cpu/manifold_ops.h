@@ -169,6 +169,27 @@ inline void upsample_cols(const T* t, int64_t wl, int64_t w, const Taps<T>& tx, 
   const int64_t head = std::min(w, half);
   for (int64_t j = 0; j < head; ++j) o[j] = t[0];
   int64_t b = 0;
+#if defined(__AVX2__) && defined(__FMA__)
+  // float, df = 2, 4 or 8: eight outputs (8 / df intervals) per step, their end points picked out
+  // of one load of t by lane permutes: lane k uses t[b + k / df] and t[b + k / df + 1].
+  if constexpr (std::is_same<T, float>::value) {
+    if (df == 2 || df == 4 || df == 8) {
+      const int64_t per = 8 / df;
+      alignas(32) int32_t ia[8], ib[8];
+      alignas(32) float fv[8];
+      for (int k = 0; k < 8; ++k) ia[k] = k / df, ib[k] = k / df + 1, fv[k] = fk[k % df];
+      const __m256i pa = _mm256_load_si256(reinterpret_cast<const __m256i*>(ia));
+      const __m256i pb = _mm256_load_si256(reinterpret_cast<const __m256i*>(ib));
+      const __m256 f = _mm256_load_ps(fv);
+      const __m256 g = _mm256_sub_ps(_mm256_set1_ps(1.0f), f);
+      for (; b + 8 <= wl && half + b * df + 8 <= w; b += per) {
+        const __m256 v = _mm256_loadu_ps(t + b);
+        const __m256 a0 = _mm256_permutevar8x32_ps(v, pa), a1 = _mm256_permutevar8x32_ps(v, pb);
+        _mm256_storeu_ps(o + half + b * df, _mm256_fmadd_ps(f, a1, _mm256_mul_ps(g, a0)));
+      }
+    }
+  }
+#endif
 #if defined(__SSE2__)
   // float, df = 4: one vector per interval, the same (1 - f) a0 + f a1 per element.
   if constexpr (std::is_same<T, float>::value) {
@@ -323,6 +344,16 @@ inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t
 // float32 with df a multiple of 4 (the common df = 4, 8, ...): each block is df/4 vectors summed
 // into one, four blocks' vectors are transposed and added, so four block sums take one store.
 // Plain mul/add intrinsics (no FMA contraction): the same bits on every machine and thread split.
+#if defined(__AVX2__)
+// The sums of the eight 4-float blocks in v[0..3] (v[q] holds blocks 2q and 2q+1), in block order,
+// each as (x0 + x1) + (x2 + x3) like the SSE transpose below.
+inline __m256 sum_blocks_of_4(const __m256* v) {
+  // within 128-bit lanes: [B0 B2 B4 B6 | B1 B3 B5 B7] after two horizontal adds
+  const __m256 s = _mm256_hadd_ps(_mm256_hadd_ps(v[0], v[1]), _mm256_hadd_ps(v[2], v[3]));
+  return _mm256_permutevar8x32_ps(s, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));
+}
+#endif
+
 template <bool kDot>
 inline void block_reduce_row_sse(const float* a, const float* b, int64_t w, int64_t df,
                                  int64_t wl, float* acc) {
@@ -337,6 +368,18 @@ inline void block_reduce_row_sse(const float* a, const float* b, int64_t w, int6
     return s;
   };
   int64_t bj = 0;
+#if defined(__AVX2__)
+  if (df == 4)
+    for (; bj + 8 <= full; bj += 8) {
+      const float* pa = a + bj * 4;
+      __m256 v[4];
+      for (int q = 0; q < 4; ++q) {
+        v[q] = _mm256_loadu_ps(pa + 8 * q);
+        if (kDot) v[q] = _mm256_mul_ps(v[q], _mm256_loadu_ps(b + bj * 4 + 8 * q));
+      }
+      _mm256_storeu_ps(acc + bj, _mm256_add_ps(_mm256_loadu_ps(acc + bj), sum_blocks_of_4(v)));
+    }
+#endif
   for (; bj + 4 <= full; bj += 4) {
     __m128 s0 = block(bj), s1 = block(bj + 1), s2 = block(bj + 2), s3 = block(bj + 3);
     _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
@@ -496,6 +539,18 @@ inline void block_dot2_row(const float* a0, const float* a1, const float* b, int
   // Same operations as block_reduce_row_sse<true> for each output.
   const int64_t full = w / 4;
   int64_t bj = 0;
+#if defined(__AVX2__)
+  for (; bj + 8 <= full; bj += 8) {
+    __m256 y[4], v0[4], v1[4];
+    for (int q = 0; q < 4; ++q) {
+      y[q] = _mm256_loadu_ps(b + bj * 4 + 8 * q);
+      v0[q] = _mm256_mul_ps(_mm256_loadu_ps(a0 + bj * 4 + 8 * q), y[q]);
+      v1[q] = _mm256_mul_ps(_mm256_loadu_ps(a1 + bj * 4 + 8 * q), y[q]);
+    }
+    _mm256_storeu_ps(acc0 + bj, _mm256_add_ps(_mm256_loadu_ps(acc0 + bj), sum_blocks_of_4(v0)));
+    _mm256_storeu_ps(acc1 + bj, _mm256_add_ps(_mm256_loadu_ps(acc1 + bj), sum_blocks_of_4(v1)));
+  }
+#endif
   for (; bj + 4 <= full; bj += 4) {
     const float* pb = b + bj * 4;
     const __m128 y0 = _mm_loadu_ps(pb), y1 = _mm_loadu_ps(pb + 4);
