@@ -152,23 +152,28 @@ class ImageFilter {
       lowpass_planes(root_eta_.data(), D_, Hl_, Wl_, ss_low_);
       return;
     }
-    for (int64_t d = 0; d < D_; ++d)
-      for (int64_t i = 0; i < N_; ++i)
-        if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
+    rows_parallel(D_, [&](int64_t b, int64_t e) {
+      for (int64_t d = 0; d < D_; ++d)
+        for (int64_t i = b * W_; i < e * W_; ++i)
+          if (!std::isfinite(g_in_[d * N_ + i])) mg_[i] = 0;
+    });
     // [down(mg g0) planes, down(mg)], low-passed, then their ratio (0 where nothing is valid)
-    std::vector<T> acc((D_ + 1) * Nl_, T(0));
-    std::vector<T> row(W_);
-    for (int64_t bi = 0; bi < Hl_; ++bi) {
-      const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
-      for (int64_t d = 0; d <= D_; ++d)
-        for (int64_t i = i0; i < i1; ++i) {
-          const uint8_t* m = mg_.data() + i * W_;
-          const T* src = g_in_ + d * N_ + i * W_;
-          for (int64_t j = 0; j < W_; ++j) row[j] = m[j] ? (d < D_ ? src[j] : T(1)) : T(0);
-          block_sum_row(row.data(), W_, df_, Wl_, acc.data() + d * Nl_ + bi * Wl_);
-        }
-      to_block_means(acc.data() + bi * Wl_, D_ + 1, i1 - i0);
-    }
+    Scratch<T> acc;
+    acc.assign((D_ + 1) * Nl_, T(0));
+    parallel_work(0, Hl_, df_ * W_ * 2 * (D_ + 1), [&](int64_t b, int64_t e) {
+      std::vector<T> row(W_);
+      for (int64_t bi = b; bi < e; ++bi) {
+        const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+        for (int64_t d = 0; d <= D_; ++d)
+          for (int64_t i = i0; i < i1; ++i) {
+            const uint8_t* m = mg_.data() + i * W_;
+            const T* src = g_in_ + std::min(d, D_ - 1) * N_ + i * W_;
+            for (int64_t j = 0; j < W_; ++j) row[j] = m[j] ? (d < D_ ? src[j] : T(1)) : T(0);
+            block_sum_row(row.data(), W_, df_, Wl_, acc.data() + d * Nl_ + bi * Wl_);
+          }
+        to_block_means(acc.data() + bi * Wl_, D_ + 1, i1 - i0);
+      }
+    });
     lowpass_planes(acc.data(), D_ + 1, Hl_, Wl_, ss_low_);
     const T* den = acc.data() + D_ * Nl_;
     for (int64_t d = 0; d < D_; ++d)
@@ -176,15 +181,17 @@ class ImageFilter {
         root_eta_[d * Nl_ + i] = den[i] > T(0) ? acc[d * Nl_ + i] / den[i] : T(0);
     // An invalid guide pixel sits on the root manifold.
     gs_buf_.resize(D_ * N_);
-    std::vector<T> tmp(Wl_), up(W_);
-    for (int64_t i = 0; i < H_; ++i)
-      for (int64_t d = 0; d < D_; ++d) {
-        upsample_row(root_eta_.data() + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
-        const uint8_t* m = mg_.data() + i * W_;
-        const T* src = g_in_ + d * N_ + i * W_;
-        T* dst = gs_buf_.data() + d * N_ + i * W_;
-        for (int64_t j = 0; j < W_; ++j) dst[j] = m[j] ? src[j] : up[j];
-      }
+    rows_parallel(3 * D_, [&](int64_t b, int64_t e) {
+      std::vector<T> tmp(Wl_), up(W_);
+      for (int64_t i = b; i < e; ++i)
+        for (int64_t d = 0; d < D_; ++d) {
+          upsample_row(root_eta_.data() + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
+          const uint8_t* m = mg_.data() + i * W_;
+          const T* src = g_in_ + d * N_ + i * W_;
+          T* dst = gs_buf_.data() + d * N_ + i * W_;
+          for (int64_t j = 0; j < W_; ++j) dst[j] = m[j] ? src[j] : up[j];
+        }
+    });
     gs_ = gs_buf_.data();
   }
 
