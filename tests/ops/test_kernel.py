@@ -63,6 +63,17 @@ def test_matches_reference_float32(height, D):
     assert _rel_err(a, b) < 1e-5
 
 
+@pytest.mark.parametrize("sigma_s", [3.0, 8.0, 16.0, 32.0])  # downsampling factor 1, 2, 4, 8
+def test_float32_vector_paths_match_reference(sigma_s):
+    """Wide enough rows for the kernel's vector paths (8-lane upsampling per factor, 8-block sums) and
+    odd sizes for their scalar tails, against the float64 reference."""
+    f, g = _inputs(1, 3, 5, 70, 131, torch.float32, seed=int(sigma_s))
+    for height in (1, 2):
+        a = op(f, g, sigma_s, 0.4, height, 3, True)
+        b = adaptive_manifold_torch(f.double(), g.double(), sigma_s, 0.4, height, 3, True)
+        assert _rel_err(a.double(), b) < 1e-5, (sigma_s, height)
+
+
 @pytest.mark.parametrize("iterations", [0, 1, 10])
 def test_power_iterations_match(iterations):
     f, g = _inputs(1, 3, 5, 21, 22, torch.float64, seed=3)
