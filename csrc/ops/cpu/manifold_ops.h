@@ -54,9 +54,9 @@ inline float exp_nonpositive(float x) {
   return x < -87.0f ? 0.0f : p * scale;
 }
 
-// out[j] = exp_nonpositive(-x[j] * k) over a row, with the same operations as the scalar version
-// (so the same bits) on 8-float GCC vectors: the scalar one does not auto-vectorise (its bit
-// casts), and it is a quarter of a splat pass. AVX builds use one register, SSE ones two.
+// out[j] = exp_nonpositive(-x[j] * k) over a row, with the operations of the scalar version on
+// 8-float GCC vectors: the scalar one does not auto-vectorise (its bit casts), and it is a quarter
+// of a splat pass. AVX builds use one register, SSE ones two.
 inline void exp_neg_scaled_row(const float* x, float k, float* out, int64_t n) {
   typedef float v8f __attribute__((vector_size(32), aligned(4)));
   typedef int32_t v8i __attribute__((vector_size(32), aligned(4)));
@@ -343,7 +343,8 @@ inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t
 #if defined(__SSE2__)
 // float32 with df a multiple of 4 (the common df = 4, 8, ...): each block is df/4 vectors summed
 // into one, four blocks' vectors are transposed and added, so four block sums take one store.
-// Plain mul/add intrinsics (no FMA contraction): the same bits on every machine and thread split.
+// Every block is reduced by the same operations wherever a thread split falls, so the sums do
+// not depend on the thread count (the compiler may fuse multiply-adds on FMA builds).
 #if defined(__AVX2__)
 // The sums of the eight 4-float blocks in v[0..3] (v[q] holds blocks 2q and 2q+1), in block order,
 // each as (x0 + x1) + (x2 + x3) like the SSE transpose below.
