@@ -125,8 +125,8 @@ class ImageFilter {
     prepare_values();
   }
 
-  // 6. Block means of the guide for the root manifold, checking finiteness on the same read (the
-  // guide's only full pass before the tree). Only a non-finite guide takes the masked route
+  // 6. Block means of the guide for the root manifold, checking finiteness on them (the guide's
+  // only full pass before the tree). Only a non-finite guide takes the masked route
   // h(down(mg g0)) / h(down(mg)) and builds gs at full resolution.
   void prepare_guide() {
     root_eta_.assign(D_ * Nl_, T(0));
@@ -135,12 +135,14 @@ class ImageFilter {
       for (int64_t bi = b; bi < e; ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         bool ok = true;
-        for (int64_t d = 0; d < D_; ++d)
-          for (int64_t i = i0; i < i1; ++i) {
-            const T* src = g_in_ + d * N_ + i * W_;
-            ok = ok && all_finite(src, W_);
-            block_sum_row(src, W_, df_, Wl_, root_eta_.data() + d * Nl_ + bi * Wl_);
-          }
+        for (int64_t d = 0; d < D_; ++d) {
+          T* sums = root_eta_.data() + d * Nl_ + bi * Wl_;
+          for (int64_t i = i0; i < i1; ++i) block_sum_row(g_in_ + d * N_ + i * W_, W_, df_, Wl_, sums);
+          // A NaN or infinity makes its block's sum NaN or infinite, so finite sums prove finite
+          // samples (an overflowing sum only sends the image down the masked route, which then
+          // finds every pixel valid).
+          ok = ok && all_finite(sums, Wl_);
+        }
         block_ok[bi] = ok;
         to_block_means(root_eta_.data() + bi * Wl_, D_, i1 - i0);
       }
@@ -230,18 +232,7 @@ class ImageFilter {
           const T* x = f_in_ + c * N_;
           T l = lo[ch * C_ + c], h = hi[ch * C_ + c];
           if (chunk_ok[ch] && all_g_) {
-            // 8 lanes (min/max are exact in any order); x < l ? x : l keeps NaN-free data exact
-            T ll[8], hh[8];
-            for (int q = 0; q < 8; ++q) ll[q] = l, hh[q] = h;
-            int64_t i = p0;
-            for (; i + 8 <= p1; i += 8)
-              for (int q = 0; q < 8; ++q) {
-                const T y = x[i + q];
-                ll[q] = y < ll[q] ? y : ll[q];
-                hh[q] = y > hh[q] ? y : hh[q];
-              }
-            for (; i < p1; ++i) l = std::min(l, x[i]), h = std::max(h, x[i]);
-            for (int q = 0; q < 8; ++q) l = std::min(l, ll[q]), h = std::max(h, hh[q]);
+            min_max(x + p0, p1 - p0, l, h);
           } else {
             for (int64_t i = p0; i < p1; ++i)
               if (mg_[i] && mv_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
@@ -501,13 +492,15 @@ class ImageFilter {
     parallel_work(0, m * D_, 2 * Nl_, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t c = made[t / D_], d = t % D_;
-        const T* q = Q.data() + c * qside + d * Nl_;
-        const T* q0 = Q.data() + c * qside + D_ * Nl_;
-        const T* parent = level[c / 2].eta.data() + d * Nl_;
-        T* eta = next[t / D_].eta.data() + d * Nl_;
+        const T* __restrict q = Q.data() + c * qside + d * Nl_;
+        const T* __restrict q0 = Q.data() + c * qside + D_ * Nl_;
+        const T* __restrict parent = level[c / 2].eta.data() + d * Nl_;
+        T* __restrict eta = next[t / D_].eta.data() + d * Nl_;
         for (int64_t i = 0; i < Nl_; ++i) {
-          const T den = q0[i] > T(0) ? q0[i] : T(1);  // no 0/0 in the unused lane: vectorises
-          eta[i] = q0[i] > T(0) ? q[i] / den : parent[i];
+          // divided unconditionally (by 1 in the unused lane) so the loop vectorises: a division
+          // under a condition may not be speculated
+          const T ratio = q[i] / (q0[i] > T(0) ? q0[i] : T(1));
+          eta[i] = q0[i] > T(0) ? ratio : parent[i];
         }
       }
     });
@@ -597,8 +590,9 @@ class ImageFilter {
       T* out = S_ + c * N_ + row;
       const T cc = c_[c];
       for (int64_t j = 0; j < W_; ++j) {
-        const T ok = s0[j] > s0_floor ? s0[j] : T(1);  // no 0/0 in the unused lane
-        out[j] = s0[j] > s0_floor ? cc + out[j] / ok : fs[j];
+        // divided unconditionally (by 1 in the unused lane) so the loop vectorises
+        const T mean = cc + out[j] / (s0[j] > s0_floor ? s0[j] : T(1));
+        out[j] = s0[j] > s0_floor ? mean : fs[j];
       }
       if (opt_.adjust_outliers)
         for (int64_t j = 0; j < W_; ++j) out[j] = fs[j] + alpha[j] * (out[j] - fs[j]);

@@ -132,6 +132,24 @@ inline bool all_finite(const T* x, int64_t n) {
   return ok;
 }
 
+// lo = min(lo, x[0..n)), hi = max(hi, x[0..n)) for finite x, in 32-byte GCC vector lanes (min and
+// max are exact in any order; the lane arrays of a plain loop did not vectorise).
+template <typename T>
+inline void min_max(const T* x, int64_t n, T& lo, T& hi) {
+  typedef T vec __attribute__((vector_size(32), aligned(sizeof(T))));
+  constexpr int L = 32 / sizeof(T);
+  vec vl = vec{} + lo, vh = vec{} + hi;
+  int64_t j = 0;
+  for (; j + L <= n; j += L) {
+    vec v;
+    std::memcpy(&v, x + j, sizeof v);
+    vl = v < vl ? v : vl;
+    vh = v > vh ? v : vh;
+  }
+  for (int l = 0; l < L; ++l) lo = std::min(lo, vl[l]), hi = std::max(hi, vh[l]);
+  for (; j < n; ++j) lo = std::min(lo, x[j]), hi = std::max(hi, x[j]);
+}
+
 // Bilinear taps for one axis: output index o reads (1-f) * in[i0] + f * in[i1].
 // Source coordinate u = (o + 0.5) / df - 0.5 clamped to [0, in - 1], i.e. torch's
 // interpolate(scale_factor=df, align_corners=False) cropped to the full-res size.
@@ -175,18 +193,25 @@ inline void upsample_cols(const T* t, int64_t wl, int64_t w, const Taps<T>& tx, 
   if constexpr (std::is_same<T, float>::value) {
     if (df == 2 || df == 4 || df == 8) {
       const int64_t per = 8 / df;
-      alignas(32) int32_t ia[8], ib[8];
-      alignas(32) float fv[8];
-      for (int k = 0; k < 8; ++k) ia[k] = k / df, ib[k] = k / df + 1, fv[k] = fk[k % df];
-      const __m256i pa = _mm256_load_si256(reinterpret_cast<const __m256i*>(ia));
-      const __m256i pb = _mm256_load_si256(reinterpret_cast<const __m256i*>(ib));
-      const __m256 f = _mm256_load_ps(fv);
+      const __m256i pa = df == 2   ? _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3)
+                         : df == 4 ? _mm256_setr_epi32(0, 0, 0, 0, 1, 1, 1, 1)
+                                   : _mm256_setzero_si256();
+      const __m256i pb = _mm256_add_epi32(pa, _mm256_set1_epi32(1));
+      const __m256 f = df == 8 ? _mm256_loadu_ps(fk)
+                               : _mm256_setr_ps(fk[0], fk[1 % df], fk[2 % df], fk[3 % df], fk[4 % df],
+                                                fk[5 % df], fk[6 % df], fk[7 % df]);
       const __m256 g = _mm256_sub_ps(_mm256_set1_ps(1.0f), f);
-      for (; b + 8 <= wl && half + b * df + 8 <= w; b += per) {
-        const __m256 v = _mm256_loadu_ps(t + b);
+      // steps while the 8-float load stays in t and the 8 outputs in o
+      const int64_t steps =
+          wl < 8 || w < half + 8 ? 0 : std::min((wl - 8) / per + 1, (w - half - 8) / 8 + 1);
+      const float* src = t;
+      float* dst = o + half;
+      for (int64_t s = 0; s < steps; ++s, src += per, dst += 8) {
+        const __m256 v = _mm256_loadu_ps(src);
         const __m256 a0 = _mm256_permutevar8x32_ps(v, pa), a1 = _mm256_permutevar8x32_ps(v, pb);
-        _mm256_storeu_ps(o + half + b * df, _mm256_fmadd_ps(f, a1, _mm256_mul_ps(g, a0)));
+        _mm256_storeu_ps(dst, _mm256_fmadd_ps(f, a1, _mm256_mul_ps(g, a0)));
       }
+      b = steps * per;
     }
   }
 #endif
@@ -249,7 +274,7 @@ class RowUpsampler {
   RowUpsampler(int64_t planes, int64_t hl, int64_t wl, int64_t w, const Taps<T>& ty,
                const Taps<T>& tx)
       : planes_(planes), hl_(hl), wl_(wl), w_(w), ty_(ty), tx_(tx), base_(planes * w),
-        delta_(planes * w), other_(w) {}
+        delta_(planes * w), diff_(wl) {}
 
   // Serve the planes at `low` ((planes, hl, wl), contiguous) from now on.
   void reset(const T* low) {
@@ -271,8 +296,11 @@ class RowUpsampler {
           std::fill(d, d + w_, T(0));
           continue;
         }
-        horizontal(plane + y1 * wl_, other_.data());
-        for (int64_t j = 0; j < w_; ++j) d[j] = other_[j] - b[j];
+        // upsampling is linear: delta = up(row y1 - row y0), the difference taken at low res
+        const T* r0 = plane + y0 * wl_;
+        const T* r1 = plane + y1 * wl_;
+        for (int64_t j = 0; j < wl_; ++j) diff_[j] = r1[j] - r0[j];
+        horizontal(diff_.data(), d);
       }
     }
     return ty_.f[i];
@@ -293,7 +321,7 @@ class RowUpsampler {
   const int64_t planes_, hl_, wl_, w_;
   const Taps<T>& ty_;
   const Taps<T>& tx_;
-  std::vector<T> base_, delta_, other_;
+  std::vector<T> base_, delta_, diff_;
   const T* low_ = nullptr;
   int64_t y0_ = -1, y1_ = -1;
 };
