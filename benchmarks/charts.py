@@ -230,7 +230,7 @@ def summary(folder: Path, rel: str) -> str:
              "sigma (`benchmarks/harness.py`); "
              "OIDN and `ours-pipeline*` (our `denoise_frames`, with its own firefly treatment) get the raw colour and "
              "features.", "",
-             "Regenerate everything with `.venv/bin/python benchmarks/run_all.py` (about 10 minutes on 2 cores; "
+             "Regenerate everything with `.venv/bin/python benchmarks/run_all.py` (about 3 minutes on 2 cores, 5 with `--all`; "
              "`--quick` for a smoke run, `--threads N`). Where each method breaks: [stability.md](stability.md).", ""]
     if meta:
         lines += [f"Machine: {meta.get('cpu')} ({meta.get('cpu_count')} cores, shared), {meta.get('torch_threads')} "

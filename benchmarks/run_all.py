@@ -1,6 +1,6 @@
 """Run every benchmark and the stability suite, then redraw the charts and the summaries. One command:
 
-    .venv/bin/python benchmarks/run_all.py            # full run (about 10-15 minutes on 2 shared cores)
+    .venv/bin/python benchmarks/run_all.py            # full run (about 3 minutes on 2 shared cores, 5 with --all)
     .venv/bin/python benchmarks/run_all.py --quick    # smoke run: tiny sizes, results/quick/, seconds
 
 Steps: the stability suite (``tests/stability``, rewrites ``docs/stability.md``), ``bench_methods.py`` (speed
