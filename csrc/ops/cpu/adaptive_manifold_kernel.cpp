@@ -362,8 +362,8 @@ class ImageFilter {
     const int64_t group_px = bpg_ * df_ * W_ * n;
     const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0));
     parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
-      // res has D rounded up to 4 rows, the extra ones zero, for gram_upper_row's tiles
-      std::vector<T> res(want_m ? (D_ + 3) / 4 * 4 * W_ : 0, T(0)), dist(W_), ws(W_),
+      // res has D rounded up to 4 rows plus 4, the extra ones zero, for gram_upper_row's tiles
+      std::vector<T> res(want_m ? ((D_ + 3) / 4 * 4 + 4) * W_ : 0, T(0)), dist(W_), ws(W_),
           mrow(want_m ? n * msize : 0);
       std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
       for (int64_t grp = gb; grp < ge; ++grp) {

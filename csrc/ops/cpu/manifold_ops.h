@@ -440,7 +440,7 @@ inline void block_dot_row(const float* a, const float* b, int64_t w, int64_t df,
 #endif
 
 // m += the upper triangle (row-major) of sum_j r[:, j] r[:, j]^T for d rows of length w (row
-// stride w), float32 partial sums. res must hold round_up(d, 4) rows, the extra ones zero.
+// stride w), float32 partial sums. res must hold round_up(d, 4) + 4 rows, the extra ones zero.
 // Generic: one lane-interleaved dot product per entry.
 template <typename T>
 inline void gram_upper_row(const T* res, int64_t d, int64_t w, T* m) {
@@ -450,8 +450,10 @@ inline void gram_upper_row(const T* res, int64_t d, int64_t w, T* m) {
 }
 
 #if defined(__AVX2__) && defined(__FMA__)
-// float32 on AVX2 + FMA builds: the tiling below with 8-float vectors and fused multiply-adds (the
-// root's 17-channel Gram matrix was a third of its splat pass with SSE).
+// float32 on AVX2 + FMA builds: 2 x 4 tiles of 8-float vectors and fused multiply-adds (the root's
+// 17-channel Gram matrix was a third of its splat pass with SSE). A tile row pair (a, a+1) starts
+// at column a, so a tile wastes at most the one entry below the diagonal (25 tiles for d = 17
+// instead of 29 starting at a multiple of 4); res needs round_up(d, 4) + 4 rows.
 inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
   const int64_t dp = (d + 3) / 4 * 4;
   const int64_t wv = w / 8 * 8;
@@ -465,7 +467,7 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
   for (int64_t a = 0; a < d; a += 2) {
     const float* ra0 = res + a * w;
     const float* ra1 = a + 1 < dp ? ra0 + w : ra0;
-    for (int64_t b = a / 4 * 4; b < d; b += 4) {
+    for (int64_t b = a; b < d; b += 4) {
       const float* rb = res + b * w;
       __m256 c00 = _mm256_setzero_ps(), c01 = c00, c02 = c00, c03 = c00;
       __m256 c10 = c00, c11 = c00, c12 = c00, c13 = c00;
