@@ -13,6 +13,11 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <type_traits>
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+#endif
 
 namespace torchmanifold {
 namespace cpu {
@@ -49,11 +54,95 @@ inline void parallel_work(int64_t begin, int64_t end, int64_t work_per_item, con
 
 // ---- constant-coefficient low-pass h ---------------------------------------------------------
 
+// One step of the recursion, x + a (prev - x). FMA builds fuse it explicitly, so the scalar rows
+// and the vector blocks of lowpass_rows give the same bits whichever rows a thread gets.
+template <typename T>
+inline T recursion_step(T x, T prev, T a) {
+#if defined(__FMA__)
+  return std::fma(a, prev - x, x);
+#else
+  return x + a * (prev - x);
+#endif
+}
+
 template <typename T>
 inline void lowpass_row(T* y, int64_t n, T a) {
-  for (int64_t j = 1; j < n; ++j) y[j] += a * (y[j - 1] - y[j]);
-  for (int64_t j = n - 2; j >= 0; --j) y[j] += a * (y[j + 1] - y[j]);
+  for (int64_t j = 1; j < n; ++j) y[j] = recursion_step(y[j], y[j - 1], a);
+  for (int64_t j = n - 2; j >= 0; --j) y[j] = recursion_step(y[j], y[j + 1], a);
 }
+
+#if defined(__AVX2__) && defined(__FMA__)
+// In-register transpose of an 8 x 8 float block.
+inline void transpose8(__m256* v) {
+  __m256 t[8], u[8];
+  for (int k = 0; k < 8; k += 2) {
+    t[k] = _mm256_unpacklo_ps(v[k], v[k + 1]);
+    t[k + 1] = _mm256_unpackhi_ps(v[k], v[k + 1]);
+  }
+  for (int k = 0; k < 8; k += 4) {
+    u[k] = _mm256_shuffle_ps(t[k], t[k + 2], _MM_SHUFFLE(1, 0, 1, 0));
+    u[k + 1] = _mm256_shuffle_ps(t[k], t[k + 2], _MM_SHUFFLE(3, 2, 3, 2));
+    u[k + 2] = _mm256_shuffle_ps(t[k + 1], t[k + 3], _MM_SHUFFLE(1, 0, 1, 0));
+    u[k + 3] = _mm256_shuffle_ps(t[k + 1], t[k + 3], _MM_SHUFFLE(3, 2, 3, 2));
+  }
+  for (int k = 0; k < 4; ++k) {
+    v[k] = _mm256_permute2f128_ps(u[k], u[k + 4], 0x20);
+    v[k + 4] = _mm256_permute2f128_ps(u[k], u[k + 4], 0x31);
+  }
+}
+
+// Eight float rows y[0..8) of length n, forward then backward, one vector lane per row: 8 x 8
+// blocks are transposed so each column is one vector (the scalar version keeps 8 chains of
+// scalar operations in flight); columns left over at the ends run the scalar steps.
+inline void lowpass_8_rows(float* const* y, int64_t n, float a) {
+  const __m256 va = _mm256_set1_ps(a);
+  __m256 v[8];
+  alignas(32) float prev[8];
+  auto load = [&](int64_t j0) {
+    for (int k = 0; k < 8; ++k) v[k] = _mm256_loadu_ps(y[k] + j0);
+    transpose8(v);
+  };
+  auto store = [&](int64_t j0) {
+    transpose8(v);
+    for (int k = 0; k < 8; ++k) _mm256_storeu_ps(y[k] + j0, v[k]);
+  };
+  // forward: column 0 starts the recursion
+  int64_t j = 1;
+  for (int k = 0; k < 8; ++k) prev[k] = y[k][0];
+  if (n >= 8) {
+    load(0);
+    __m256 p = v[0];
+    for (int c = 1; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+    store(0);
+    for (j = 8; j + 8 <= n; j += 8) {
+      load(j);
+      for (int c = 0; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+      store(j);
+    }
+    _mm256_store_ps(prev, p);
+  }
+  for (; j < n; ++j)
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
+  // backward: column n - 1 starts it
+  j = n - 2;
+  for (int k = 0; k < 8; ++k) prev[k] = y[k][n - 1];
+  if (n >= 8) {
+    load(n - 8);
+    __m256 p = v[7];
+    for (int c = 6; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+    store(n - 8);
+    for (j = n - 16; j >= 0; j -= 8) {
+      load(j);
+      for (int c = 7; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+      store(j);
+    }
+    j += 7;  // the last column not yet done
+    _mm256_store_ps(prev, p);
+  }
+  for (; j >= 0; --j)
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
+}
+#endif
 
 // Columns j in [j0, j1) of one (h, w) plane.
 template <typename T>
@@ -77,23 +166,24 @@ template <typename T>
 inline void lowpass_rows(T* p, int64_t r0, int64_t r1, int64_t w, T a) {
   constexpr int R = 8;
   int64_t r = r0;
+#if defined(__AVX2__) && defined(__FMA__)
+  if constexpr (std::is_same<T, float>::value) {
+    for (; r + R <= r1; r += R) {
+      float* y[R];
+      for (int k = 0; k < R; ++k) y[k] = p + (r + k) * w;
+      lowpass_8_rows(y, w, a);
+    }
+  }
+#endif
   for (; r + R <= r1; r += R) {
     T* y[R];
     T prev[R];
     for (int k = 0; k < R; ++k) y[k] = p + (r + k) * w, prev[k] = y[k][0];
     for (int64_t j = 1; j < w; ++j)
-      for (int k = 0; k < R; ++k) {
-        const T x = y[k][j];
-        prev[k] = x + a * (prev[k] - x);
-        y[k][j] = prev[k];
-      }
+      for (int k = 0; k < R; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
     for (int k = 0; k < R; ++k) prev[k] = y[k][w - 1];
     for (int64_t j = w - 2; j >= 0; --j)
-      for (int k = 0; k < R; ++k) {
-        const T x = y[k][j];
-        prev[k] = x + a * (prev[k] - x);
-        y[k][j] = prev[k];
-      }
+      for (int k = 0; k < R; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
   }
   for (; r < r1; ++r) lowpass_row(p + r * w, w, a);
 }
