@@ -449,6 +449,24 @@ inline void gram_upper_row(const T* res, int64_t d, int64_t w, T* m) {
     for (int64_t b = a; b < d; ++b, ++k) m[k] += dot_lanes(res + a * w, res + b * w, w);
 }
 
+#if defined(__SSE2__)
+// A 2 x 4 Gram tile (rows a, a+1 against b..b+3) after its vector part up to column wv: the scalar
+// columns left, then its entries on or above the diagonal into the upper triangle m.
+inline void gram_tile_finish(float* tile, const float* ra0, const float* ra1, const float* rb,
+                             int64_t wv, int64_t w, int64_t a, int64_t b, int64_t d, float* m) {
+  for (int64_t j = wv; j < w; ++j)
+    for (int q = 0; q < 4; ++q) {
+      tile[q] += ra0[j] * rb[q * w + j];
+      tile[4 + q] += ra1[j] * rb[q * w + j];
+    }
+  for (int p = 0; p < 2; ++p)
+    for (int q = 0; q < 4; ++q) {
+      const int64_t aa = a + p, bb = b + q;
+      if (aa < d && bb < d && bb >= aa) m[aa * d - aa * (aa - 1) / 2 + (bb - aa)] += tile[4 * p + q];
+    }
+}
+#endif
+
 #if defined(__AVX2__) && defined(__FMA__)
 // float32 on AVX2 + FMA builds: 2 x 4 tiles of 8-float vectors and fused multiply-adds (the root's
 // 17-channel Gram matrix was a third of its splat pass with SSE). A tile row pair (a, a+1) starts
@@ -463,7 +481,6 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
     _mm256_store_ps(l, v);
     return ((l[0] + l[1]) + (l[2] + l[3])) + ((l[4] + l[5]) + (l[6] + l[7]));
   };
-  auto idx = [d](int64_t a, int64_t b) { return a * d - a * (a - 1) / 2 + (b - a); };
   for (int64_t a = 0; a < d; a += 2) {
     const float* ra0 = res + a * w;
     const float* ra1 = a + 1 < dp ? ra0 + w : ra0;
@@ -486,16 +503,7 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
       }
       tile[0] = hsum(c00), tile[1] = hsum(c01), tile[2] = hsum(c02), tile[3] = hsum(c03);
       tile[4] = hsum(c10), tile[5] = hsum(c11), tile[6] = hsum(c12), tile[7] = hsum(c13);
-      for (int64_t j = wv; j < w; ++j)
-        for (int q = 0; q < 4; ++q) {
-          tile[q] += ra0[j] * rb[q * w + j];
-          tile[4 + q] += ra1[j] * rb[q * w + j];
-        }
-      for (int p = 0; p < 2; ++p)
-        for (int q = 0; q < 4; ++q) {
-          const int64_t aa = a + p, bb = b + q;
-          if (aa < d && bb < d && bb >= aa) m[idx(aa, bb)] += tile[4 * p + q];
-        }
+      gram_tile_finish(tile, ra0, ra1, rb, wv, w, a, b, d, m);
     }
   }
 }
@@ -512,8 +520,6 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
     _mm_store_ps(l, v);
     return (l[0] + l[1]) + (l[2] + l[3]);
   };
-  // tri[a][b] index of the upper-triangle entry
-  auto idx = [d](int64_t a, int64_t b) { return a * d - a * (a - 1) / 2 + (b - a); };
   for (int64_t a = 0; a < d; a += 2) {
     const float* ra0 = res + a * w;
     const float* ra1 = a + 1 < dp ? ra0 + w : ra0;
@@ -536,16 +542,7 @@ inline void gram_upper_row(const float* res, int64_t d, int64_t w, float* m) {
       }
       tile[0] = hsum(c00), tile[1] = hsum(c01), tile[2] = hsum(c02), tile[3] = hsum(c03);
       tile[4] = hsum(c10), tile[5] = hsum(c11), tile[6] = hsum(c12), tile[7] = hsum(c13);
-      for (int64_t j = wv; j < w; ++j)
-        for (int q = 0; q < 4; ++q) {
-          tile[q] += ra0[j] * rb[q * w + j];
-          tile[4 + q] += ra1[j] * rb[q * w + j];
-        }
-      for (int p = 0; p < 2; ++p)
-        for (int q = 0; q < 4; ++q) {
-          const int64_t aa = a + p, bb = b + q;
-          if (aa < d && bb < d && bb >= aa) m[idx(aa, bb)] += tile[4 * p + q];
-        }
+      gram_tile_finish(tile, ra0, ra1, rb, wv, w, a, b, d, m);
     }
   }
 }
