@@ -26,8 +26,9 @@ def get_extensions():
     march = os.getenv("TORCHMANIFOLD_MARCH", "native" if platform.machine() in ("x86_64", "aarch64") else "")
     isa = [f"-march={march}"] if march and not debug else []
     # -fno-trapping-math: nothing here reads floating-point exception flags, and with it the compiler
-    # may vectorise loops that select between a quotient and a fallback (IEEE results unchanged)
-    extra_compile_args = {"cxx": opt + isa + ["-fno-trapping-math", "-fopenmp", "-std=c++17"]}
+    # may vectorise loops that select between a quotient and a fallback (IEEE results unchanged);
+    # -fno-math-errno: nothing reads errno either, and sqrt loops vectorise without it
+    extra_compile_args = {"cxx": opt + isa + ["-fno-trapping-math", "-fno-math-errno", "-fopenmp", "-std=c++17"]}
     extra_link_args = ["-fopenmp"]
     extension = CppExtension
     use_cuda = bool(cuda_sources) and torch.cuda.is_available() and CUDA_HOME is not None

@@ -265,15 +265,14 @@ class ImageFilter {
       c_[c] = std::isfinite(mid) ? mid : T(0);
     }
     // ms, f' and 8. the root's cluster (the pixels with a finite guide; label 0 is never a node)
-    ms_.resize(N_);
     const bool labels = opt_.tree_height > 1;
     if (labels) label_.resize(N_);
-    const bool all_valid = all_g_ && all_v_;  // then every mask is 1: plain loops
+    const bool all_valid = all_g_ && all_v_;  // then every mask is 1: plain loops, and no ms
+    if (!all_valid) ms_.resize(N_);
+    all_valid_ = all_valid;
     rows_parallel(2 * C_ + 2, [&](int64_t b, int64_t e) {
       const int64_t p0 = b * W_, p1 = e * W_;
-      if (all_valid)
-        std::fill(ms_.data() + p0, ms_.data() + p1, uint8_t(1));
-      else
+      if (!all_valid)
         for (int64_t i = p0; i < p1; ++i) ms_[i] = mg_[i] & mv_[i];
       for (int64_t c = 0; c < C_; ++c) {
         const T* x = f_s_ + c * N_;
@@ -319,19 +318,22 @@ class ImageFilter {
     }
   }
 
-  // proj = v . (gs - up(eta)) at full-res row i, channel by channel without storing the residual
-  // (the same r as residual_row, then a dot with v).
-  void projection_row(RowUpsampler<T>& eta, int64_t i, const T* v, T* proj) const {
+  // proj = v . (gs - up(eta)) at full-res row i as v . (gs - c) - up(v . (eta - c)): upsampling is
+  // linear, so the manifold's part is one low-res plane (ve, through a RowUpsampler) instead of D.
+  // c (per channel, a value of the manifold) keeps a guide far from 0 from costing precision.
+  void projection_row(RowUpsampler<T>& ve, int64_t i, const T* v, const T* c, T* proj) const {
     const int64_t row = i * W_;
-    const T fy = eta.seek(i);
-    std::fill(proj, proj + W_, T(0));
+    const T fy = ve.seek(i);
+    T* __restrict p = proj;
+    std::fill(p, p + W_, T(0));
     for (int64_t d = 0; d < D_; ++d) {
-      const T* gr = gs_ + d * N_ + row;
-      const T* b = eta.base(d);
-      const T* db = eta.delta(d);
-      const T vd = v[d];
-      for (int64_t j = 0; j < W_; ++j) proj[j] += vd * (gr[j] - (b[j] + fy * db[j]));
+      const T* __restrict gr = gs_ + d * N_ + row;
+      const T vd = v[d], cd = c[d];
+      for (int64_t j = 0; j < W_; ++j) p[j] += vd * (gr[j] - cd);
     }
+    const T* __restrict b = ve.base(0);
+    const T* __restrict db = ve.delta(0);
+    for (int64_t j = 0; j < W_; ++j) p[j] -= b[j] + fy * db[j];
   }
 
   // A RowUpsampler per node of the level for a task's rows.
@@ -376,9 +378,14 @@ class ImageFilter {
               std::fill(dist.begin(), dist.end(), T(0));
               residual_row(eta[k], i, want_m ? res.data() : nullptr, dist.data());
               T* wr = w_.data() + k * N_ + row;
-              const uint8_t* sr = ms_.data() + row;
               exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
-              for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
+              // the splat weights: w, or 0 where the pixel is not a splat pixel
+              const T* wsplat = wr;
+              if (!all_valid_) {
+                const uint8_t* sr = ms_.data() + row;
+                for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
+                wsplat = ws.data();
+              }
               if (opt_.adjust_outliers) {
                 T* mr = minD_.data() + row;
                 if (depth == 0)
@@ -388,9 +395,8 @@ class ImageFilter {
               }
               T* pk = P.data() + k * pnode;
               for (int64_t c = 0; c < C_; ++c)
-                block_dot_row(ws.data(), fp_.data() + c * N_ + row, W_, df_, Wl_,
-                              pk + c * Nl_ + bi * Wl_);
-              block_sum_row(ws.data(), W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
+                block_dot_row(wsplat, fp_.data() + c * N_ + row, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
+              block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
               if (want_m) accumulate_m(level[k].id, row, res.data(), mrow.data() + k * msize);
             }
           }
@@ -414,6 +420,23 @@ class ImageFilter {
     }
     clock_.lap("blur+split", depth);
 
+    // 8. v . (eta - c) per node at low resolution for the projections, c: the manifold's first value
+    Scratch<T> ve;
+    std::vector<std::vector<T>> centre(n);
+    if (!leaf) {
+      ve.resize(n * Nl_);
+      for (int64_t k = 0; k < n; ++k) {
+        T* out = ve.data() + k * Nl_;
+        const T* e = level[k].eta.data();
+        centre[k].resize(D_);
+        std::fill(out, out + Nl_, T(0));
+        for (int64_t d = 0; d < D_; ++d) {
+          const T vd = v[k][d], cd = centre[k][d] = e[d * Nl_];
+          for (int64_t q = 0; q < Nl_; ++q) out[q] += vd * (e[d * Nl_ + q] - cd);
+        }
+      }
+    }
+
     // ---- pass B: slice; internal nodes also label, theta and the children's sums ----
     Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
@@ -423,7 +446,9 @@ class ImageFilter {
       std::vector<const T*> blurred(n);
       for (int64_t k = 0; k < n; ++k) blurred[k] = P.data() + k * pnode;
       std::vector<RowUpsampler<T>> up = upsamplers(blurred, C_ + 1);
-      std::vector<RowUpsampler<T>> eta = upsamplers(leaf ? std::vector<const T*>() : eta_src, D_);
+      std::vector<const T*> ve_src(leaf ? 0 : n);
+      for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = ve.data() + k * Nl_;
+      std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t i = i0; i < i1; ++i) {
@@ -442,7 +467,7 @@ class ImageFilter {
             }
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
-            projection_row(eta[k], i, v[k].data(), t0.data());
+            projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
             const int64_t id = level[k].id;
             int32_t* lr = label_.data() + row;
             for (int64_t j = 0; j < W_; ++j) {
@@ -608,7 +633,7 @@ class ImageFilter {
   T* S_;  // the output buffer accumulates S
   T inv_r2_, half_inv_r2_;
   double ss_low_, sr_low_;
-  bool all_g_ = true, all_v_ = true;
+  bool all_g_ = true, all_v_ = true, all_valid_ = true;  // finite guide / values / both
   bool finished_ = false;  // the output is normalised
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0

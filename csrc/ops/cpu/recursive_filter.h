@@ -15,6 +15,8 @@
 #include <cstdint>
 #include <type_traits>
 
+#include "ops/cpu/manifold_ops.h"  // exp_neg_scaled_row
+
 #if defined(__AVX2__)
 #include <immintrin.h>
 #endif
@@ -267,12 +269,96 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
           }
         }
       }
+      // a = exp(-(sqrt2/ss) sqrt(1 + k |d eta|^2)): the square roots in place, then the vector exp
       for (int64_t j = 0; j < w; ++j) {
-        rh[j] = std::exp(c * std::sqrt(T(1) + k * rh[j]));
-        rv[j] = std::exp(c * std::sqrt(T(1) + k * rv[j]));
+        rh[j] = std::sqrt(T(1) + k * rh[j]);
+        rv[j] = std::sqrt(T(1) + k * rv[j]);
       }
+      exp_neg_scaled_row(rh, -c, rh, w);
+      exp_neg_scaled_row(rv, -c, rv, w);
     }
   });
+}
+
+// One row of the domain transform, forward then backward: y[j] steps towards y[j - 1] by a[j - 1],
+// then towards y[j + 1] by a[j] (recursion_step, so the vector rows below give the same bits).
+template <typename T>
+inline void domain_transform_row(T* y, const T* a, int64_t n) {
+  for (int64_t j = 1; j < n; ++j) y[j] = recursion_step(y[j], y[j - 1], a[j - 1]);
+  for (int64_t j = n - 2; j >= 0; --j) y[j] = recursion_step(y[j], y[j + 1], a[j]);
+}
+
+#if defined(__AVX2__) && defined(__FMA__)
+// Eight float rows with their own coefficient rows, one vector lane per row, as lowpass_8_rows:
+// the recursion along a row is a chain of dependent steps, eight rows keep eight in flight.
+inline void domain_transform_8_rows(float* const* y, const float* const* a, int64_t n) {
+  __m256 v[8], c[8];
+  auto load = [&](__m256* dst, const float* const* src, int64_t j0) {
+    for (int k = 0; k < 8; ++k) dst[k] = _mm256_loadu_ps(src[k] + j0);
+    transpose8(dst);
+  };
+  auto store = [&](int64_t j0) {
+    transpose8(v);
+    for (int k = 0; k < 8; ++k) _mm256_storeu_ps(y[k] + j0, v[k]);
+  };
+  alignas(32) float prev[8];
+  // forward: column j takes a[j - 1]
+  int64_t j = 1;
+  for (int k = 0; k < 8; ++k) prev[k] = y[k][0];
+  if (n >= 8) {
+    load(v, y, 0);
+    load(c, a, 0);
+    __m256 p = v[0];
+    for (int q = 1; q < 8; ++q) v[q] = p = _mm256_fmadd_ps(c[q - 1], _mm256_sub_ps(p, v[q]), v[q]);
+    store(0);
+    for (j = 8; j + 8 <= n; j += 8) {
+      load(v, y, j);
+      load(c, a, j - 1);
+      for (int q = 0; q < 8; ++q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
+      store(j);
+    }
+    _mm256_store_ps(prev, p);
+  }
+  for (; j < n; ++j)
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a[k][j - 1]);
+  // backward: column j takes a[j]
+  j = n - 2;
+  for (int k = 0; k < 8; ++k) prev[k] = y[k][n - 1];
+  if (n >= 8) {
+    load(v, y, n - 8);
+    load(c, a, n - 8);
+    __m256 p = v[7];
+    for (int q = 6; q >= 0; --q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
+    store(n - 8);
+    for (j = n - 16; j >= 0; j -= 8) {
+      load(v, y, j);
+      load(c, a, j);
+      for (int q = 7; q >= 0; --q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
+      store(j);
+    }
+    j += 7;  // the last column not yet done
+    _mm256_store_ps(prev, p);
+  }
+  for (; j >= 0; --j)
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a[k][j]);
+}
+#endif
+
+// Rows [r0, r1) of one plane with row coefficients ah ((h, w), row i for row i of every plane).
+template <typename T>
+inline void domain_transform_rows(T* p, int64_t r0, int64_t r1, int64_t w, const T* ah) {
+  int64_t r = r0;
+#if defined(__AVX2__) && defined(__FMA__)
+  if constexpr (std::is_same<T, float>::value) {
+    for (; r + 8 <= r1; r += 8) {
+      float* y[8];
+      const float* a[8];
+      for (int k = 0; k < 8; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
+      domain_transform_8_rows(y, a, w);
+    }
+  }
+#endif
+  for (; r < r1; ++r) domain_transform_row(p + r * w, ah + r * w, w);
 }
 
 // Blur `planes` (h, w) planes in place with coefficients from domain_transform_coefficients.
@@ -280,13 +366,13 @@ template <typename T>
 void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, const T* ah,
                              const T* av) {
   if (w > 1) {
-    at::parallel_for(0, planes * h, grain_lines(planes * h, 3 * w), [&](int64_t b, int64_t e) {
-      for (int64_t line = b; line < e; ++line) {
-        const int64_t i = line % h;
-        T* y = data + line * w;
-        const T* a = ah + i * w;
-        for (int64_t j = 1; j < w; ++j) y[j] += a[j - 1] * (y[j - 1] - y[j]);
-        for (int64_t j = w - 2; j >= 0; --j) y[j] += a[j] * (y[j + 1] - y[j]);
+    // tasks of up to 8 rows of one plane, so the vector blocks see whole 8-row groups wherever the
+    // split falls
+    const int64_t groups = (h + 7) / 8;
+    at::parallel_for(0, planes * groups, grain_lines(planes * groups, 24 * w), [&](int64_t b, int64_t e) {
+      for (int64_t t = b; t < e; ++t) {
+        const int64_t plane = t / groups, r0 = (t % groups) * 8, r1 = std::min(h, r0 + 8);
+        domain_transform_rows(data + plane * h * w, r0, r1, w, ah);
       }
     });
   }
