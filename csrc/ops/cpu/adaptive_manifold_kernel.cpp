@@ -269,7 +269,6 @@ class ImageFilter {
     if (labels) label_.resize(N_);
     const bool all_valid = all_g_ && all_v_;  // then every mask is 1: plain loops, and no ms
     if (!all_valid) ms_.resize(N_);
-    all_valid_ = all_valid;
     rows_parallel(2 * C_ + 2, [&](int64_t b, int64_t e) {
       const int64_t p0 = b * W_, p1 = e * W_;
       if (!all_valid)
@@ -381,7 +380,7 @@ class ImageFilter {
               exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
               // the splat weights: w, or 0 where the pixel is not a splat pixel
               const T* wsplat = wr;
-              if (!all_valid_) {
+              if (!(all_g_ && all_v_)) {
                 const uint8_t* sr = ms_.data() + row;
                 for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
                 wsplat = ws.data();
@@ -633,7 +632,7 @@ class ImageFilter {
   T* S_;  // the output buffer accumulates S
   T inv_r2_, half_inv_r2_;
   double ss_low_, sr_low_;
-  bool all_g_ = true, all_v_ = true, all_valid_ = true;  // finite guide / values / both
+  bool all_g_ = true, all_v_ = true;
   bool finished_ = false;  // the output is normalised
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0

@@ -93,11 +93,36 @@ inline void transpose8(__m256* v) {
   }
 }
 
+// The coefficients of recursion_8_rows. A constant one (the low-pass):
+struct ConstantCoefficient {
+  __m256 v;
+  float a;
+  explicit ConstantCoefficient(float a_) : v(_mm256_set1_ps(a_)), a(a_) {}
+  void load(int64_t) {}
+  __m256 operator[](int) const { return v; }
+  float at(int, int64_t) const { return a; }
+};
+
+// One per element, from eight coefficient rows (the domain transform): load(j0) transposes the
+// 8 x 8 block at column j0 so that [q] is column j0 + q across the eight rows.
+struct RowCoefficients {
+  const float* const* rows;
+  __m256 c[8];
+  explicit RowCoefficients(const float* const* r) : rows(r) {}
+  void load(int64_t j0) {
+    for (int k = 0; k < 8; ++k) c[k] = _mm256_loadu_ps(rows[k] + j0);
+    transpose8(c);
+  }
+  __m256 operator[](int q) const { return c[q]; }
+  float at(int k, int64_t j) const { return rows[k][j]; }
+};
+
 // Eight float rows y[0..8) of length n, forward then backward, one vector lane per row: 8 x 8
 // blocks are transposed so each column is one vector (the scalar version keeps 8 chains of
-// scalar operations in flight); columns left over at the ends run the scalar steps.
-inline void lowpass_8_rows(float* const* y, int64_t n, float a) {
-  const __m256 va = _mm256_set1_ps(a);
+// scalar operations in flight); columns left over at the ends run the scalar steps. Column j
+// steps towards j - 1 by coefficient j - 1, then towards j + 1 by coefficient j.
+template <typename Coef>
+inline void recursion_8_rows(float* const* y, int64_t n, Coef a) {
   __m256 v[8];
   alignas(32) float prev[8];
   auto load = [&](int64_t j0) {
@@ -113,36 +138,40 @@ inline void lowpass_8_rows(float* const* y, int64_t n, float a) {
   for (int k = 0; k < 8; ++k) prev[k] = y[k][0];
   if (n >= 8) {
     load(0);
+    a.load(0);
     __m256 p = v[0];
-    for (int c = 1; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+    for (int c = 1; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(a[c - 1], _mm256_sub_ps(p, v[c]), v[c]);
     store(0);
     for (j = 8; j + 8 <= n; j += 8) {
       load(j);
-      for (int c = 0; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+      a.load(j - 1);
+      for (int c = 0; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
       store(j);
     }
     _mm256_store_ps(prev, p);
   }
   for (; j < n; ++j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a.at(k, j - 1));
   // backward: column n - 1 starts it
   j = n - 2;
   for (int k = 0; k < 8; ++k) prev[k] = y[k][n - 1];
   if (n >= 8) {
     load(n - 8);
+    a.load(n - 8);
     __m256 p = v[7];
-    for (int c = 6; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+    for (int c = 6; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
     store(n - 8);
     for (j = n - 16; j >= 0; j -= 8) {
       load(j);
-      for (int c = 7; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(va, _mm256_sub_ps(p, v[c]), v[c]);
+      a.load(j);
+      for (int c = 7; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
       store(j);
     }
     j += 7;  // the last column not yet done
     _mm256_store_ps(prev, p);
   }
   for (; j >= 0; --j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a);
+    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a.at(k, j));
 }
 #endif
 
@@ -173,7 +202,7 @@ inline void lowpass_rows(T* p, int64_t r0, int64_t r1, int64_t w, T a) {
     for (; r + R <= r1; r += R) {
       float* y[R];
       for (int k = 0; k < R; ++k) y[k] = p + (r + k) * w;
-      lowpass_8_rows(y, w, a);
+      recursion_8_rows(y, w, ConstantCoefficient(a));
     }
   }
 #endif
@@ -281,68 +310,12 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
 }
 
 // One row of the domain transform, forward then backward: y[j] steps towards y[j - 1] by a[j - 1],
-// then towards y[j + 1] by a[j] (recursion_step, so the vector rows below give the same bits).
+// then towards y[j + 1] by a[j] (recursion_step, so recursion_8_rows gives the same bits).
 template <typename T>
 inline void domain_transform_row(T* y, const T* a, int64_t n) {
   for (int64_t j = 1; j < n; ++j) y[j] = recursion_step(y[j], y[j - 1], a[j - 1]);
   for (int64_t j = n - 2; j >= 0; --j) y[j] = recursion_step(y[j], y[j + 1], a[j]);
 }
-
-#if defined(__AVX2__) && defined(__FMA__)
-// Eight float rows with their own coefficient rows, one vector lane per row, as lowpass_8_rows:
-// the recursion along a row is a chain of dependent steps, eight rows keep eight in flight.
-inline void domain_transform_8_rows(float* const* y, const float* const* a, int64_t n) {
-  __m256 v[8], c[8];
-  auto load = [&](__m256* dst, const float* const* src, int64_t j0) {
-    for (int k = 0; k < 8; ++k) dst[k] = _mm256_loadu_ps(src[k] + j0);
-    transpose8(dst);
-  };
-  auto store = [&](int64_t j0) {
-    transpose8(v);
-    for (int k = 0; k < 8; ++k) _mm256_storeu_ps(y[k] + j0, v[k]);
-  };
-  alignas(32) float prev[8];
-  // forward: column j takes a[j - 1]
-  int64_t j = 1;
-  for (int k = 0; k < 8; ++k) prev[k] = y[k][0];
-  if (n >= 8) {
-    load(v, y, 0);
-    load(c, a, 0);
-    __m256 p = v[0];
-    for (int q = 1; q < 8; ++q) v[q] = p = _mm256_fmadd_ps(c[q - 1], _mm256_sub_ps(p, v[q]), v[q]);
-    store(0);
-    for (j = 8; j + 8 <= n; j += 8) {
-      load(v, y, j);
-      load(c, a, j - 1);
-      for (int q = 0; q < 8; ++q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
-      store(j);
-    }
-    _mm256_store_ps(prev, p);
-  }
-  for (; j < n; ++j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a[k][j - 1]);
-  // backward: column j takes a[j]
-  j = n - 2;
-  for (int k = 0; k < 8; ++k) prev[k] = y[k][n - 1];
-  if (n >= 8) {
-    load(v, y, n - 8);
-    load(c, a, n - 8);
-    __m256 p = v[7];
-    for (int q = 6; q >= 0; --q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
-    store(n - 8);
-    for (j = n - 16; j >= 0; j -= 8) {
-      load(v, y, j);
-      load(c, a, j);
-      for (int q = 7; q >= 0; --q) v[q] = p = _mm256_fmadd_ps(c[q], _mm256_sub_ps(p, v[q]), v[q]);
-      store(j);
-    }
-    j += 7;  // the last column not yet done
-    _mm256_store_ps(prev, p);
-  }
-  for (; j >= 0; --j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a[k][j]);
-}
-#endif
 
 // Rows [r0, r1) of one plane with row coefficients ah ((h, w), row i for row i of every plane).
 template <typename T>
@@ -354,7 +327,7 @@ inline void domain_transform_rows(T* p, int64_t r0, int64_t r1, int64_t w, const
       float* y[8];
       const float* a[8];
       for (int k = 0; k < 8; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
-      domain_transform_8_rows(y, a, w);
+      recursion_8_rows(y, w, RowCoefficients(a));
     }
   }
 #endif
