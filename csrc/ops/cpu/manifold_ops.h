@@ -58,12 +58,14 @@ inline float exp_nonpositive(float x) {
 // 8-float GCC vectors: the scalar one does not auto-vectorise (its bit casts), and it is a quarter
 // of a splat pass. AVX builds use one register, SSE ones two.
 inline void exp_neg_scaled_row(const float* x, float k, float* out, int64_t n) {
-  typedef float v8f __attribute__((vector_size(32), aligned(4)));
-  typedef int32_t v8i __attribute__((vector_size(32), aligned(4)));
+  typedef float v8f __attribute__((vector_size(32)));
+  typedef int32_t v8i __attribute__((vector_size(32)));
+  // unaligned views for the loads and stores: a memcpy into a v8f went through the stack in two
+  // halves, and the stalled store forwarding made this loop ~100 cycles per 8 floats
+  typedef float v8f_u __attribute__((vector_size(32), aligned(4), may_alias));
   int64_t j = 0;
   for (; j + 8 <= n; j += 8) {
-    v8f v;
-    std::memcpy(&v, x + j, sizeof v);
+    v8f v = *reinterpret_cast<const v8f_u*>(x + j);
     v = -v * k;
     const v8i under = v < -87.0f;
     v = under ? v8f{} - 87.5f : v;
@@ -80,7 +82,7 @@ inline void exp_neg_scaled_row(const float* x, float k, float* out, int64_t n) {
     const v8i bits = (((v8i)t) - 0x4B400000 + 127) << 23;
     v8f e = p * (v8f)bits;
     e = under ? v8f{} : e;
-    std::memcpy(out + j, &e, sizeof e);
+    *reinterpret_cast<v8f_u*>(out + j) = e;
   }
   for (; j < n; ++j) out[j] = exp_nonpositive(-x[j] * k);
 }
@@ -136,13 +138,13 @@ inline bool all_finite(const T* x, int64_t n) {
 // max are exact in any order; the lane arrays of a plain loop did not vectorise).
 template <typename T>
 inline void min_max(const T* x, int64_t n, T& lo, T& hi) {
-  typedef T vec __attribute__((vector_size(32), aligned(sizeof(T))));
+  typedef T vec __attribute__((vector_size(32)));
+  typedef T vec_u __attribute__((vector_size(32), aligned(sizeof(T)), may_alias));  // see exp_neg_scaled_row
   constexpr int L = 32 / sizeof(T);
   vec vl = vec{} + lo, vh = vec{} + hi;
   int64_t j = 0;
   for (; j + L <= n; j += L) {
-    vec v;
-    std::memcpy(&v, x + j, sizeof v);
+    const vec v = *reinterpret_cast<const vec_u*>(x + j);
     vl = v < vl ? v : vl;
     vh = v > vh ? v : vh;
   }
