@@ -211,7 +211,7 @@ class ImageFilter {
 
   void prepare_values() {
     // Values: finiteness, then c = lo + (hi - lo) / 2 over splat pixels (min/max are order
-    // independent), then f' = (f_s - c) ms.
+    // independent), and the splat mask ms.
     mv_.assign(N_, 1);
     const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;
     std::vector<T> lo(chunks * C_, std::numeric_limits<T>::infinity());
@@ -255,7 +255,6 @@ class ImageFilter {
       });
       f_s_ = fs_buf_.data();
     }
-    fp_.resize(C_ * N_);
     c_.assign(C_, T(0));
     for (int64_t c = 0; c < C_; ++c) {
       T l = std::numeric_limits<T>::infinity(), h = -l;
@@ -264,31 +263,38 @@ class ImageFilter {
       const T mid = l + (h - l) / T(2);
       c_[c] = std::isfinite(mid) ? mid : T(0);
     }
-    // ms, f' and 8. the root's cluster (the pixels with a finite guide; label 0 is never a node)
-    const bool labels = opt_.tree_height > 1;
-    if (labels) label_.resize(N_);
-    const bool all_valid = all_g_ && all_v_;  // then every mask is 1: plain loops, and no ms
-    if (!all_valid) ms_.resize(N_);
-    rows_parallel(2 * C_ + 2, [&](int64_t b, int64_t e) {
-      const int64_t p0 = b * W_, p1 = e * W_;
-      if (!all_valid)
-        for (int64_t i = p0; i < p1; ++i) ms_[i] = mg_[i] & mv_[i];
-      for (int64_t c = 0; c < C_; ++c) {
-        const T* x = f_s_ + c * N_;
-        T* y = fp_.data() + c * N_;
-        const T cc = c_[c];
-        if (all_valid)
-          for (int64_t i = p0; i < p1; ++i) y[i] = x[i] - cc;
-        else
-          for (int64_t i = p0; i < p1; ++i) y[i] = ms_[i] ? x[i] - cc : T(0);
+    // ms (every mask is 1 when all samples are finite: no ms then). f' is made row by row where
+    // it is splatted, and the root's cluster is the pixels with a finite guide (8.), so the
+    // labels are first written by the root's split.
+    if (!(all_g_ && all_v_)) {
+      ms_.resize(N_);
+      rows_parallel(2, [&](int64_t b, int64_t e) {
+        for (int64_t i = b * W_; i < e * W_; ++i) ms_[i] = mg_[i] & mv_[i];
+      });
+    }
+    if (opt_.tree_height > 1) label_.resize(N_);
+  }
+
+  // f' = (f_s - c) ms at full-res row i into fp ((C, W)).
+  void centred_values_row(int64_t i, T* fp) const {
+    const int64_t row = i * W_;
+    for (int64_t c = 0; c < C_; ++c) {
+      const T* x = f_s_ + c * N_ + row;
+      T* y = fp + c * W_;
+      const T cc = c_[c];
+      if (all_g_ && all_v_) {
+        for (int64_t j = 0; j < W_; ++j) y[j] = x[j] - cc;
+      } else {
+        const uint8_t* m = ms_.data() + row;
+        for (int64_t j = 0; j < W_; ++j) y[j] = m[j] ? x[j] - cc : T(0);
       }
-      if (labels) {
-        if (all_g_)
-          std::fill(label_.data() + p0, label_.data() + p1, int32_t(1));
-        else
-          for (int64_t i = p0; i < p1; ++i) label_[i] = mg_[i] ? 1 : 0;
-      }
-    });
+    }
+  }
+
+  // Whether pixel j of row `lr` (labels) / `mg` (guide mask) is in the cluster `id`. The root
+  // (depth 0) holds every pixel with a finite guide; its labels are not stored.
+  static bool in_cluster(int64_t depth, const int32_t* lr, const uint8_t* mg, int32_t id, int64_t j) {
+    return depth == 0 ? mg[j] != 0 : lr[j] == id;
   }
 
   // Residual r = gs - up(eta) at full-res row i and dist += |r|^2, one channel at a time so the
@@ -365,7 +371,7 @@ class ImageFilter {
     parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
       // res has D rounded up to 4 rows plus 4, the extra ones zero, for gram_upper_row's tiles
       std::vector<T> res(want_m ? ((D_ + 3) / 4 * 4 + 4) * W_ : 0, T(0)), dist(W_), ws(W_),
-          mrow(want_m ? n * msize : 0);
+          fp(C_ * W_), mrow(want_m ? n * msize : 0);
       std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
       for (int64_t grp = gb; grp < ge; ++grp) {
         std::fill(mrow.begin(), mrow.end(), T(0));
@@ -373,6 +379,7 @@ class ImageFilter {
           const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
           for (int64_t i = i0; i < i1; ++i) {
             const int64_t row = i * W_;
+            centred_values_row(i, fp.data());
             for (int64_t k = 0; k < n; ++k) {
               std::fill(dist.begin(), dist.end(), T(0));
               residual_row(eta[k], i, want_m ? res.data() : nullptr, dist.data());
@@ -394,9 +401,9 @@ class ImageFilter {
               }
               T* pk = P.data() + k * pnode;
               for (int64_t c = 0; c < C_; ++c)
-                block_dot_row(wsplat, fp_.data() + c * N_ + row, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
+                block_dot_row(wsplat, fp.data() + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
               block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
-              if (want_m) accumulate_m(level[k].id, row, res.data(), mrow.data() + k * msize);
+              if (want_m) accumulate_m(depth, level[k].id, row, res.data(), mrow.data() + k * msize);
             }
           }
           for (int64_t k = 0; k < n; ++k) to_block_means(P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
@@ -467,15 +474,17 @@ class ImageFilter {
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
             projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
-            const int64_t id = level[k].id;
+            const int32_t id = static_cast<int32_t>(level[k].id);
             int32_t* lr = label_.data() + row;
+            const uint8_t* mg = mg_.data() + row;
             for (int64_t j = 0; j < W_; ++j) {
-              const bool in = lr[j] == id;
+              const bool in = in_cluster(depth, lr, mg, id, j);
               const bool plus = t0[j] >= T(0);
               const T theta = T(1) - wr[j];
               t0[j] = in && !plus ? theta : T(0);
               t1[j] = in && plus ? theta : T(0);
-              if (in) lr[j] = static_cast<int32_t>(2 * id + (plus ? 1 : 0));
+              if (in) lr[j] = 2 * id + (plus ? 1 : 0);
+              else if (depth == 0) lr[j] = 0;  // label 0 is never a node
             }
             T* q = Q.data() + k * 2 * qside;
             for (int64_t d = 0; d < D_; ++d) {
@@ -535,14 +544,16 @@ class ImageFilter {
   // m += sum over the row's cluster pixels of r r^T (upper triangle, row-major). The reference
   // scales r by 1/max|r| against overflow; the direction and the collapse test do not depend on
   // it, and here a float32 r is squared in float32 per row, then summed in double.
-  void accumulate_m(int64_t id, int64_t row, T* res, T* m) const {
+  void accumulate_m(int64_t depth, int64_t id, int64_t row, T* res, T* m) const {
     const int32_t* lr = label_.data() + row;
+    const uint8_t* mg = mg_.data() + row;
     const int32_t id32 = static_cast<int32_t>(id);
     int32_t out = 0;  // pixels of the row outside the cluster (none at the root, usually)
-    for (int64_t j = 0; j < W_; ++j) out += lr[j] != id32;
+    if (!(depth == 0 && all_g_))
+      for (int64_t j = 0; j < W_; ++j) out += !in_cluster(depth, lr, mg, id32, j);
     for (int64_t d = 0; d < D_ && out > 0; ++d) {
       T* rr = res + d * W_;  // res is scratch now: mask it
-      for (int64_t j = 0; j < W_; ++j) rr[j] = lr[j] == id32 ? rr[j] : T(0);
+      for (int64_t j = 0; j < W_; ++j) rr[j] = in_cluster(depth, lr, mg, id32, j) ? rr[j] : T(0);
     }
     gram_upper_row(res, D_, W_, m);
   }
@@ -639,7 +650,7 @@ class ImageFilter {
   const T* gs_ = nullptr;   // sanitised guide
   std::vector<T> c_;
   Scratch<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
-  Scratch<T> fs_buf_, gs_buf_, fp_, w_, minD_, S0_;
+  Scratch<T> fs_buf_, gs_buf_, w_, minD_, S0_;
   Scratch<uint8_t> mg_, mv_, ms_;
   Scratch<int32_t> label_;
   PhaseClock clock_;
