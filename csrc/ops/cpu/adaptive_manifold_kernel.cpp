@@ -129,7 +129,7 @@ class ImageFilter {
   // only full pass before the tree). Only a non-finite guide takes the masked route
   // h(down(mg g0)) / h(down(mg)) and builds gs at full resolution.
   void prepare_guide() {
-    root_eta_.assign(D_ * Nl_, T(0));
+    root_eta_.resize(D_ * Nl_);  // every task clears the block rows it sums into
     std::vector<uint8_t> block_ok(Hl_, 1);
     parallel_work(0, Hl_, df_ * W_ * 3 * D_, [&](int64_t b, int64_t e) {
       for (int64_t bi = b; bi < e; ++bi) {
@@ -137,6 +137,7 @@ class ImageFilter {
         bool ok = true;
         for (int64_t d = 0; d < D_; ++d) {
           T* sums = root_eta_.data() + d * Nl_ + bi * Wl_;
+          std::fill(sums, sums + Wl_, T(0));
           for (int64_t i = i0; i < i1; ++i) block_sum_row(g_in_ + d * N_ + i * W_, W_, df_, Wl_, sums);
           // A NaN or infinity makes its block's sum NaN or infinite, so finite sums prove finite
           // samples (an overflowing sum only sends the image down the masked route, which then
@@ -148,12 +149,12 @@ class ImageFilter {
       }
     });
     all_g_ = std::all_of(block_ok.begin(), block_ok.end(), [](uint8_t m) { return m != 0; });
-    mg_.assign(N_, 1);
     gs_ = g_in_;
-    if (all_g_) {
+    if (all_g_) {  // no guide mask: every pixel is valid
       lowpass_planes(root_eta_.data(), D_, Hl_, Wl_, ss_low_);
       return;
     }
+    mg_.assign(N_, 1);
     rows_parallel(D_, [&](int64_t b, int64_t e) {
       for (int64_t d = 0; d < D_; ++d)
         for (int64_t i = b * W_; i < e * W_; ++i)
@@ -212,7 +213,7 @@ class ImageFilter {
   void prepare_values() {
     // Values: finiteness, then c = lo + (hi - lo) / 2 over splat pixels (min/max are order
     // independent), and the splat mask ms.
-    mv_.assign(N_, 1);
+    mv_.resize(N_);
     const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;
     std::vector<T> lo(chunks * C_, std::numeric_limits<T>::infinity());
     std::vector<T> hi(chunks * C_, -std::numeric_limits<T>::infinity());
@@ -220,6 +221,7 @@ class ImageFilter {
     parallel_work(0, chunks, 3 * kReduceRows * W_ * C_, [&](int64_t b, int64_t e) {
       for (int64_t ch = b; ch < e; ++ch) {
         const int64_t p0 = ch * kReduceRows * W_, p1 = std::min(H_, (ch + 1) * kReduceRows) * W_;
+        std::fill(mv_.data() + p0, mv_.data() + p1, uint8_t(1));
         for (int64_t c = 0; c < C_; ++c) {
           const T* x = f_in_ + c * N_;
           if (!all_finite(x + p0, p1 - p0)) {
@@ -235,7 +237,7 @@ class ImageFilter {
             min_max(x + p0, p1 - p0, l, h);
           } else {
             for (int64_t i = p0; i < p1; ++i)
-              if (mg_[i] && mv_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
+              if ((all_g_ || mg_[i]) && mv_[i]) l = std::min(l, x[i]), h = std::max(h, x[i]);
           }
           lo[ch * C_ + c] = l;
           hi[ch * C_ + c] = h;
@@ -269,7 +271,7 @@ class ImageFilter {
     if (!(all_g_ && all_v_)) {
       ms_.resize(N_);
       rows_parallel(2, [&](int64_t b, int64_t e) {
-        for (int64_t i = b * W_; i < e * W_; ++i) ms_[i] = mg_[i] & mv_[i];
+        for (int64_t i = b * W_; i < e * W_; ++i) ms_[i] = (all_g_ || mg_[i]) && mv_[i];
       });
     }
     if (opt_.tree_height > 1) label_.resize(N_);
@@ -291,10 +293,13 @@ class ImageFilter {
     }
   }
 
-  // Whether pixel j of row `lr` (labels) / `mg` (guide mask) is in the cluster `id`. The root
+  // The guide mask's row at offset `row`, or nullptr when every guide sample is finite.
+  const uint8_t* guide_mask(int64_t row) const { return all_g_ ? nullptr : mg_.data() + row; }
+
+  // Whether pixel j of row `lr` (labels) / `mg` (guide_mask) is in the cluster `id`. The root
   // (depth 0) holds every pixel with a finite guide; its labels are not stored.
   static bool in_cluster(int64_t depth, const int32_t* lr, const uint8_t* mg, int32_t id, int64_t j) {
-    return depth == 0 ? mg[j] != 0 : lr[j] == id;
+    return depth == 0 ? !mg || mg[j] != 0 : lr[j] == id;
   }
 
   // Residual r = gs - up(eta) at full-res row i and dist += |r|^2, one channel at a time so the
@@ -375,7 +380,7 @@ class ImageFilter {
 
     // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); M = sum r r^T ----
     Scratch<T> P;
-    P.assign(n * pnode, T(0));
+    P.resize(n * pnode);  // each task clears the block rows it splats into
     const int64_t group_px = bpg_ * df_ * W_ * n;
     const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0));
     parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
@@ -387,6 +392,7 @@ class ImageFilter {
         std::fill(mrow.begin(), mrow.end(), T(0));
         for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
           const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+          for (int64_t p = 0; p < n * (C_ + 1); ++p) std::fill_n(P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
           for (int64_t i = i0; i < i1; ++i) {
             const int64_t row = i * W_;
             centred_values_row(i, fp.data());
@@ -456,7 +462,7 @@ class ImageFilter {
     // ---- pass B: slice; internal nodes also label, theta and the children's sums ----
     Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
-    if (!leaf) Q.assign(n * 2 * qside, T(0));
+    if (!leaf) Q.resize(n * 2 * qside);  // each task clears the block rows it sums into
     parallel_work(0, groups_, group_px * (4 * (C_ + 1) + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
       std::vector<T> t0(W_), t1(W_), alpha(leaf ? W_ : 0);
       std::vector<const T*> blurred(n);
@@ -467,6 +473,7 @@ class ImageFilter {
       std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+        for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p) std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
           for (int64_t k = 0; k < n; ++k) {
@@ -486,7 +493,7 @@ class ImageFilter {
             projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
             const int32_t id = static_cast<int32_t>(level[k].id);
             int32_t* lr = label_.data() + row;
-            const uint8_t* mg = mg_.data() + row;
+            const uint8_t* mg = guide_mask(row);
             for (int64_t j = 0; j < W_; ++j) {
               const bool in = in_cluster(depth, lr, mg, id, j);
               const bool plus = t0[j] >= T(0);
@@ -556,7 +563,7 @@ class ImageFilter {
   // it, and here a float32 r is squared in float32 per row, then summed in double.
   void accumulate_m(int64_t depth, int64_t id, int64_t row, T* res, T* m) const {
     const int32_t* lr = label_.data() + row;
-    const uint8_t* mg = mg_.data() + row;
+    const uint8_t* mg = guide_mask(row);
     const int32_t id32 = static_cast<int32_t>(id);
     int32_t out = 0;  // pixels of the row outside the cluster (none at the root, usually)
     if (!(depth == 0 && all_g_))
