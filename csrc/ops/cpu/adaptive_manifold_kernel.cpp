@@ -132,20 +132,23 @@ class ImageFilter {
     root_eta_.resize(D_ * Nl_);  // every task clears the block rows it sums into
     std::vector<uint8_t> block_ok(Hl_, 1);
     parallel_work(0, Hl_, df_ * W_ * 3 * D_, [&](int64_t b, int64_t e) {
+      // channel by channel over the task's block rows: one long run of memory per channel (a
+      // channel's rows are contiguous), which streams faster than D short ones per block row
+      const int64_t i0 = b * df_, i1 = std::min(H_, e * df_);
+      for (int64_t d = 0; d < D_; ++d) {
+        T* sums = root_eta_.data() + d * Nl_;
+        std::fill(sums + b * Wl_, sums + e * Wl_, T(0));
+        for (int64_t i = i0; i < i1; ++i)
+          block_sum_row(g_in_ + d * N_ + i * W_, W_, df_, Wl_, sums + (i / df_) * Wl_);
+      }
       for (int64_t bi = b; bi < e; ++bi) {
-        const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+        // A NaN or infinity makes its block's sum NaN or infinite, so finite sums prove finite
+        // samples (an overflowing sum only sends the image down the masked route, which then
+        // finds every pixel valid).
         bool ok = true;
-        for (int64_t d = 0; d < D_; ++d) {
-          T* sums = root_eta_.data() + d * Nl_ + bi * Wl_;
-          std::fill(sums, sums + Wl_, T(0));
-          for (int64_t i = i0; i < i1; ++i) block_sum_row(g_in_ + d * N_ + i * W_, W_, df_, Wl_, sums);
-          // A NaN or infinity makes its block's sum NaN or infinite, so finite sums prove finite
-          // samples (an overflowing sum only sends the image down the masked route, which then
-          // finds every pixel valid).
-          ok = ok && all_finite(sums, Wl_);
-        }
+        for (int64_t d = 0; d < D_; ++d) ok = ok && all_finite(root_eta_.data() + d * Nl_ + bi * Wl_, Wl_);
         block_ok[bi] = ok;
-        to_block_means(root_eta_.data() + bi * Wl_, D_, i1 - i0);
+        to_block_means(root_eta_.data() + bi * Wl_, D_, std::min(H_, (bi + 1) * df_) - bi * df_);
       }
     });
     all_g_ = std::all_of(block_ok.begin(), block_ok.end(), [](uint8_t m) { return m != 0; });
