@@ -93,7 +93,7 @@ inline void transpose8(__m256* v) {
   }
 }
 
-// The coefficients of recursion_8_rows. A constant one (the low-pass):
+// The coefficients of recursion_rows. A constant one (the low-pass):
 struct ConstantCoefficient {
   __m256 v;
   float a;
@@ -121,57 +121,86 @@ struct RowCoefficients {
 // blocks are transposed so each column is one vector (the scalar version keeps 8 chains of
 // scalar operations in flight); columns left over at the ends run the scalar steps. Column j
 // steps towards j - 1 by coefficient j - 1, then towards j + 1 by coefficient j.
-template <typename Coef>
-inline void recursion_8_rows(float* const* y, int64_t n, Coef a) {
-  __m256 v[8];
-  alignas(32) float prev[8];
+// kBlocks groups of eight float rows (y[8 b + k]: row k of group b, coefficients a[b]) of length n,
+// forward then backward, one vector lane per row: 8 x 8 blocks are transposed so each column is
+// one vector (the scalar version keeps 8 chains of scalar operations in flight); columns left over
+// at the ends run the scalar steps. Column j steps towards j - 1 by coefficient j - 1, then
+// towards j + 1 by coefficient j. Each step waits on the one before (subtract, then fused
+// multiply-add), so two groups side by side keep twice the work in flight; a row's operations do
+// not depend on its company, so any grouping gives the same bits.
+template <int kBlocks, typename Coef>
+inline void recursion_rows(float* const* y, int64_t n, Coef* a) {
+  __m256 v[kBlocks][8];
+  alignas(32) float prev[kBlocks][8];
   auto load = [&](int64_t j0) {
-    for (int k = 0; k < 8; ++k) v[k] = _mm256_loadu_ps(y[k] + j0);
-    transpose8(v);
+    for (int b = 0; b < kBlocks; ++b) {
+      for (int k = 0; k < 8; ++k) v[b][k] = _mm256_loadu_ps(y[8 * b + k] + j0);
+      transpose8(v[b]);
+    }
   };
   auto store = [&](int64_t j0) {
-    transpose8(v);
-    for (int k = 0; k < 8; ++k) _mm256_storeu_ps(y[k] + j0, v[k]);
+    for (int b = 0; b < kBlocks; ++b) {
+      transpose8(v[b]);
+      for (int k = 0; k < 8; ++k) _mm256_storeu_ps(y[8 * b + k] + j0, v[b][k]);
+    }
   };
+  auto coefficients = [&](int64_t j0) {
+    for (int b = 0; b < kBlocks; ++b) a[b].load(j0);
+  };
+  __m256 p[kBlocks];
   // forward: column 0 starts the recursion
   int64_t j = 1;
-  for (int k = 0; k < 8; ++k) prev[k] = y[k][0];
+  for (int b = 0; b < kBlocks; ++b)
+    for (int k = 0; k < 8; ++k) prev[b][k] = y[8 * b + k][0];
   if (n >= 8) {
     load(0);
-    a.load(0);
-    __m256 p = v[0];
-    for (int c = 1; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(a[c - 1], _mm256_sub_ps(p, v[c]), v[c]);
+    coefficients(0);
+    for (int b = 0; b < kBlocks; ++b) p[b] = v[b][0];
+    for (int c = 1; c < 8; ++c)
+      for (int b = 0; b < kBlocks; ++b)
+        v[b][c] = p[b] = _mm256_fmadd_ps(a[b][c - 1], _mm256_sub_ps(p[b], v[b][c]), v[b][c]);
     store(0);
     for (j = 8; j + 8 <= n; j += 8) {
       load(j);
-      a.load(j - 1);
-      for (int c = 0; c < 8; ++c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
+      coefficients(j - 1);
+      for (int c = 0; c < 8; ++c)
+        for (int b = 0; b < kBlocks; ++b)
+          v[b][c] = p[b] = _mm256_fmadd_ps(a[b][c], _mm256_sub_ps(p[b], v[b][c]), v[b][c]);
       store(j);
     }
-    _mm256_store_ps(prev, p);
+    for (int b = 0; b < kBlocks; ++b) _mm256_store_ps(prev[b], p[b]);
   }
   for (; j < n; ++j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a.at(k, j - 1));
+    for (int b = 0; b < kBlocks; ++b)
+      for (int k = 0; k < 8; ++k)
+        y[8 * b + k][j] = prev[b][k] = recursion_step(y[8 * b + k][j], prev[b][k], a[b].at(k, j - 1));
   // backward: column n - 1 starts it
   j = n - 2;
-  for (int k = 0; k < 8; ++k) prev[k] = y[k][n - 1];
+  for (int b = 0; b < kBlocks; ++b)
+    for (int k = 0; k < 8; ++k) prev[b][k] = y[8 * b + k][n - 1];
   if (n >= 8) {
     load(n - 8);
-    a.load(n - 8);
-    __m256 p = v[7];
-    for (int c = 6; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
+    coefficients(n - 8);
+    for (int b = 0; b < kBlocks; ++b) p[b] = v[b][7];
+    for (int c = 6; c >= 0; --c)
+      for (int b = 0; b < kBlocks; ++b)
+        v[b][c] = p[b] = _mm256_fmadd_ps(a[b][c], _mm256_sub_ps(p[b], v[b][c]), v[b][c]);
     store(n - 8);
     for (j = n - 16; j >= 0; j -= 8) {
       load(j);
-      a.load(j);
-      for (int c = 7; c >= 0; --c) v[c] = p = _mm256_fmadd_ps(a[c], _mm256_sub_ps(p, v[c]), v[c]);
+      coefficients(j);
+      for (int c = 7; c >= 0; --c)
+        for (int b = 0; b < kBlocks; ++b)
+          v[b][c] = p[b] = _mm256_fmadd_ps(a[b][c], _mm256_sub_ps(p[b], v[b][c]), v[b][c]);
       store(j);
     }
     j += 7;  // the last column not yet done
-    _mm256_store_ps(prev, p);
+    for (int b = 0; b < kBlocks; ++b) _mm256_store_ps(prev[b], p[b]);
   }
   for (; j >= 0; --j)
-    for (int k = 0; k < 8; ++k) y[k][j] = prev[k] = recursion_step(y[k][j], prev[k], a.at(k, j));
+    for (int b = 0; b < kBlocks; ++b)
+      for (int k = 0; k < 8; ++k)
+        y[8 * b + k][j] = prev[b][k] = recursion_step(y[8 * b + k][j], prev[b][k], a[b].at(k, j));
 }
 #endif
 
@@ -199,10 +228,16 @@ inline void lowpass_rows(T* p, int64_t r0, int64_t r1, int64_t w, T a) {
   int64_t r = r0;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (std::is_same<T, float>::value) {
+    ConstantCoefficient c[2] = {ConstantCoefficient(a), ConstantCoefficient(a)};
+    for (; r + 2 * R <= r1; r += 2 * R) {
+      float* y[2 * R];
+      for (int k = 0; k < 2 * R; ++k) y[k] = p + (r + k) * w;
+      recursion_rows<2>(y, w, c);
+    }
     for (; r + R <= r1; r += R) {
       float* y[R];
       for (int k = 0; k < R; ++k) y[k] = p + (r + k) * w;
-      recursion_8_rows(y, w, ConstantCoefficient(a));
+      recursion_rows<1>(y, w, c);
     }
   }
 #endif
@@ -310,7 +345,7 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
 }
 
 // One row of the domain transform, forward then backward: y[j] steps towards y[j - 1] by a[j - 1],
-// then towards y[j + 1] by a[j] (recursion_step, so recursion_8_rows gives the same bits).
+// then towards y[j + 1] by a[j] (recursion_step, so recursion_rows gives the same bits).
 template <typename T>
 inline void domain_transform_row(T* y, const T* a, int64_t n) {
   for (int64_t j = 1; j < n; ++j) y[j] = recursion_step(y[j], y[j - 1], a[j - 1]);
@@ -323,11 +358,19 @@ inline void domain_transform_rows(T* p, int64_t r0, int64_t r1, int64_t w, const
   int64_t r = r0;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (std::is_same<T, float>::value) {
+    for (; r + 16 <= r1; r += 16) {
+      float* y[16];
+      const float* a[16];
+      for (int k = 0; k < 16; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
+      RowCoefficients c[2] = {RowCoefficients(a), RowCoefficients(a + 8)};
+      recursion_rows<2>(y, w, c);
+    }
     for (; r + 8 <= r1; r += 8) {
       float* y[8];
       const float* a[8];
       for (int k = 0; k < 8; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
-      recursion_8_rows(y, w, RowCoefficients(a));
+      RowCoefficients c(a);
+      recursion_rows<1>(y, w, &c);
     }
   }
 #endif
@@ -339,12 +382,12 @@ template <typename T>
 void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, const T* ah,
                              const T* av) {
   if (w > 1) {
-    // tasks of up to 8 rows of one plane, so the vector blocks see whole 8-row groups wherever the
-    // split falls
-    const int64_t groups = (h + 7) / 8;
-    at::parallel_for(0, planes * groups, grain_lines(planes * groups, 24 * w), [&](int64_t b, int64_t e) {
+    // tasks of up to 16 rows of one plane, so the vector blocks see whole 16-row groups wherever
+    // the split falls
+    const int64_t groups = (h + 15) / 16;
+    at::parallel_for(0, planes * groups, grain_lines(planes * groups, 48 * w), [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / groups, r0 = (t % groups) * 8, r1 = std::min(h, r0 + 8);
+        const int64_t plane = t / groups, r0 = (t % groups) * 16, r1 = std::min(h, r0 + 16);
         domain_transform_rows(data + plane * h * w, r0, r1, w, ah);
       }
     });
