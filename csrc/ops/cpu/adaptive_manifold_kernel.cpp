@@ -365,24 +365,23 @@ class ImageFilter {
     const T fy = ve.seek(i);
     const T* __restrict b = ve.base(0);
     const T* __restrict db = ve.delta(0);
-    // 32 pixels at a time with the channel loop inside, the sums in registers (a row-long sum
-    // was loaded and stored once per channel); per pixel the same operations in the same order.
-    constexpr int64_t kCols = 32;
-    int64_t j0 = 0;
-    for (; j0 + kCols <= W_; j0 += kCols) {
-      T acc[kCols] = {};
-      for (int64_t d = 0; d < D_; ++d) {
-        const T* __restrict gr = gs_ + d * N_ + row + j0;
-        const T vd = v[d], cd = c[d];
-        for (int64_t j = 0; j < kCols; ++j) acc[j] += vd * (gr[j] - cd);
-      }
-      for (int64_t j = 0; j < kCols; ++j) proj[j0 + j] = acc[j] - (b[j0 + j] + fy * db[j0 + j]);
+    // two channels per sweep of the row (the sums loaded and stored half as often), added to in
+    // the same order as one channel at a time
+    T* __restrict p = proj;
+    std::fill(p, p + W_, T(0));
+    int64_t d = 0;
+    for (; d + 2 <= D_; d += 2) {
+      const T* __restrict g0 = gs_ + d * N_ + row;
+      const T* __restrict g1 = g0 + N_;
+      const T v0 = v[d], c0 = c[d], v1 = v[d + 1], c1 = c[d + 1];
+      for (int64_t j = 0; j < W_; ++j) p[j] = (p[j] + v0 * (g0[j] - c0)) + v1 * (g1[j] - c1);
     }
-    for (int64_t j = j0; j < W_; ++j) {
-      T acc = T(0);
-      for (int64_t d = 0; d < D_; ++d) acc += v[d] * (gs_[d * N_ + row + j] - c[d]);
-      proj[j] = acc - (b[j] + fy * db[j]);
+    for (; d < D_; ++d) {
+      const T* __restrict gr = gs_ + d * N_ + row;
+      const T vd = v[d], cd = c[d];
+      for (int64_t j = 0; j < W_; ++j) p[j] += vd * (gr[j] - cd);
     }
+    for (int64_t j = 0; j < W_; ++j) p[j] -= b[j] + fy * db[j];
   }
 
   // A RowUpsampler per node of the level for a task's rows.
