@@ -356,7 +356,6 @@ class ImageFilter {
     }
   }
 
-
   // proj = v . (gs - up(eta)) at full-res row i as v . (gs - c) - up(v . (eta - c)): upsampling is
   // linear, so the manifold's part is one low-res plane (ve, through a RowUpsampler) instead of D.
   // c (per channel, a value of the manifold) keeps a guide far from 0 from costing precision.

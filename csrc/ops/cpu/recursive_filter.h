@@ -117,10 +117,6 @@ struct RowCoefficients {
   float at(int k, int64_t j) const { return rows[k][j]; }
 };
 
-// Eight float rows y[0..8) of length n, forward then backward, one vector lane per row: 8 x 8
-// blocks are transposed so each column is one vector (the scalar version keeps 8 chains of
-// scalar operations in flight); columns left over at the ends run the scalar steps. Column j
-// steps towards j - 1 by coefficient j - 1, then towards j + 1 by coefficient j.
 // kBlocks groups of eight float rows (y[8 b + k]: row k of group b, coefficients a[b]) of length n,
 // forward then backward, one vector lane per row: 8 x 8 blocks are transposed so each column is
 // one vector (the scalar version keeps 8 chains of scalar operations in flight); columns left over
