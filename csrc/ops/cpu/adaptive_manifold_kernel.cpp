@@ -10,7 +10,8 @@
 //   power iteration on the residuals of the node's cluster (per-chunk partial sums over fixed
 //     chunks, combined in order, so it is independent of the thread count);
 //   pass B (slice + split): S += w up(blur P), S0 += w up(blur P0); for internal nodes the
-//     cluster label, theta = 1 - w and the masked area sums that build both children.
+//     cluster label, theta = 1 - w and the masked area sums that build both children. The root's
+//     slice waits for the next level's pass B, so S is written once less at full resolution.
 // Output S / S0 (input where S0 <= tiny/eps), optionally pulled towards the input by alpha.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
@@ -98,9 +99,15 @@ class ImageFilter {
     for (int64_t depth = 0; depth < opt_.tree_height && !level.empty(); ++depth)
       level = process_level(level, depth);
     if (!finished_) {
+      // A tree that ended after the root (both children empty) still owes the root's slice.
+      const bool slice_root = !root_sliced_;
       rows_parallel(20 + 12 * C_, [&](int64_t b, int64_t e) {
         std::vector<T> alpha(W_);
-        for (int64_t i = b; i < e; ++i) finish_row(i, alpha.data());
+        std::vector<RowUpsampler<T>> root_up = root_upsamplers(slice_root);
+        for (int64_t i = b; i < e; ++i) {
+          if (slice_root) slice_row(root_up[0], root_w_.data() + i * W_, i, true);
+          finish_row(i, alpha.data());
+        }
       });
       clock_.lap("finish");
     }
@@ -394,6 +401,28 @@ class ImageFilter {
     return ups;
   }
 
+  // An upsampler of the root's blurred [P, P0] when `wanted`, for a task's rows.
+  std::vector<RowUpsampler<T>> root_upsamplers(bool wanted) const {
+    std::vector<const T*> src;
+    if (wanted) src.push_back(root_P_.data());
+    return upsamplers(src, C_ + 1);
+  }
+
+  // S += w up(blur [P, P0]) at full-res row i for one node (S and S0 start at the first, the root).
+  void slice_row(RowUpsampler<T>& up, const T* wr, int64_t i, bool first) {
+    const int64_t row = i * W_;
+    const T fy = up.seek(i);
+    for (int64_t c = 0; c <= C_; ++c) {
+      T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
+      const T* b = up.base(c);
+      const T* db = up.delta(c);
+      if (first)
+        for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
+      else
+        for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
+    }
+  }
+
   std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
     const int64_t n = static_cast<int64_t>(level.size());
     const bool leaf = depth + 1 >= opt_.tree_height;
@@ -496,11 +525,18 @@ class ImageFilter {
     Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
     if (!leaf) Q.resize(n * 2 * qside);  // each task clears the block rows it sums into
-    parallel_work(0, groups_, group_px * (4 * (C_ + 1) + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
+    // The root's slice waits for the next level's pass B (S is then written once less), which
+    // makes it first, so S sums in the same order.
+    const bool slice_own = leaf || depth > 0;
+    const bool slice_root = depth == 1;
+    const int64_t slices = (slice_own ? n : 0) + (slice_root ? 1 : 0);
+    parallel_work(0, groups_, group_px * (4 * (C_ + 1) * slices / n + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
       std::vector<T> t0(W_), t1(W_), alpha(leaf ? W_ : 0);
       std::vector<const T*> blurred(n);
       for (int64_t k = 0; k < n; ++k) blurred[k] = P.data() + k * pnode;
       std::vector<RowUpsampler<T>> up = upsamplers(blurred, C_ + 1);
+      std::vector<RowUpsampler<T>> root_ups = root_upsamplers(slice_root);
+      RowUpsampler<T>* root_up = slice_root ? &root_ups[0] : nullptr;
       std::vector<const T*> ve_src(leaf ? 0 : n);
       for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = ve.data() + k * Nl_;
       std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
@@ -509,18 +545,10 @@ class ImageFilter {
         for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p) std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
+          if (root_up) slice_row(*root_up, root_w_.data() + row, i, true);
           for (int64_t k = 0; k < n; ++k) {
-            const T fy = up[k].seek(i);
             const T* wr = w_.data() + k * N_ + row;
-            for (int64_t c = 0; c <= C_; ++c) {
-              T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
-              const T* b = up[k].base(c);
-              const T* db = up[k].delta(c);
-              if (depth == 0)  // the root: S and S0 start here
-                for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
-              else
-                for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
-            }
+            if (slice_own) slice_row(up[k], wr, i, depth == 0);
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
             projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
@@ -552,9 +580,14 @@ class ImageFilter {
       }
     });
     clock_.lap("pass B", depth);
+    root_sliced_ = root_sliced_ || slice_root || (depth == 0 && leaf);
     std::vector<Node> next;
     finished_ = leaf;
     if (leaf) return next;
+    if (depth == 0) {  // kept for the root's slice
+      root_w_ = std::move(w_);
+      root_P_ = std::move(P);
+    }
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
     // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
@@ -695,12 +728,14 @@ class ImageFilter {
   double ss_low_, sr_low_;
   bool all_g_ = true, all_v_ = true;
   bool finished_ = false;  // the output is normalised
+  bool root_sliced_ = false;
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide
   std::vector<T> c_;
   Scratch<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
   Scratch<T> fs_buf_, gs_buf_, w_, minD_, S0_;
+  Scratch<T> root_w_, root_P_;  // the root's w and blurred [P, P0], until its slice
   Scratch<uint8_t> mg_, mv_, ms_;
   Scratch<int32_t> label_;
   PhaseClock clock_;
