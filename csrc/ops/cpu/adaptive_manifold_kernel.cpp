@@ -74,7 +74,7 @@ class ImageFilter {
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         // pixel passes run over groups of block rows: >= kReduceRows full-res rows each
         bpg_(std::max<int64_t>(1, kReduceRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
-        ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
+        gram_stride_(gram_row_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
     const double fmax = static_cast<double>(std::numeric_limits<T>::max());
     const double r2 = opt.sigma_r * opt.sigma_r;
     inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
@@ -452,9 +452,10 @@ class ImageFilter {
           for (int64_t i = i0; i < i1; ++i) {
             const int64_t row = i * W_;
             centred_values_row(i, fp.data());
+            const bool gram_row = want_m && i % gram_stride_ == 0;
             for (int64_t k = 0; k < n; ++k) {
               std::fill(dist.begin(), dist.end(), T(0));
-              residual_row(eta[k], i, want_m ? res.data() : nullptr, dist.data());
+              residual_row(eta[k], i, gram_row ? res.data() : nullptr, dist.data());
               T* wr = w_.data() + k * N_ + row;
               exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
               // the splat weights: w, or 0 where the pixel is not a splat pixel
@@ -475,7 +476,7 @@ class ImageFilter {
               for (int64_t c = 0; c < C_; ++c)
                 block_dot_row(wsplat, fp.data() + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
               block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
-              if (want_m) accumulate_m(depth, level[k].id, row, res.data(), mrow.data() + k * msize);
+              if (gram_row) accumulate_m(depth, level[k].id, row, res.data(), mrow.data() + k * msize);
             }
           }
           for (int64_t k = 0; k < n; ++k) to_block_means(P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
@@ -720,6 +721,7 @@ class ImageFilter {
   const int64_t C_, D_, H_, W_, N_;
   const Options opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_;
+  const int64_t gram_stride_;  // 8. M sums the rows i % gram_stride_ == 0
   const Taps<T> ty_, tx_;
   const T* f_in_;
   const T* g_in_;

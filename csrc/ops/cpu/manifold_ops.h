@@ -29,6 +29,13 @@ inline int64_t downsample_factor(double sigma_s, double sigma_r) {
   return int64_t(1) << e;
 }
 
+// 8. The split's M = sum r r^T takes every s-th row, s = max(1, floor(H W / 2^18)): still >= 2^18
+// samples for a D x D matrix, and the full sum (D^2 / 2 multiply-adds a pixel) was the largest
+// arithmetic cost of the root's splat pass.
+inline int64_t gram_row_stride(int64_t H, int64_t W) {
+  return std::max<int64_t>(1, H * W / (int64_t(1) << 18));
+}
+
 // exp(x) for x <= 0 without a libm call, so the weight loops vectorise: x = n ln2 + r,
 // |r| <= ln2/2, Taylor polynomial in r, times 2^n built in the exponent bits. Relative error
 // ~1e-7 (float) / ~1e-16 (double); underflows to exactly 0 below the smallest normal.
