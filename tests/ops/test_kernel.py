@@ -96,24 +96,24 @@ def test_power_iterations_match(iterations):
     assert _rel_err(a, b) < 1e-10
 
 
-def test_split_direction_from_every_sth_row(monkeypatch):
-    """Above 2**19 pixels the split's M sums every s-th row (step 8). Channel 0 varies only on the
-    rows it samples and channel 1, twice as much, only on the others, so the direction, the
-    clusters and the output all depend on which rows are summed."""
+def test_split_direction_from_every_sth_band(monkeypatch):
+    """Above 2**19 pixels the split's M sums every s-th band of 16 rows (step 8). Channel 0 varies
+    only on the bands it samples and channel 1, twice as much, only on the others, so the direction,
+    the clusters and the output all depend on which rows are summed."""
     from torchmanifold.ops import _reference
 
     H, W = 96, 8192
-    assert _reference.gram_row_stride(H, W) == 3
+    assert _reference.gram_band_stride(H, W) == 3
     gen = torch.Generator().manual_seed(11)
     g = torch.zeros(1, 2, H, W, dtype=torch.float64)
-    sampled = torch.arange(H) % 3 == 0
+    sampled = torch.arange(H) // 16 % 3 == 0
     g[0, 0, sampled] = torch.rand(int(sampled.sum()), W, generator=gen, dtype=torch.float64)
     g[0, 1, ~sampled] = 2 * torch.rand(int((~sampled).sum()), W, generator=gen, dtype=torch.float64)
     f = g[:, :1] - g[:, 1:]  # values that follow the guide, so the clusters show in the output
     got = op(f, g, 8.0, 0.5, 2, 3, False)
     ref = adaptive_manifold_torch(f, g, 8.0, 0.5, 2, 3, False)
     assert _rel_err(got, ref) < 1e-10
-    monkeypatch.setattr(_reference, "gram_row_stride", lambda height, width: 1)
+    monkeypatch.setattr(_reference, "gram_band_stride", lambda height, width: 1)
     every_row = adaptive_manifold_torch(f, g, 8.0, 0.5, 2, 3, False)
     assert (every_row - ref).abs().max() > 1e-2
 

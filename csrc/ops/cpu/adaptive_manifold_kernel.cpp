@@ -1,18 +1,20 @@
 // CPU kernel of torchmanifold::adaptive_manifold (Gastal & Oliveira 2012), planar (B,C,H,W).
 //
 // Per image: one read of the guide builds the root manifold from block means (every manifold lives
-// on the low-resolution grid). The tree is then built breadth first; per level two fused
-// full-resolution passes handle all of its nodes row by row, both split over low-resolution block
-// rows so that each task owns the low-res accumulator rows it writes:
-//   pass A (splat): eta at the pixel (bilinear from the node's low-res manifold),
+// on the low-resolution grid). The tree is then built breadth first, one fused full-resolution
+// pass per level for all of its nodes, row by row, split over groups of low-res block rows so that
+// each task owns the low-res accumulator rows it writes:
+//   internal levels first take M = sum r r^T of each node's cluster residuals r = guide - eta over
+//     a sample of bands of rows (per-group partial sums over fixed groups, combined in order, so it
+//     is independent of the thread count), and its split direction v by power iteration;
+//   the pass: eta at the pixel (bilinear from the node's low-res manifold),
 //     D = |guide - eta|^2, w = exp(-D / sigma_r^2), min D, P += w f, P0 += w (area means);
-//   low-res domain-transform blur of [P, P0] steered by the node's manifold;
-//   power iteration on the residuals of the node's cluster (per-chunk partial sums over fixed
-//     chunks, combined in order, so it is independent of the thread count);
-//   pass B (slice + split): S += w up(blur P), S0 += w up(blur P0); for internal nodes the
-//     cluster label, theta = 1 - w and the masked area sums that build both children. The root's
-//     slice waits for the next level's pass B, so S is written once less at full resolution.
-// Output S / S0 (input where S0 <= tiny/eps), optionally pulled towards the input by alpha.
+//     internal nodes also the cluster label (sign of v . r), theta = 1 - w and the masked area
+//     sums that build both children;
+//   low-res domain-transform blur of [P, P0] steered by the node's manifold.
+// A last pass slices every node, S += w up(blur P), S0 += w up(blur P0), and writes S / S0 (input
+// where S0 <= tiny/eps), optionally pulled towards the input by alpha: S is written once and S0
+// never leaves the row.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <ATen/Parallel.h>
@@ -74,7 +76,7 @@ class ImageFilter {
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         // pixel passes run over groups of block rows: >= kReduceRows full-res rows each
         bpg_(std::max<int64_t>(1, kReduceRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
-        gram_stride_(gram_row_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
+        gram_stride_(gram_band_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
     const double fmax = static_cast<double>(std::numeric_limits<T>::max());
     const double r2 = opt.sigma_r * opt.sigma_r;
     inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
@@ -86,31 +88,18 @@ class ImageFilter {
   void run() {
     prepare();
     clock_.lap("prepare");
-    // S (in the output), S0 and min D are written by the root's passes, not cleared first.
-    S0_.resize(N_);
-    if (opt_.adjust_outliers) minD_.resize(N_);
+    if (opt_.adjust_outliers) minD_.resize(N_);  // written by the root's pass, not cleared first
 
-    // 7. Breadth first, one level at a time like the reference; within a level every full-res
-    // pass handles all of the level's nodes row by row, so the guide is read once per level.
-    // The last level's slice pass also normalises each row (9., 10.); a tree that ends early
-    // (every child pruned) is normalised in a pass of its own.
+    // 7. Breadth first, one level at a time like the reference; one full-res pass per level
+    // handles all of the level's nodes row by row (splat and, but for the leaves, split), so the
+    // guide is read once per level. Every level's slice waits for one last pass that also
+    // normalises each row (9., 10.): S is written once, S0 never leaves the row.
     std::vector<Node> level;
     level.push_back({1, std::move(root_eta_)});
     for (int64_t depth = 0; depth < opt_.tree_height && !level.empty(); ++depth)
       level = process_level(level, depth);
-    if (!finished_) {
-      // A tree that ended after the root (both children empty) still owes the root's slice.
-      const bool slice_root = !root_sliced_;
-      rows_parallel(20 + 12 * C_, [&](int64_t b, int64_t e) {
-        std::vector<T> alpha(W_);
-        std::vector<RowUpsampler<T>> root_up = root_upsamplers(slice_root);
-        for (int64_t i = b; i < e; ++i) {
-          if (slice_root) slice_row(root_up[0], root_w_.data() + i * W_, i, true);
-          finish_row(i, alpha.data());
-        }
-      });
-      clock_.lap("finish");
-    }
+    slice_and_finish();
+    clock_.lap("slice");
   }
 
  private:
@@ -118,6 +107,13 @@ class ImageFilter {
   struct Node {
     int64_t id;
     Scratch<T> eta;
+  };
+
+  // A level's n nodes' weights w ((n, H, W)) and blurred [P, P0] ((n, C + 1, Hl, Wl)), kept for
+  // the last pass's slices.
+  struct Sliced {
+    int64_t n = 0;
+    Scratch<T> w, P;
   };
 
   template <typename F>
@@ -291,7 +287,7 @@ class ImageFilter {
         for (int64_t i = b * W_; i < e * W_; ++i) ms_[i] = (all_g_ || mg_[i]) && mv_[i];
       });
     }
-    if (opt_.tree_height > 1) label_.resize(N_);
+    if (opt_.tree_height > 2) label_.resize(N_);  // read by the splits below the root's
   }
 
   // f' = (f_s - c) ms at full-res row i into fp ((C, W)).
@@ -319,17 +315,14 @@ class ImageFilter {
     return depth == 0 ? !mg || mg[j] != 0 : lr[j] == id;
   }
 
-  // Residual r = gs - up(eta) at full-res row i and dist += |r|^2, one channel at a time so the
-  // row stays in L1; with res given ((D, W)) r is kept for the Gram matrix. eta: the node's
-  // manifold through a RowUpsampler.
-  void residual_row(RowUpsampler<T>& eta, int64_t i, T* res, T* dist) const {
+  // dist += |gs - up(eta)|^2 at full-res row i, two guide channels per sweep of the row (half the
+  // loads and stores of dist), added to in the same order as one channel at a time. eta: the
+  // node's manifold through a RowUpsampler.
+  void distance_row(RowUpsampler<T>& eta, int64_t i, T* dist) const {
     const int64_t row = i * W_;
     const T fy = eta.seek(i);
-    // Without res (the leaves), two channels per sweep of the row: half the loads and stores of
-    // dist, added to in the same order as one channel at a time. (With res the extra store stream
-    // made the pair slower.)
     int64_t d = 0;
-    for (; !res && d + 2 <= D_; d += 2) {
+    for (; d + 2 <= D_; d += 2) {
       const T* __restrict g0 = gs_ + d * N_ + row;
       const T* __restrict g1 = g0 + N_;
       const T* __restrict b0 = eta.base(d);
@@ -347,19 +340,24 @@ class ImageFilter {
       const T* gr = gs_ + d * N_ + row;
       const T* b = eta.base(d);
       const T* db = eta.delta(d);
-      if (res) {
-        T* rr = res + d * W_;
-        for (int64_t j = 0; j < W_; ++j) {
-          const T r = gr[j] - (b[j] + fy * db[j]);
-          rr[j] = r;
-          dist[j] += r * r;
-        }
-      } else {
-        for (int64_t j = 0; j < W_; ++j) {
-          const T r = gr[j] - (b[j] + fy * db[j]);
-          dist[j] += r * r;
-        }
+      for (int64_t j = 0; j < W_; ++j) {
+        const T r = gr[j] - (b[j] + fy * db[j]);
+        dist[j] += r * r;
       }
+    }
+  }
+
+  // The residual r = gs - up(eta) at full-res row i into res ((D, W)), for M. eta: the node's
+  // manifold through a RowUpsampler.
+  void residual_row(RowUpsampler<T>& eta, int64_t i, T* res) const {
+    const int64_t row = i * W_;
+    const T fy = eta.seek(i);
+    for (int64_t d = 0; d < D_; ++d) {
+      const T* __restrict gr = gs_ + d * N_ + row;
+      const T* __restrict b = eta.base(d);
+      const T* __restrict db = eta.delta(d);
+      T* __restrict rr = res + d * W_;
+      for (int64_t j = 0; j < W_; ++j) rr[j] = gr[j] - (b[j] + fy * db[j]);
     }
   }
 
@@ -401,108 +399,55 @@ class ImageFilter {
     return ups;
   }
 
-  // An upsampler of the root's blurred [P, P0] when `wanted`, for a task's rows.
-  std::vector<RowUpsampler<T>> root_upsamplers(bool wanted) const {
-    std::vector<const T*> src;
-    if (wanted) src.push_back(root_P_.data());
-    return upsamplers(src, C_ + 1);
-  }
-
-  // S += w up(blur [P, P0]) at full-res row i for one node (S and S0 start at the first, the root).
-  void slice_row(RowUpsampler<T>& up, const T* wr, int64_t i, bool first) {
-    const int64_t row = i * W_;
-    const T fy = up.seek(i);
-    for (int64_t c = 0; c <= C_; ++c) {
-      T* s = (c < C_ ? S_ + c * N_ : S0_.data()) + row;
-      const T* b = up.base(c);
-      const T* db = up.delta(c);
-      if (first)
-        for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
-      else
-        for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
+  // 8. Each node's split direction: M = sum r r^T over its cluster on the rows of every
+  // gram_stride_-th band, in a pass over those rows ahead of the level's, so that the level's pass
+  // can split too. Per-group partial sums in fixed groups of rows, combined in order: the
+  // result does not depend on the thread count.
+  std::vector<std::vector<T>> split_directions(const std::vector<Node>& level, int64_t depth) {
+    const int64_t n = static_cast<int64_t>(level.size());
+    const int64_t msize = D_ * (D_ + 1) / 2;  // upper triangle of M
+    std::vector<double> mpart(opt_.power_iterations > 0 ? n * groups_ * msize : 0, 0.0);
+    if (opt_.power_iterations > 0) {
+      std::vector<const T*> eta_src(n);
+      for (int64_t k = 0; k < n; ++k) eta_src[k] = level[k].eta.data();
+      const int64_t group_rows = bpg_ * df_;
+      const int64_t work = group_rows * W_ * n * (3 * D_ + D_ * D_ / 2) / gram_stride_ + 1;
+      parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
+        // res has D rounded up to 4 rows plus 4, the extra ones zero, for gram_upper_row's tiles
+        std::vector<T> res(((D_ + 3) / 4 * 4 + 4) * W_, T(0)), mrow(n * msize);
+        std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
+        for (int64_t grp = gb; grp < ge; ++grp) {
+          std::fill(mrow.begin(), mrow.end(), T(0));
+          const int64_t i0 = grp * group_rows, i1 = std::min(H_, i0 + group_rows);
+          for (int64_t i = i0; i < i1; ++i)
+            for (int64_t k = 0; k < n && (i / kGramBand) % gram_stride_ == 0; ++k) {
+              residual_row(eta[k], i, res.data());
+              accumulate_m(depth, level[k].id, i * W_, res.data(), mrow.data() + k * msize);
+            }
+          for (int64_t k = 0; k < n; ++k)
+            for (int64_t m = 0; m < msize; ++m)
+              mpart[(k * groups_ + grp) * msize + m] = static_cast<double>(mrow[k * msize + m]);
+        }
+      });
     }
+    std::vector<std::vector<T>> v(n);
+    for (int64_t k = 0; k < n; ++k) v[k] = split_direction(mpart.data() + k * groups_ * msize);
+    return v;
   }
 
   std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
     const int64_t n = static_cast<int64_t>(level.size());
     const bool leaf = depth + 1 >= opt_.tree_height;
-    const bool want_m = !leaf && opt_.power_iterations > 0;
-    std::vector<const T*> eta_src(n);
-    for (int64_t k = 0; k < n; ++k) eta_src[k] = level[k].eta.data();
-    const int64_t msize = D_ * (D_ + 1) / 2;  // upper triangle of M
-    std::vector<double> mpart(want_m ? n * groups_ * msize : 0, 0.0);
-    const int64_t pnode = (C_ + 1) * Nl_;
-    w_.resize(n * N_);
+    // The labels a split writes are read only by the next level's split.
+    const bool keep_labels = depth + 2 < opt_.tree_height;
 
-    // ---- pass A: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); M = sum r r^T ----
-    Scratch<T> P;
-    P.resize(n * pnode);  // each task clears the block rows it splats into
-    const int64_t group_px = bpg_ * df_ * W_ * n;
-    const int64_t work_a = group_px * (8 * D_ + 4 * C_ + (want_m ? D_ * D_ / 2 : 0));
-    parallel_work(0, groups_, work_a, [&](int64_t gb, int64_t ge) {
-      // res has D rounded up to 4 rows plus 4, the extra ones zero, for gram_upper_row's tiles
-      std::vector<T> res(want_m ? ((D_ + 3) / 4 * 4 + 4) * W_ : 0, T(0)), dist(W_), ws(W_),
-          fp(C_ * W_), mrow(want_m ? n * msize : 0);
-      std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
-      for (int64_t grp = gb; grp < ge; ++grp) {
-        std::fill(mrow.begin(), mrow.end(), T(0));
-        for (int64_t bi = grp * bpg_; bi < std::min(Hl_, (grp + 1) * bpg_); ++bi) {
-          const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
-          for (int64_t p = 0; p < n * (C_ + 1); ++p) std::fill_n(P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
-          for (int64_t i = i0; i < i1; ++i) {
-            const int64_t row = i * W_;
-            centred_values_row(i, fp.data());
-            const bool gram_row = want_m && i % gram_stride_ == 0;
-            for (int64_t k = 0; k < n; ++k) {
-              std::fill(dist.begin(), dist.end(), T(0));
-              residual_row(eta[k], i, gram_row ? res.data() : nullptr, dist.data());
-              T* wr = w_.data() + k * N_ + row;
-              exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
-              // the splat weights: w, or 0 where the pixel is not a splat pixel
-              const T* wsplat = wr;
-              if (!(all_g_ && all_v_)) {
-                const uint8_t* sr = ms_.data() + row;
-                for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
-                wsplat = ws.data();
-              }
-              if (opt_.adjust_outliers) {
-                T* mr = minD_.data() + row;
-                if (depth == 0)
-                  std::copy(dist.begin(), dist.end(), mr);
-                else
-                  for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
-              }
-              T* pk = P.data() + k * pnode;
-              for (int64_t c = 0; c < C_; ++c)
-                block_dot_row(wsplat, fp.data() + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
-              block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
-              if (gram_row) accumulate_m(depth, level[k].id, row, res.data(), mrow.data() + k * msize);
-            }
-          }
-          for (int64_t k = 0; k < n; ++k) to_block_means(P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
-        }
-        for (int64_t k = 0; k < n && want_m; ++k)
-          for (int64_t m = 0; m < msize; ++m)
-            mpart[(k * groups_ + grp) * msize + m] = static_cast<double>(mrow[k * msize + m]);
-      }
-    });
-    clock_.lap("pass A", depth);
-
-    // ---- per node: low-res blur of [P, P0] steered by its manifold; 8. split direction ----
-    std::vector<std::vector<T>> v(n);
-    for (int64_t k = 0; k < n; ++k) {
-      std::vector<T> ah(Nl_), av(Nl_);
-      domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
-                                    av.data());
-      domain_transform_planes(P.data() + k * pnode, C_ + 1, Hl_, Wl_, ah.data(), av.data());
-      if (!leaf) v[k] = split_direction(mpart.data() + k * groups_ * msize);
-    }
-    clock_.lap("blur+split", depth);
-
-    // 8. v . (eta - c) per node at low resolution for the projections, c: the manifold's first value
+    // 8. v, and v . (eta - c) per node at low resolution for the projections, c: the manifold's
+    // first value
+    std::vector<std::vector<T>> v;
     Scratch<T> ve;
     std::vector<std::vector<T>> centre(n);
     if (!leaf) {
+      v = split_directions(level, depth);
       ve.resize(n * Nl_);
       for (int64_t k = 0; k < n; ++k) {
         centre[k].resize(D_);
@@ -520,41 +465,64 @@ class ImageFilter {
           }
         }
       });
+      clock_.lap("split dir", depth);
     }
 
-    // ---- pass B: slice; internal nodes also label, theta and the children's sums ----
+    // ---- the level's pass: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); internal
+    // nodes also label, theta = 1 - w and the children's sums Q ----
+    std::vector<const T*> eta_src(n), ve_src(leaf ? 0 : n);
+    for (int64_t k = 0; k < n; ++k) eta_src[k] = level[k].eta.data();
+    for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = ve.data() + k * Nl_;
+    const int64_t pnode = (C_ + 1) * Nl_;
+    Sliced sl;
+    sl.n = n;
+    sl.w.resize(n * N_);
+    sl.P.resize(n * pnode);  // each task clears the block rows it splats into
     Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
     const int64_t qside = (D_ + 1) * Nl_;
     if (!leaf) Q.resize(n * 2 * qside);  // each task clears the block rows it sums into
-    // The root's slice waits for the next level's pass B (S is then written once less), which
-    // makes it first, so S sums in the same order.
-    const bool slice_own = leaf || depth > 0;
-    const bool slice_root = depth == 1;
-    const int64_t slices = (slice_own ? n : 0) + (slice_root ? 1 : 0);
-    parallel_work(0, groups_, group_px * (4 * (C_ + 1) * slices / n + (leaf ? 0 : 6 * D_)), [&](int64_t gb, int64_t ge) {
-      std::vector<T> t0(W_), t1(W_), alpha(leaf ? W_ : 0);
-      std::vector<const T*> blurred(n);
-      for (int64_t k = 0; k < n; ++k) blurred[k] = P.data() + k * pnode;
-      std::vector<RowUpsampler<T>> up = upsamplers(blurred, C_ + 1);
-      std::vector<RowUpsampler<T>> root_ups = root_upsamplers(slice_root);
-      RowUpsampler<T>* root_up = slice_root ? &root_ups[0] : nullptr;
-      std::vector<const T*> ve_src(leaf ? 0 : n);
-      for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = ve.data() + k * Nl_;
+    const int64_t group_px = bpg_ * df_ * W_ * n;
+    const int64_t work = group_px * (8 * D_ + 4 * C_ + (leaf ? 0 : 6 * D_));
+    parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
+      std::vector<T> dist(W_), ws(W_), fp(C_ * W_), t0(leaf ? 0 : W_), t1(leaf ? 0 : W_);
+      std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
       std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
+        for (int64_t p = 0; p < n * (C_ + 1); ++p) std::fill_n(sl.P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p) std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
-          if (root_up) slice_row(*root_up, root_w_.data() + row, i, true);
+          centred_values_row(i, fp.data());
           for (int64_t k = 0; k < n; ++k) {
-            const T* wr = w_.data() + k * N_ + row;
-            if (slice_own) slice_row(up[k], wr, i, depth == 0);
+            std::fill(dist.begin(), dist.end(), T(0));
+            distance_row(eta[k], i, dist.data());
+            T* wr = sl.w.data() + k * N_ + row;
+            exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
+            // the splat weights: w, or 0 where the pixel is not a splat pixel
+            const T* wsplat = wr;
+            if (!(all_g_ && all_v_)) {
+              const uint8_t* sr = ms_.data() + row;
+              for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
+              wsplat = ws.data();
+            }
+            if (opt_.adjust_outliers) {
+              T* mr = minD_.data() + row;
+              if (depth == 0)
+                std::copy(dist.begin(), dist.end(), mr);
+              else
+                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
+            }
+            T* pk = sl.P.data() + k * pnode;
+            for (int64_t c = 0; c < C_; ++c)
+              block_dot_row(wsplat, fp.data() + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
+            block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
             projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
             const int32_t id = static_cast<int32_t>(level[k].id);
-            int32_t* lr = label_.data() + row;
+            // labels exist from height 3 on: at depth 0 in_cluster reads none
+            int32_t* lr = keep_labels || depth > 0 ? label_.data() + row : nullptr;
             const uint8_t* mg = guide_mask(row);
             for (int64_t j = 0; j < W_; ++j) {
               const bool in = in_cluster(depth, lr, mg, id, j);
@@ -562,6 +530,7 @@ class ImageFilter {
               const T theta = T(1) - wr[j];
               t0[j] = in && !plus ? theta : T(0);
               t1[j] = in && plus ? theta : T(0);
+              if (!keep_labels) continue;
               if (in) lr[j] = 2 * id + (plus ? 1 : 0);
               else if (depth == 0) lr[j] = 0;  // label 0 is never a node
             }
@@ -574,21 +543,24 @@ class ImageFilter {
             block_sum_row(t0.data(), W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
             block_sum_row(t1.data(), W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
           }
-          if (leaf) finish_row(i, alpha.data());
         }
-        if (leaf) continue;
-        for (int64_t s = 0; s < 2 * n; ++s) to_block_means(Q.data() + s * qside + bi * Wl_, D_ + 1, i1 - i0);
+        for (int64_t k = 0; k < n; ++k) to_block_means(sl.P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
+        for (int64_t s2 = 0; !leaf && s2 < 2 * n; ++s2) to_block_means(Q.data() + s2 * qside + bi * Wl_, D_ + 1, i1 - i0);
       }
     });
-    clock_.lap("pass B", depth);
-    root_sliced_ = root_sliced_ || slice_root || (depth == 0 && leaf);
-    std::vector<Node> next;
-    finished_ = leaf;
-    if (leaf) return next;
-    if (depth == 0) {  // kept for the root's slice
-      root_w_ = std::move(w_);
-      root_P_ = std::move(P);
+    clock_.lap("pass", depth);
+
+    // ---- per node: low-res blur of [P, P0] steered by its manifold; the slice waits ----
+    for (int64_t k = 0; k < n; ++k) {
+      std::vector<T> ah(Nl_), av(Nl_);
+      domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
+                                    av.data());
+      domain_transform_planes(sl.P.data() + k * pnode, C_ + 1, Hl_, Wl_, ah.data(), av.data());
     }
+    sliced_.push_back(std::move(sl));
+    clock_.lap("blur", depth);
+    std::vector<Node> next;
+    if (leaf) return next;
 
     // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
     // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
@@ -629,7 +601,7 @@ class ImageFilter {
   // scales r by 1/max|r| against overflow; the direction and the collapse test do not depend on
   // it, and here a float32 r is squared in float32 per row, then summed in double.
   void accumulate_m(int64_t depth, int64_t id, int64_t row, T* res, T* m) const {
-    const int32_t* lr = label_.data() + row;
+    const int32_t* lr = depth > 0 ? label_.data() + row : nullptr;
     const uint8_t* mg = guide_mask(row);
     const int32_t id32 = static_cast<int32_t>(id);
     int32_t out = 0;  // pixels of the row outside the cluster (none at the root, usually)
@@ -691,14 +663,51 @@ class ImageFilter {
     return out;
   }
 
-  // 9., 10. Full-res row i, in place (S_ is the output tensor); alpha: W scratch.
+  // The last pass: row by row, S and S0 (s0, W scratch) from every level's slices in the order of
+  // the tree (7.), then 9., 10.
+  void slice_and_finish() {
+    int64_t nodes = 0;
+    for (const Sliced& l : sliced_) nodes += l.n;
+    rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
+      std::vector<T> s0(W_), alpha(W_);
+      std::vector<std::vector<RowUpsampler<T>>> up;
+      for (const Sliced& l : sliced_) {
+        std::vector<const T*> blurred(l.n);
+        for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C_ + 1) * Nl_;
+        up.push_back(upsamplers(blurred, C_ + 1));
+      }
+      for (int64_t i = b; i < e; ++i) {
+        for (size_t l = 0; l < sliced_.size(); ++l)
+          for (int64_t k = 0; k < sliced_[l].n; ++k)
+            slice_row(up[l][k], sliced_[l].w.data() + k * N_ + i * W_, i, l == 0 && k == 0, s0.data());
+        finish_row(i, s0.data(), alpha.data());
+      }
+    });
+  }
+
+  // S += w up(blur [P, P0]) at full-res row i for one node, S in the output and S0 in s0 (W); the
+  // first node's slice starts them.
+  void slice_row(RowUpsampler<T>& up, const T* wr, int64_t i, bool first, T* s0) {
+    const int64_t row = i * W_;
+    const T fy = up.seek(i);
+    for (int64_t c = 0; c <= C_; ++c) {
+      T* s = c < C_ ? S_ + c * N_ + row : s0;
+      const T* b = up.base(c);
+      const T* db = up.delta(c);
+      if (first)
+        for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
+      else
+        for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
+    }
+  }
+
+  // 9., 10. Full-res row i, in place (S_ is the output tensor); s0: the row's S0; alpha: W scratch.
   // Branch-free inner loops so they vectorise; same operations per element.
   // Below tiny/eps, S and S0 are sums of subnormal terms with absolute rounding: their ratio is
   // no longer a weighted mean of the samples, so such pixels keep the input (as where S0 == 0).
-  void finish_row(int64_t i, T* alpha) {
+  void finish_row(int64_t i, const T* s0, T* alpha) {
     const T s0_floor = std::numeric_limits<T>::min() / std::numeric_limits<T>::epsilon();
     const int64_t row = i * W_;
-    const T* s0 = S0_.data() + row;
     if (opt_.adjust_outliers) {
       const uint8_t* mv = mv_.data() + row;
       exp_neg_scaled_row(minD_.data() + row, half_inv_r2_, alpha, W_);
@@ -721,7 +730,7 @@ class ImageFilter {
   const int64_t C_, D_, H_, W_, N_;
   const Options opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_;
-  const int64_t gram_stride_;  // 8. M sums the rows i % gram_stride_ == 0
+  const int64_t gram_stride_;  // 8. M sums the rows of every gram_stride_-th band
   const Taps<T> ty_, tx_;
   const T* f_in_;
   const T* g_in_;
@@ -729,15 +738,13 @@ class ImageFilter {
   T inv_r2_, half_inv_r2_;
   double ss_low_, sr_low_;
   bool all_g_ = true, all_v_ = true;
-  bool finished_ = false;  // the output is normalised
-  bool root_sliced_ = false;
 
   const T* f_s_ = nullptr;  // values with non-finite entries set to 0
   const T* gs_ = nullptr;   // sanitised guide
   std::vector<T> c_;
   Scratch<T> root_eta_;  // 6. the root manifold, (D, Hl, Wl), moved into the tree
-  Scratch<T> fs_buf_, gs_buf_, w_, minD_, S0_;
-  Scratch<T> root_w_, root_P_;  // the root's w and blurred [P, P0], until its slice
+  Scratch<T> fs_buf_, gs_buf_, minD_;
+  std::vector<Sliced> sliced_;  // every level so far, for the last pass
   Scratch<uint8_t> mg_, mv_, ms_;
   Scratch<int32_t> label_;
   PhaseClock clock_;
