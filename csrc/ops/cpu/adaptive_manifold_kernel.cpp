@@ -713,10 +713,19 @@ class ImageFilter {
       exp_neg_scaled_row(minD_.data() + row, half_inv_r2_, alpha, W_);
       for (int64_t j = 0; j < W_; ++j) alpha[j] = mv[j] ? alpha[j] : T(1);
     }
+    // A row where every S0 clears the floor (nearly every row) and no adjustment follows needs
+    // no input.
+    int64_t low = 0;
+    for (int64_t j = 0; j < W_; ++j) low += !(s0[j] > s0_floor);
+    const bool reads_input = low > 0 || opt_.adjust_outliers;
     for (int64_t c = 0; c < C_; ++c) {
       const T* fs = f_s_ + c * N_ + row;
       T* out = S_ + c * N_ + row;
       const T cc = c_[c];
+      if (!reads_input) {
+        for (int64_t j = 0; j < W_; ++j) out[j] = cc + out[j] / s0[j];
+        continue;
+      }
       for (int64_t j = 0; j < W_; ++j) {
         // divided unconditionally (by 1 in the unused lane) so the loop vectorises
         const T mean = cc + out[j] / (s0[j] > s0_floor ? s0[j] : T(1));
