@@ -11,6 +11,7 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <type_traits>
@@ -41,17 +42,30 @@ inline int64_t grain_lines(int64_t lines, int64_t work_per_line) {
   return lines * work_per_line < kSerialWork ? std::max<int64_t>(1, lines) : grain_for(work_per_line);
 }
 
-// at::parallel_for over [begin, end) with grain from the work per item, except that little total
-// work runs on the calling thread: with more threads than free cores one parallel region can cost
-// milliseconds, more than a 64x64 image's whole filter. Callers' results never depend on the split.
+// [begin, end) over the threads with grain from the work per item, except that little total work
+// runs on the calling thread: with more threads than free cores one parallel region can cost
+// milliseconds, more than a 64x64 image's whole filter. The range is handed out in about
+// kChunksPerThread chunks per thread, in order, to whichever thread is free: on a shared machine a
+// core taken away for a while then delays one chunk, not a whole static half of the pass.
+// Callers' results never depend on the split.
+constexpr int64_t kChunksPerThread = 4;
+
 template <typename F>
 inline void parallel_work(int64_t begin, int64_t end, int64_t work_per_item, const F& fn) {
   if (end <= begin) return;
-  if ((end - begin) * std::max<int64_t>(1, work_per_item) < kSerialWork) {
+  const int64_t n = end - begin;
+  const int64_t threads = at::get_num_threads();
+  if (n * std::max<int64_t>(1, work_per_item) < kSerialWork || threads <= 1 || at::in_parallel_region()) {
     fn(begin, end);
     return;
   }
-  at::parallel_for(begin, end, grain_for(work_per_item), fn);
+  const int64_t chunk =
+      std::max(grain_for(work_per_item), (n + threads * kChunksPerThread - 1) / (threads * kChunksPerThread));
+  std::atomic<int64_t> next{begin};
+  at::parallel_for(0, threads, 1, [&](int64_t, int64_t) {
+    for (int64_t b = next.fetch_add(chunk); b < end; b = next.fetch_add(chunk))
+      fn(b, std::min(end, b + chunk));
+  });
 }
 
 // ---- constant-coefficient low-pass h ---------------------------------------------------------
