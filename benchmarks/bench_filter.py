@@ -112,7 +112,7 @@ def _record(name, benchmark):
 def test_ours(benchmark, inputs, all_cores):
     values, guide = inputs
     out = benchmark.pedantic(op, args=(values, guide, SIGMA_S, SIGMA_R, HEIGHT, ITERS, False),
-                             rounds=5, warmup_rounds=1)
+                             rounds=15, warmup_rounds=1)
     assert out.shape == values.shape
     _record("ours", benchmark)
 
@@ -120,7 +120,7 @@ def test_ours(benchmark, inputs, all_cores):
 @pytest.mark.benchmark(group="filter-1mp")
 def test_opencv_amfilter(benchmark, inputs, all_cores):
     src, joint = _cv_inputs(*inputs)
-    out = benchmark.pedantic(cv2.ximgproc.amFilter, args=(joint, src, SIGMA_S, SIGMA_R), rounds=3,
+    out = benchmark.pedantic(cv2.ximgproc.amFilter, args=(joint, src, SIGMA_S, SIGMA_R), rounds=7,
                              warmup_rounds=1)
     assert out.shape == src.shape
     _record("opencv_amfilter", benchmark)
@@ -141,7 +141,7 @@ def test_ours_one_thread(benchmark, inputs):
     torch.set_num_threads(1)
     try:
         values, guide = inputs
-        benchmark.pedantic(op, args=(values, guide, SIGMA_S, SIGMA_R, HEIGHT, ITERS, False), rounds=5,
+        benchmark.pedantic(op, args=(values, guide, SIGMA_S, SIGMA_R, HEIGHT, ITERS, False), rounds=9,
                            warmup_rounds=1)
         _record("ours_1thread", benchmark)
     finally:
@@ -154,7 +154,7 @@ def test_opencv_amfilter_one_thread(benchmark, inputs):
     cv2.setNumThreads(1)
     try:
         src, joint = _cv_inputs(*inputs)
-        benchmark.pedantic(cv2.ximgproc.amFilter, args=(joint, src, SIGMA_S, SIGMA_R), rounds=3, warmup_rounds=1)
+        benchmark.pedantic(cv2.ximgproc.amFilter, args=(joint, src, SIGMA_S, SIGMA_R), rounds=5, warmup_rounds=1)
         _record("opencv_amfilter_1thread", benchmark)
     finally:
         cv2.setNumThreads(before)
