@@ -30,12 +30,12 @@ inline int64_t downsample_factor(double sigma_s, double sigma_r) {
 }
 
 // 8. The split's M = sum r r^T takes the rows of every s-th band of kGramBand rows,
-// s = max(1, floor(H W / 2^18)): still >= 2^18 samples for a D x D matrix, where the full sum costs
-// D^2 / 2 multiply-adds a pixel. Bands, not single rows: a channel's band is one run of memory,
-// which streams about 1.3x faster than rows far apart.
-constexpr int64_t kGramBand = 16;
+// s = max(1, floor(H W / 2^17)): still >= 2^17 samples for a D x D matrix, where the full sum costs
+// D^2 / 2 multiply-adds a pixel and a read of the guide. Bands, not single rows: a channel's band
+// is one run of memory, which streams faster than rows far apart.
+constexpr int64_t kGramBand = 4;
 inline int64_t gram_band_stride(int64_t H, int64_t W) {
-  return std::max<int64_t>(1, H * W / (int64_t(1) << 18));
+  return std::max<int64_t>(1, H * W / (int64_t(1) << 17));
 }
 
 // exp(x) for x <= 0 without a libm call, so the weight loops vectorise: x = n ln2 + r,
