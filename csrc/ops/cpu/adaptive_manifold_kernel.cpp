@@ -76,7 +76,8 @@ class ImageFilter {
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         // pixel passes run over groups of block rows: >= kReduceRows full-res rows each
         bpg_(std::max<int64_t>(1, kReduceRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
-        gram_stride_(gram_band_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values), g_in_(guide), S_(out) {
+        gram_stride_(gram_band_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values),
+        g_in_(guide), S_(out) {
     const double fmax = static_cast<double>(std::numeric_limits<T>::max());
     const double r2 = opt.sigma_r * opt.sigma_r;
     inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
@@ -489,8 +490,10 @@ class ImageFilter {
       std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
-        for (int64_t p = 0; p < n * (C_ + 1); ++p) std::fill_n(sl.P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
-        for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p) std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
+        for (int64_t p = 0; p < n * (C_ + 1); ++p)
+          std::fill_n(sl.P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
+        for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p)
+          std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
           centred_values_row(i, fp.data());
@@ -545,7 +548,8 @@ class ImageFilter {
           }
         }
         for (int64_t k = 0; k < n; ++k) to_block_means(sl.P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
-        for (int64_t s2 = 0; !leaf && s2 < 2 * n; ++s2) to_block_means(Q.data() + s2 * qside + bi * Wl_, D_ + 1, i1 - i0);
+        for (int64_t side = 0; !leaf && side < 2 * n; ++side)
+          to_block_means(Q.data() + side * qside + bi * Wl_, D_ + 1, i1 - i0);
       }
     });
     clock_.lap("pass", depth);
