@@ -38,10 +38,6 @@ inline int64_t grain_for(int64_t work_per_item) {
 // when they are not. (The progressive pipeline runs torch on one thread by default, see cli.py.)
 constexpr int64_t kSerialWork = int64_t(1) << 19;
 
-inline int64_t grain_lines(int64_t lines, int64_t work_per_line) {
-  return lines * work_per_line < kSerialWork ? std::max<int64_t>(1, lines) : grain_for(work_per_line);
-}
-
 // [begin, end) over the threads with grain from the work per item, except that little total work
 // runs on the calling thread: with more threads than free cores one parallel region can cost
 // milliseconds, more than a 64x64 image's whole filter. The range is handed out in about
@@ -278,7 +274,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
                     bool rows_done = false) {
   const T a = lowpass_coefficient<T>(sigma);
   if (planes >= 2 * at::get_num_threads()) {
-    at::parallel_for(0, planes, grain_lines(planes, 4 * h * w), [&](int64_t b, int64_t e) {
+    parallel_work(0, planes, 4 * h * w, [&](int64_t b, int64_t e) {
       for (int64_t pl = b; pl < e; ++pl) {
         T* p = data + pl * h * w;
         if (w > 1 && !rows_done) lowpass_rows(p, 0, h, w, a);
@@ -288,7 +284,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
     return;
   }
   if (w > 1 && !rows_done) {
-    at::parallel_for(0, planes * h, grain_lines(planes * h, 2 * w), [&](int64_t b, int64_t e) {
+    parallel_work(0, planes * h, 2 * w, [&](int64_t b, int64_t e) {
       // split [b, e) at plane boundaries
       for (int64_t line = b; line < e;) {
         const int64_t pl = line / h, r0 = line % h, r1 = std::min(h, r0 + (e - line));
@@ -299,7 +295,7 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
   }
   if (h > 1) {
     const int64_t strips = (w + kStrip - 1) / kStrip;
-    at::parallel_for(0, planes * strips, grain_lines(planes * strips, 2 * h * kStrip), [&](int64_t b, int64_t e) {
+    parallel_work(0, planes * strips, 2 * h * kStrip, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t plane = t / strips, s = t % strips;
         const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
@@ -320,7 +316,7 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
   const int64_t plane = h * w;
   const T k = static_cast<T>((ss / sr) * (ss / sr));
   const T c = static_cast<T>(-std::sqrt(2.0) / ss);
-  at::parallel_for(0, h, grain_lines(h, 4 * w * (d + 1)), [&](int64_t b, int64_t e) {
+  parallel_work(0, h, 4 * w * (d + 1), [&](int64_t b, int64_t e) {
     // Blocks of 16 rows, channel by channel: one run of memory per channel, where a row at a time
     // read d short runs (d rows a plane apart) and stalled on them; the sums stay in L1.
     for (int64_t i0 = b; i0 < e; i0 += 16) {
@@ -402,7 +398,7 @@ void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, cons
     // tasks of up to 16 rows of one plane, so the vector blocks see whole 16-row groups wherever
     // the split falls
     const int64_t groups = (h + 15) / 16;
-    at::parallel_for(0, planes * groups, grain_lines(planes * groups, 48 * w), [&](int64_t b, int64_t e) {
+    parallel_work(0, planes * groups, 48 * w, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t plane = t / groups, r0 = (t % groups) * 16, r1 = std::min(h, r0 + 16);
         domain_transform_rows(data + plane * h * w, r0, r1, w, ah);
@@ -411,7 +407,7 @@ void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, cons
   }
   if (h > 1) {
     const int64_t strips = (w + kStrip - 1) / kStrip;
-    at::parallel_for(0, planes * strips, grain_lines(planes * strips, 3 * h * kStrip), [&](int64_t b, int64_t e) {
+    parallel_work(0, planes * strips, 3 * h * kStrip, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
         const int64_t plane = t / strips, s = t % strips;
         const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
