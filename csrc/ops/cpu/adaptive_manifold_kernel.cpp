@@ -420,11 +420,13 @@ class ImageFilter {
         for (int64_t grp = gb; grp < ge; ++grp) {
           std::fill(mrow.begin(), mrow.end(), T(0));
           const int64_t i0 = grp * group_rows, i1 = std::min(H_, i0 + group_rows);
-          for (int64_t i = i0; i < i1; ++i)
-            for (int64_t k = 0; k < n && (i / kGramBand) % gram_stride_ == 0; ++k) {
+          for (int64_t i = i0; i < i1; ++i) {
+            if ((i / kGramBand) % gram_stride_ != 0) continue;  // not a sampled band
+            for (int64_t k = 0; k < n; ++k) {
               residual_row(eta[k], i, res.data());
               accumulate_m(depth, level[k].id, i * W_, res.data(), mrow.data() + k * msize);
             }
+          }
           for (int64_t k = 0; k < n; ++k)
             for (int64_t m = 0; m < msize; ++m)
               mpart[(k * groups_ + grp) * msize + m] = static_cast<double>(mrow[k * msize + m]);
@@ -524,8 +526,8 @@ class ImageFilter {
             // t0 first holds the projection v . r, then theta on the - side.
             projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
             const int32_t id = static_cast<int32_t>(level[k].id);
-            // labels exist from height 3 on: at depth 0 in_cluster reads none
-            int32_t* lr = keep_labels || depth > 0 ? label_.data() + row : nullptr;
+            // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
+            int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
             const uint8_t* mg = guide_mask(row);
             for (int64_t j = 0; j < W_; ++j) {
               const bool in = in_cluster(depth, lr, mg, id, j);
