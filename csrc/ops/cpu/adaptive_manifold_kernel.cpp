@@ -529,7 +529,16 @@ class ImageFilter {
             // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
             int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
             const uint8_t* mg = guide_mask(row);
-            for (int64_t j = 0; j < W_; ++j) {
+            if (depth == 0 && !mg && !keep_labels) {
+              // every pixel is in the root's cluster and no labels are kept (height 2): the same
+              // sides without branches, so that the loop vectorises
+              for (int64_t j = 0; j < W_; ++j) {
+                const bool plus = t0[j] >= T(0);
+                const T theta = T(1) - wr[j];
+                t1[j] = plus ? theta : T(0);
+                t0[j] = plus ? T(0) : theta;
+              }
+            } else for (int64_t j = 0; j < W_; ++j) {
               const bool in = in_cluster(depth, lr, mg, id, j);
               const bool plus = t0[j] >= T(0);
               const T theta = T(1) - wr[j];
