@@ -316,36 +316,74 @@ class ImageFilter {
     return depth == 0 ? !mg || mg[j] != 0 : lr[j] == id;
   }
 
-  // dist += |gs - up(eta)|^2 at full-res row i, two guide channels per sweep of the row (half the
-  // loads and stores of dist), added to in the same order as one channel at a time. eta: the
-  // node's manifold through a RowUpsampler.
-  void distance_row(RowUpsampler<T>& eta, int64_t i, T* dist) const {
-    const int64_t row = i * W_;
-    const T fy = eta.seek(i);
+  // A band: the full-res rows from i on (before `end`, at most kBandRows) that share their
+  // upsampled manifold rows, i.e. the same pair of low-res rows.
+  static constexpr int64_t kBandRows = 4;
+  int64_t band_rows(int64_t i, int64_t end) const {
+    int64_t r = 1;
+    while (r < kBandRows && i + r < end && ty_.i0[i + r] == ty_.i0[i] && ty_.i1[i + r] == ty_.i1[i]) ++r;
+    return r;
+  }
+
+  // For the band of `rows` rows from full-res row i and every node k of the level (eta: their
+  // manifolds through RowUpsamplers), at row (k kBandRows + r) of dist and proj (zeroed by the
+  // caller):
+  //   dist += |gs - up(eta_k)|^2;
+  //   proj += v_k . (gs - c_k) when v is not empty (a splitting level): the guide's part of the
+  //   projection v_k . (gs - up(eta_k)) = v_k . (gs - c_k) - up(v_k . (eta_k - c_k)), see
+  //   projection_from_band. c_k (per channel, a value of the manifold) keeps a guide far from 0
+  //   from costing precision.
+  // A channel pair at a time over the band's rows: each channel's rows are one run of memory,
+  // which streams faster than D rows a plane apart; a node's upsampled rows serve the whole band;
+  // dist and proj are loaded and stored once per pair.
+  void distance_band(std::vector<RowUpsampler<T>>& eta, int64_t i, int64_t rows,
+                     const std::vector<std::vector<T>>& v, const std::vector<std::vector<T>>& c,
+                     T* dist, T* proj) const {
+    T fy[kBandRows];
+    for (RowUpsampler<T>& e : eta) e.seek(i);
+    for (int64_t r = 0; r < rows; ++r) fy[r] = ty_.f[i + r];
+    const int64_t n = static_cast<int64_t>(eta.size());
     int64_t d = 0;
-    for (; d + 2 <= D_; d += 2) {
-      const T* __restrict g0 = gs_ + d * N_ + row;
-      const T* __restrict g1 = g0 + N_;
-      const T* __restrict b0 = eta.base(d);
-      const T* __restrict b1 = eta.base(d + 1);
-      const T* __restrict e0 = eta.delta(d);
-      const T* __restrict e1 = eta.delta(d + 1);
-      T* __restrict ds = dist;
-      for (int64_t j = 0; j < W_; ++j) {
-        const T x0 = g0[j] - (b0[j] + fy * e0[j]);
-        const T x1 = g1[j] - (b1[j] + fy * e1[j]);
-        ds[j] = (ds[j] + x0 * x0) + x1 * x1;
+    for (; d + 2 <= D_; d += 2)
+      for (int64_t k = 0; k < n; ++k) {
+        const T* __restrict b0 = eta[k].base(d);
+        const T* __restrict b1 = eta[k].base(d + 1);
+        const T* __restrict e0 = eta[k].delta(d);
+        const T* __restrict e1 = eta[k].delta(d + 1);
+        for (int64_t r = 0; r < rows; ++r) {
+          const T* __restrict g0 = gs_ + d * N_ + (i + r) * W_;
+          const T* __restrict g1 = g0 + N_;
+          T* __restrict ds = dist + (k * kBandRows + r) * W_;
+          const T f = fy[r];
+          for (int64_t j = 0; j < W_; ++j) {
+            const T x0 = g0[j] - (b0[j] + f * e0[j]);
+            const T x1 = g1[j] - (b1[j] + f * e1[j]);
+            ds[j] = (ds[j] + x0 * x0) + x1 * x1;
+          }
+          if (v.empty()) continue;
+          T* __restrict p = proj + (k * kBandRows + r) * W_;
+          const T v0 = v[k][d], c0 = c[k][d], v1 = v[k][d + 1], c1 = c[k][d + 1];
+          for (int64_t j = 0; j < W_; ++j) p[j] = (p[j] + v0 * (g0[j] - c0)) + v1 * (g1[j] - c1);
+        }
       }
-    }
-    for (; d < D_; ++d) {
-      const T* gr = gs_ + d * N_ + row;
-      const T* b = eta.base(d);
-      const T* db = eta.delta(d);
-      for (int64_t j = 0; j < W_; ++j) {
-        const T r = gr[j] - (b[j] + fy * db[j]);
-        dist[j] += r * r;
+    for (; d < D_; ++d)
+      for (int64_t k = 0; k < n; ++k) {
+        const T* b = eta[k].base(d);
+        const T* db = eta[k].delta(d);
+        for (int64_t r = 0; r < rows; ++r) {
+          const T* gr = gs_ + d * N_ + (i + r) * W_;
+          T* ds = dist + (k * kBandRows + r) * W_;
+          const T f = fy[r];
+          for (int64_t j = 0; j < W_; ++j) {
+            const T x = gr[j] - (b[j] + f * db[j]);
+            ds[j] += x * x;
+          }
+          if (v.empty()) continue;
+          T* p = proj + (k * kBandRows + r) * W_;
+          const T vd = v[k][d], cd = c[k][d];
+          for (int64_t j = 0; j < W_; ++j) p[j] += vd * (gr[j] - cd);
+        }
       }
-    }
   }
 
   // The residual r = gs - up(eta) at full-res row i into res ((D, W)), for M. eta: the node's
@@ -362,31 +400,14 @@ class ImageFilter {
     }
   }
 
-  // proj = v . (gs - up(eta)) at full-res row i as v . (gs - c) - up(v . (eta - c)): upsampling is
-  // linear, so the manifold's part is one low-res plane (ve, through a RowUpsampler) instead of D.
-  // c (per channel, a value of the manifold) keeps a guide far from 0 from costing precision.
-  void projection_row(RowUpsampler<T>& ve, int64_t i, const T* v, const T* c, T* proj) const {
-    const int64_t row = i * W_;
+  // out = the projection at full-res row i from its guide part (a row of distance_band's proj),
+  // less up(v . (eta - c)): upsampling is linear, so the manifold's part is one low-res plane
+  // (ve, through a RowUpsampler) instead of D.
+  void projection_from_band(RowUpsampler<T>& ve, int64_t i, const T* guide_part, T* out) const {
     const T fy = ve.seek(i);
     const T* __restrict b = ve.base(0);
     const T* __restrict db = ve.delta(0);
-    // two channels per sweep of the row (the sums loaded and stored half as often), added to in
-    // the same order as one channel at a time
-    T* __restrict p = proj;
-    std::fill(p, p + W_, T(0));
-    int64_t d = 0;
-    for (; d + 2 <= D_; d += 2) {
-      const T* __restrict g0 = gs_ + d * N_ + row;
-      const T* __restrict g1 = g0 + N_;
-      const T v0 = v[d], c0 = c[d], v1 = v[d + 1], c1 = c[d + 1];
-      for (int64_t j = 0; j < W_; ++j) p[j] = (p[j] + v0 * (g0[j] - c0)) + v1 * (g1[j] - c1);
-    }
-    for (; d < D_; ++d) {
-      const T* __restrict gr = gs_ + d * N_ + row;
-      const T vd = v[d], cd = c[d];
-      for (int64_t j = 0; j < W_; ++j) p[j] += vd * (gr[j] - cd);
-    }
-    for (int64_t j = 0; j < W_; ++j) p[j] -= b[j] + fy * db[j];
+    for (int64_t j = 0; j < W_; ++j) out[j] = guide_part[j] - (b[j] + fy * db[j]);
   }
 
   // A RowUpsampler per node of the level for a task's rows.
@@ -487,9 +508,13 @@ class ImageFilter {
     const int64_t group_px = bpg_ * df_ * W_ * n;
     const int64_t work = group_px * (8 * D_ + 4 * C_ + (leaf ? 0 : 6 * D_));
     parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
-      std::vector<T> dist(W_), ws(W_), fp(C_ * W_), t0(leaf ? 0 : W_), t1(leaf ? 0 : W_);
+      // per node, the current band's distances and (splitting levels) projections' guide parts
+      std::vector<T> dist(n * kBandRows * W_), proj(leaf ? 0 : n * kBandRows * W_);
+      std::vector<T> ws(W_), fp(C_ * W_), t0(leaf ? 0 : W_), t1(leaf ? 0 : W_);
       std::vector<RowUpsampler<T>> eta = upsamplers(eta_src, D_);
       std::vector<RowUpsampler<T>> ve_up = upsamplers(ve_src, 1);
+      const int64_t task_end = std::min(H_, ge * bpg_ * df_);
+      int64_t band_start = 0, band_n = 0;  // the current band's rows
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         const int64_t i0 = bi * df_, i1 = std::min(H_, i0 + df_);
         for (int64_t p = 0; p < n * (C_ + 1); ++p)
@@ -499,11 +524,18 @@ class ImageFilter {
         for (int64_t i = i0; i < i1; ++i) {
           const int64_t row = i * W_;
           centred_values_row(i, fp.data());
-          for (int64_t k = 0; k < n; ++k) {
+          if (i >= band_start + band_n) {
+            band_start = i;
+            band_n = band_rows(i, task_end);
             std::fill(dist.begin(), dist.end(), T(0));
-            distance_row(eta[k], i, dist.data());
+            std::fill(proj.begin(), proj.end(), T(0));
+            distance_band(eta, i, band_n, v, centre, dist.data(), proj.data());
+          }
+          for (int64_t k = 0; k < n; ++k) {
+            const int64_t band_row = (k * kBandRows + i - band_start) * W_;
+            const T* dr = dist.data() + band_row;
             T* wr = sl.w.data() + k * N_ + row;
-            exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
+            exp_neg_scaled_row(dr, inv_r2_, wr, W_);
             // the splat weights: w, or 0 where the pixel is not a splat pixel
             const T* wsplat = wr;
             if (!(all_g_ && all_v_)) {
@@ -514,9 +546,9 @@ class ImageFilter {
             if (opt_.adjust_outliers) {
               T* mr = minD_.data() + row;
               if (depth == 0)
-                std::copy(dist.begin(), dist.end(), mr);
+                std::copy(dr, dr + W_, mr);
               else
-                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
+                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dr[j]);
             }
             T* pk = sl.P.data() + k * pnode;
             for (int64_t c = 0; c < C_; ++c)
@@ -524,7 +556,7 @@ class ImageFilter {
             block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
             if (leaf) continue;
             // t0 first holds the projection v . r, then theta on the - side.
-            projection_row(ve_up[k], i, v[k].data(), centre[k].data(), t0.data());
+            projection_from_band(ve_up[k], i, proj.data() + band_row, t0.data());
             const int32_t id = static_cast<int32_t>(level[k].id);
             // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
             int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
