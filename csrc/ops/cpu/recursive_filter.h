@@ -44,7 +44,7 @@ constexpr int64_t kSerialWork = int64_t(1) << 19;
 // kChunksPerThread chunks per thread, in order, to whichever thread is free: on a shared machine a
 // core taken away for a while then delays one chunk, not a whole static half of the pass.
 // Callers' results never depend on the split.
-constexpr int64_t kChunksPerThread = 4;
+constexpr int64_t kChunksPerThread = 8;
 
 template <typename F>
 inline void parallel_work(int64_t begin, int64_t end, int64_t work_per_item, const F& fn) {
