@@ -570,15 +570,17 @@ class ImageFilter {
                 t1[j] = plus ? theta : T(0);
                 t0[j] = plus ? T(0) : theta;
               }
-            } else for (int64_t j = 0; j < W_; ++j) {
-              const bool in = in_cluster(depth, lr, mg, id, j);
-              const bool plus = t0[j] >= T(0);
-              const T theta = T(1) - wr[j];
-              t0[j] = in && !plus ? theta : T(0);
-              t1[j] = in && plus ? theta : T(0);
-              if (!keep_labels) continue;
-              if (in) lr[j] = 2 * id + (plus ? 1 : 0);
-              else if (depth == 0) lr[j] = 0;  // label 0 is never a node
+            } else {
+              for (int64_t j = 0; j < W_; ++j) {
+                const bool in = in_cluster(depth, lr, mg, id, j);
+                const bool plus = t0[j] >= T(0);
+                const T theta = T(1) - wr[j];
+                t0[j] = in && !plus ? theta : T(0);
+                t1[j] = in && plus ? theta : T(0);
+                if (!keep_labels) continue;
+                if (in) lr[j] = 2 * id + (plus ? 1 : 0);
+                else if (depth == 0) lr[j] = 0;  // label 0 is never a node
+              }
             }
             T* q = Q.data() + k * 2 * qside;
             for (int64_t d = 0; d < D_; ++d) {
