@@ -49,6 +49,7 @@ from torchmanifold.ops.adaptive_manifold import (
     adaptive_manifold_filter,
     automatic_tree_height,
 )
+from torchmanifold.timewindow import interpolate, time_weights
 
 __all__ = ["temporal_adaptive_manifold_filter", "TemporalAdaptiveManifoldFilter", "spacetime_adaptive_manifold_torch"]
 
@@ -184,31 +185,6 @@ def _times(name: str, times, device) -> Tensor:
     return t
 
 
-def time_weights(frame_times: Tensor, query_times: Tensor, sigma_t: float) -> Tensor:
-    """Gaussian weights (Q, T) exp(-(t - q)^2 / 2 sigma_t^2), rescaled so each row's largest is 1.
-
-    The rescaling (a common factor per query) keeps far-away queries from underflowing to all zeros.
-    """
-    d2 = (query_times[:, None] - frame_times[None, :]).square()
-    return torch.exp(-(d2 - d2.amin(1, keepdim=True)) / (2.0 * sigma_t * sigma_t))
-
-
-def _interpolated_guide(guide: Tensor, frame_times: Tensor, q: float) -> Tensor:
-    """Guide at time q: linear between the frames bracketing q (clamped at the ends). -> (B, D, H, W)."""
-    ft = frame_times.tolist()
-    below = [i for i, t in enumerate(ft) if t <= q]
-    above = [i for i, t in enumerate(ft) if t >= q]
-    if not below or not above:
-        i = min(range(len(ft)), key=lambda k: (abs(ft[k] - q), k))
-        return guide[:, i]
-    i0 = max(below, key=lambda k: (ft[k], -k))
-    i1 = min(above, key=lambda k: (ft[k], k))
-    if ft[i1] == ft[i0]:
-        return guide[:, i0]
-    s = (q - ft[i0]) / (ft[i1] - ft[i0])
-    return torch.lerp(guide[:, i0], guide[:, i1], s)
-
-
 def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times, query_times, sigma_s: float,
                                       sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
                                       tree_height: int | None = 2,
@@ -294,7 +270,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
     else:
         outs = []
         for qi, q in enumerate(qt.tolist()):
-            gq = _interpolated_guide(g, ft, q)
+            gq = interpolate(g, ft, q, dim=1)  # the query frame's guide: linear between its neighbours
             outs.append(spacetime_adaptive_manifold_torch(v, g, tw[qi], gq, sigma_s, sigma_r, tree_height,
                                                           power_iterations, adjust_outliers))
         out = torch.stack(outs, 1)

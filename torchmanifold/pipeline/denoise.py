@@ -28,6 +28,8 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
+from torchmanifold.timewindow import interpolate, window
+
 __all__ = [
     "DenoiseSettings",
     "denoise_frames",
@@ -212,21 +214,6 @@ def _box_max(x: Tensor, r: int) -> Tensor:
     return mp(mp(x, (1, 2 * r + 1), 1, (0, r)), (2 * r + 1, 1), 1, (r, 0))
 
 
-def _bracket(frame_times: list[float], q: float) -> tuple[int, int, float]:
-    """Indices of the frames bracketing time q and the lerp weight (clamped at the ends)."""
-    order = sorted(range(len(frame_times)), key=lambda k: frame_times[k])
-    below = [k for k in order if frame_times[k] <= q]
-    above = [k for k in order if frame_times[k] >= q]
-    if not below:
-        return above[0], above[0], 0.0
-    if not above:
-        return below[-1], below[-1], 0.0
-    i0, i1 = below[-1], above[0]
-    if frame_times[i1] == frame_times[i0]:
-        return i0, i0, 0.0
-    return i0, i1, (q - frame_times[i0]) / (frame_times[i1] - frame_times[i0])
-
-
 class _Filter:
     """The weighted (sample-mask) adaptive-manifold filter over a clip, at query times.
 
@@ -242,10 +229,7 @@ class _Filter:
         self.ft, self.qt = frame_times, query_times
 
     def _window(self, q: float) -> list[int]:
-        r = self.st.temporal_radius
-        ids = [k for k, t in enumerate(self.ft) if abs(t - q) <= r + 1e-9]
-        i0, i1, _ = _bracket(self.ft, q)
-        return sorted(set(ids) | {i0, i1})
+        return window(self.ft, q, self.st.temporal_radius)
 
     def __call__(self, values: Tensor, mask: Tensor) -> Tensor:
         from torchmanifold.ops import adaptive_manifold_filter, temporal_adaptive_manifold_filter
@@ -295,11 +279,7 @@ class _Filter:
 
     def at_queries(self, x: Tensor) -> Tensor:
         """Per-frame data ``(T, C, H, W)`` at the query times, linear between bracketing frames."""
-        outs = []
-        for q in self.qt:
-            i0, i1, s = _bracket(self.ft, q)
-            outs.append(x[i0] if i0 == i1 or s == 0 else torch.lerp(x[i0], x[i1], s))
-        return torch.stack(outs)
+        return torch.stack([interpolate(x, self.ft, q) for q in self.qt])
 
 
 def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names: Sequence[str] = (),
