@@ -1,7 +1,7 @@
-"""The progressive loop of a whole clip: one more sample per pixel per frame each iteration.
+"""The progressive engine of a whole clip: one more sample per pixel per frame each iteration.
 
-Iteration ``i`` (1-based) renders sample ``i-1`` of every frame, filters every frame with its
-neighbours in time (Gaussian weights) guided by the per-sample features at the bandwidth of the
+Iteration ``i`` (1-based) renders sample ``i-1`` of every frame, filters every query time with its
+neighbour frames in time (Gaussian weights) guided by the per-sample features at the bandwidth of the
 schedule (``sigma_i^2 / sigma_{i-1}^2 = (i-1+a)/i``), and adds the result into a running average:
 
     ours_n = (1/n) sum_{i<=n} filter_i(samples_i)
@@ -10,24 +10,38 @@ As the bandwidth shrinks the filter tends to the identity, so the running averag
 true image like the raw average does (consistency), but starts from a far better estimate.
 
 Memory is bounded by the time window: frames are rendered in order into a ring of ``2r+1`` frames;
-frame ``t`` is filtered as soon as frame ``t+r`` has arrived, and only its running sums (ours, the raw
-average and the Gaussian-filtered baseline, 3 channels each) are kept per frame.
+a query time is filtered as soon as the last frame of its window has arrived, and only its running
+sums (ours, the raw average and the Gaussian-filtered baseline, 3 channels each) are kept.
+
+The render job, the benchmarks and the demo all drive this one object:
+
+- :meth:`ProgressiveRenderer.step` runs one iteration;
+- :meth:`ProgressiveRenderer.estimate` reads the current estimate at any frame or in-between time;
+- :meth:`ProgressiveRenderer.set_settings` and the :attr:`~ProgressiveRenderer.schedule` property
+  change settings; changes take effect at the next step, the iterations done stay in the averages;
+- :meth:`ProgressiveRenderer.track` / :meth:`~ProgressiveRenderer.untrack` add or drop query times,
+  :meth:`ProgressiveRenderer.restart` drops all samples.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, replace
-from typing import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
+from torchmanifold.timewindow import frame_at, interpolate, window
 
-__all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline"]
+__all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline", "ESTIMATES"]
+
+#: the running estimates the engine keeps per query time, in this order
+ESTIMATES = ("ours", "raw", "gaussian")
 
 
 def gaussian_baseline(color: Tensor, sigma: float) -> Tensor:
@@ -42,7 +56,7 @@ def gaussian_baseline(color: Tensor, sigma: float) -> Tensor:
 
 @dataclass
 class ProgressiveState:
-    """The clip after ``iteration`` iterations (all ``(Q, 3, H, W)`` at the query times).
+    """The clip after ``iteration`` iterations (all ``(Q, 3, H, W)`` at ``query_times``).
 
     Attributes:
         iteration: iterations done (= samples per pixel per frame).
@@ -52,6 +66,7 @@ class ProgressiveState:
         sigma_s: spatial bandwidth used at this iteration.
         seconds: wall time of this iteration (render + filter), and ``render_seconds`` of it rendering.
         stats: counters from the filter (non-finite samples, firefly energy removed).
+        query_times: the ``Q`` times of the rows.
     """
 
     iteration: int
@@ -62,6 +77,13 @@ class ProgressiveState:
     seconds: float
     render_seconds: float
     stats: dict
+    query_times: list[float] = field(default_factory=list)
+
+
+def _finite(name: str, v, lo: float) -> float:
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < lo:
+        raise ValueError(f"{name} must be a finite number >= {lo}, got {v!r}")
+    return float(v)
 
 
 class ProgressiveRenderer:
@@ -69,7 +91,7 @@ class ProgressiveRenderer:
 
     Args:
         tracer: a :class:`~torchmanifold.render.PathTracer` (``render(times, spp, seed, sample_offset)``).
-        times: the frame times to render (frame units, increasing, spaced 1 apart for the window).
+        times: the frame times to render (frame units, increasing).
         query_times: times to output (default ``times``); times between frames give in-between frames
             (rendered frames' samples and guides, interpolated by the temporal filter).
         settings: :class:`DenoiseSettings` of iteration 1 (sigma_s, guide sigmas, firefly, time window).
@@ -79,16 +101,25 @@ class ProgressiveRenderer:
             bias vanishes with iterations.
         gaussian_sigma: spatial sigma of the Gaussian baseline at iteration 1 (default 1 pixel,
             a good setting for it); it shrinks with the same schedule.
+        progress: optional ``callable(n)`` called after each query time is filtered (progress bars).
+        on_render: optional ``callable(frame_index, render_result)`` called for every frame rendered,
+            e.g. to keep the mean of its feature buffers.
+        range_scale: multiplier of every range sigma at iteration 1 (the schedule's ``sigma_r``); it
+            shrinks with the same schedule.
 
     Example:
         >>> pr = ProgressiveRenderer(PathTracer(default_scene(), 32, 32), times=[0, 1, 2])  # doctest: +SKIP
         >>> state = pr.step(); state.ours.shape                                               # doctest: +SKIP
         torch.Size([3, 3, 32, 32])
+        >>> pr.set_settings(sigma_s=2.0); pr.estimate(0.5).shape                              # doctest: +SKIP
+        torch.Size([3, 32, 32])
     """
 
     def __init__(self, tracer, times: Sequence[float], query_times: Sequence[float] | None = None,
                  settings: DenoiseSettings | None = None, alpha: float = DEFAULT_ALPHA, seed: int = 0,
-                 firefly_growth: float = 0.5, gaussian_sigma: float | None = None, progress=None):
+                 firefly_growth: float = 0.5, gaussian_sigma: float | None = None,
+                 progress: Callable[[int], object] | None = None,
+                 on_render: Callable[[int, object], object] | None = None, range_scale: float = 1.0):
         if not hasattr(tracer, "render"):
             raise TypeError(f"tracer must have a render(times, spp, seed, sample_offset) method, got "
                             f"{type(tracer).__name__}")
@@ -97,35 +128,146 @@ class ProgressiveRenderer:
             raise ValueError(f"times must be a non-empty increasing sequence of finite numbers, got {times}")
         self.tracer = tracer
         self.times = times
-        self.query_times = times if query_times is None else [float(q) for q in query_times]
-        if not self.query_times or any(not math.isfinite(q) for q in self.query_times):
+        self._query_times = list(times) if query_times is None else [float(q) for q in query_times]
+        if not self._query_times or any(not math.isfinite(q) for q in self._query_times):
             raise ValueError("query_times must be a non-empty sequence of finite numbers")
-        self.settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
-        self.schedule = BandwidthSchedule(self.settings.sigma_s, 1.0, alpha)
-        self.gaussian_sigma = 1.0 if gaussian_sigma is None else float(gaussian_sigma)
+        self._settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
+        self._schedule = BandwidthSchedule(self._settings.sigma_s, range_scale, alpha)
+        self.gaussian_sigma = 1.0 if gaussian_sigma is None else _finite("gaussian_sigma", gaussian_sigma, 0.0)
+        self.firefly_growth = _finite("firefly_growth", firefly_growth, 0.0)
         self.seed = int(seed)
-        self.firefly_growth = float(firefly_growth)
+        self.progress = progress
+        self.on_render = on_render
+        self.restart()
+
+    # -- settings -----------------------------------------------------------------------------------
+    @property
+    def settings(self) -> DenoiseSettings:
+        """The :class:`DenoiseSettings` of the next step (``sigma_s`` is that of iteration 1)."""
+        return self._settings
+
+    @settings.setter
+    def settings(self, settings: DenoiseSettings) -> None:
+        self.set_settings(settings)
+
+    @property
+    def schedule(self) -> BandwidthSchedule:
+        """The bandwidth schedule: ``sigma_s`` (pixels) and the range scale of every iteration."""
+        return self._schedule
+
+    @schedule.setter
+    def schedule(self, schedule: BandwidthSchedule) -> None:
+        if not isinstance(schedule, BandwidthSchedule):
+            raise TypeError(f"schedule must be a BandwidthSchedule, got {type(schedule).__name__}")
+        self._settings = replace(self._settings, sigma_s=schedule.sigma_s0).check()
+        self._schedule = schedule
+
+    @property
+    def alpha(self) -> float:
+        return self._schedule.alpha
+
+    def set_settings(self, settings: DenoiseSettings | None = None, **changes) -> None:
+        """Change settings from the next :meth:`step` on; the iterations done stay in the averages.
+
+        Args:
+            settings: a whole new :class:`DenoiseSettings` (optional).
+            **changes: fields of :class:`DenoiseSettings` (``sigma_s``, ``temporal_radius``, ``guide``, ...)
+                and of the engine: ``alpha``, ``range_scale`` (the schedule's ``sigma_r``),
+                ``gaussian_sigma``, ``firefly_growth``.
+
+        Raises:
+            TypeError: an unknown setting (named); ValueError: a bad value (named). Nothing changes then.
+        """
+        new = self._settings if settings is None else settings
+        if not isinstance(new, DenoiseSettings):
+            raise TypeError(f"settings must be a DenoiseSettings, got {type(new).__name__}")
+        engine = {k: changes.pop(k) for k in ("alpha", "range_scale", "gaussian_sigma", "firefly_growth")
+                  if k in changes}
+        known = {f.name for f in dataclasses.fields(DenoiseSettings)}
+        unknown = sorted(set(changes) - known)
+        if unknown:
+            raise TypeError(f"set_settings: unknown setting(s) {unknown}; expected fields of DenoiseSettings "
+                            f"{sorted(known)} or alpha, range_scale, gaussian_sigma, firefly_growth")
+        new = replace(new, **changes).check()
+        sched = {"sigma_s": new.sigma_s}
+        if "alpha" in engine:
+            sched["alpha"] = engine["alpha"]
+        if "range_scale" in engine:
+            sched["sigma_r"] = engine["range_scale"]
+        schedule = self._schedule.replace(**sched)
+        gs = _finite("gaussian_sigma", engine.get("gaussian_sigma", self.gaussian_sigma), 0.0)
+        fg = _finite("firefly_growth", engine.get("firefly_growth", self.firefly_growth), 0.0)
+        self._settings, self._schedule, self.gaussian_sigma, self.firefly_growth = new, schedule, gs, fg
+
+    # -- query times --------------------------------------------------------------------------------
+    @property
+    def query_times(self) -> list[float]:
+        """The times whose running estimates are kept (the rows of :class:`ProgressiveState`)."""
+        return list(self._query_times)
+
+    def track(self, t: float) -> None:
+        """Keep a running estimate at time ``t`` from now on (nothing happens if it is kept already).
+
+        A time joining after iteration ``n`` starts from :meth:`estimate` at ``t`` (the interpolation of
+        the kept neighbours) weighted as the ``n`` iterations it missed; its own filtered iterations are
+        added from the next step. For raw and Gaussian this start is exact when the neighbours are the
+        frames bracketing ``t`` (both are linear in the frames); for ours it fades as n / (n + m) after
+        m more iterations.
+        """
+        t = float(t)
+        if not math.isfinite(t):
+            raise ValueError(f"t must be a finite time, got {t}")
+        if frame_at(self._query_times, t) is not None:
+            return
+        if self._sums is not None:
+            start = torch.stack([self._estimate64(t, kind) for kind in ESTIMATES]) * self.iteration
+            self._sums = torch.cat([self._sums, start[None]])
+        self._query_times.append(t)
+
+    def untrack(self, t: float) -> None:
+        """Stop keeping the running estimate at time ``t`` (a kept time; at least one must stay)."""
+        j = frame_at(self._query_times, float(t))
+        if j is None:
+            raise ValueError(f"t: {t} is not a kept query time {self._query_times}")
+        if len(self._query_times) == 1:
+            raise ValueError("t: the last query time cannot be dropped")
+        del self._query_times[j]
+        if self._sums is not None:
+            self._sums = torch.cat([self._sums[:j], self._sums[j + 1:]])
+
+    def restart(self) -> None:
+        """Drop all samples: the next step is iteration 1 again (settings and query times stay)."""
         self.iteration = 0
-        self.progress = progress  # optional callable(frames_done) for progress bars
-        self._sum_ours: Tensor | None = None
-        self._sum_raw: Tensor | None = None
-        self._sum_gauss: Tensor | None = None
+        self._sums: Tensor | None = None  # (Q, len(ESTIMATES), 3, H, W) float64 running sums
         self.history: list[ProgressiveState] = []
 
-    # -- queries to the frames they need --------------------------------------------------------------
+    # -- estimates ----------------------------------------------------------------------------------
+    def _estimate64(self, t: float, kind: str) -> Tensor:
+        if self._sums is None:
+            raise RuntimeError("estimate: no iteration has run yet; call step() first")
+        if kind not in ESTIMATES:
+            raise ValueError(f"kind must be one of {ESTIMATES}, got {kind!r}")
+        return interpolate(self._sums[:, ESTIMATES.index(kind)], self._query_times, float(t)) / self.iteration
+
+    def estimate(self, t: float, kind: str = "ours") -> Tensor:
+        """The current estimate ``(3, H, W)`` at time ``t``.
+
+        Args:
+            t: any time; at a kept query time its running average, between two kept times the linear
+                interpolation of theirs (:func:`torchmanifold.timewindow.interpolate`), outside them
+                the nearest end's. :meth:`track` ``t`` to filter at ``t`` itself from the next step.
+            kind: ``"ours"``, ``"raw"`` or ``"gaussian"``.
+        """
+        return self._estimate64(t, kind).float()
+
+    # -- the iteration ------------------------------------------------------------------------------
     def _needed(self, q: float) -> list[int]:
-        r = self.settings.temporal_radius
-        ids = [k for k, t in enumerate(self.times) if abs(t - q) <= r + 1e-9]
-        below = [k for k, t in enumerate(self.times) if t <= q]
-        above = [k for k, t in enumerate(self.times) if t >= q]
-        if below:
-            ids.append(below[-1])
-        if above:
-            ids.append(above[0])
-        return sorted(set(ids))
+        return window(self.times, q, self._settings.temporal_radius)
 
     def _render(self, k: int, i: int):
         res = self.tracer.render(times=[self.times[k]], spp=1, seed=self.seed, sample_offset=i - 1)
+        if self.on_render is not None:
+            self.on_render(k, res)
         return res
 
     def step(self) -> ProgressiveState:
@@ -133,15 +275,16 @@ class ProgressiveRenderer:
         i = self.iteration + 1
         t0 = time.perf_counter()
         render_s = 0.0
-        sig_s = self.schedule.sigma_s(i)
-        rscale = self.schedule.sigma_r(i)
-        settings = replace(self.settings, sigma_s=sig_s)
-        k_ff = self.settings.firefly_k * i ** self.firefly_growth
-        ours, raw, gauss = [], [], []
+        sig_s = self._schedule.sigma_s(i)
+        rscale = self._schedule.sigma_r(i)
+        settings = replace(self._settings, sigma_s=sig_s)
+        k_ff = self._settings.firefly_k * i ** self.firefly_growth
+        qt = self._query_times
+        rows: list[Tensor | None] = [None] * len(qt)
         ring: "OrderedDict[int, object]" = OrderedDict()  # frame index -> render result (bounded window)
         stats_all: dict = {}
-        prev = None if self._sum_ours is None else self._sum_ours / (i - 1)
-        for qi, q in enumerate(self.query_times):
+        for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order, so the ring only moves on
+            q = qt[qi]
             need = self._needed(q)
             for k in need:
                 if k not in ring:
@@ -151,57 +294,36 @@ class ProgressiveRenderer:
             for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
                 del ring[k]
             rs = [ring[k] for k in need]
+            ft = [self.times[k] for k in need]
             color = torch.cat([r.color for r in rs])
             feats = torch.cat([r.features for r in rs])
             emis = torch.cat([r.emission for r in rs])
             names = list(rs[0].feature_names)
             pilot = None
-            if prev is not None:  # the running estimate is a far better firefly pilot than one sample
-                pilot = torch.stack([self._pilot_at(prev, k) for k in need])
+            if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
+                pilot = torch.stack([self.estimate(t) for t in ft])
             y, st = denoise_frames(color, feats, names, emis, settings, sigma_s=sig_s, range_scale=rscale,
-                                   frame_times=[self.times[k] for k in need], query_times=[q], pilot=pilot,
-                                   firefly_k=k_ff, return_stats=True)
+                                   frame_times=ft, query_times=[q], pilot=pilot, firefly_k=k_ff, return_stats=True)
             for key, v in st.items():
                 stats_all[key] = stats_all.get(key, 0) + v
-            ours.append(y[0])
-            x = self._at(color, [self.times[k] for k in need], q)
-            raw.append(x)
-            gauss.append(gaussian_baseline(x[None], self.gaussian_sigma * self.schedule.factor(i))[0])
+            x = interpolate(color, ft, q)
+            gauss = gaussian_baseline(x[None], self.gaussian_sigma * self._schedule.factor(i))[0]
+            rows[qi] = torch.stack([y[0], x, gauss])
             if self.progress is not None:
                 self.progress(1)
-        ours, raw, gauss = torch.stack(ours), torch.stack(raw), torch.stack(gauss)
-        if self._sum_ours is None:
-            self._sum_ours, self._sum_raw, self._sum_gauss = ours.double(), raw.double(), gauss.double()
+        new = torch.stack(rows)
+        if self._sums is None:
+            self._sums = new.double()
         else:
-            self._sum_ours += ours
-            self._sum_raw += raw
-            self._sum_gauss += gauss
+            self._sums += new
         self.iteration = i
-        n_q = len(self.query_times)
-        stats_all["firefly_energy_removed"] = stats_all.get("firefly_energy_removed", 0.0) / n_q
-        state = ProgressiveState(i, (self._sum_ours / i).float(), (self._sum_raw / i).float(),
-                                 (self._sum_gauss / i).float(), sig_s, time.perf_counter() - t0, render_s,
-                                 stats_all)
+        stats_all["firefly_energy_removed"] = stats_all.get("firefly_energy_removed", 0.0) / len(qt)
+        avg = (self._sums / i).float()
+        ours, raw, gauss = (avg[:, ESTIMATES.index(k)] for k in ("ours", "raw", "gaussian"))
+        state = ProgressiveState(i, ours, raw, gauss, sig_s, time.perf_counter() - t0, render_s, stats_all,
+                                 list(qt))
         self.history.append(state)
         return state
-
-    def _pilot_at(self, prev: Tensor, k: int) -> Tensor:
-        """The running estimate at frame k (nearest query; queries usually are the frames)."""
-        t = self.times[k]
-        j = min(range(len(self.query_times)), key=lambda m: abs(self.query_times[m] - t))
-        return prev[j].float()
-
-    @staticmethod
-    def _at(x: Tensor, ft: list[float], q: float) -> Tensor:
-        """A frame of ``x`` (N, C, H, W) at time q: the frame itself or a lerp of the bracketing two."""
-        if q in ft:
-            return x[ft.index(q)]
-        below = [k for k, t in enumerate(ft) if t <= q]
-        above = [k for k, t in enumerate(ft) if t >= q]
-        if not below or not above:
-            return x[(below or above)[-1 if below else 0]]
-        i0, i1 = below[-1], above[0]
-        return torch.lerp(x[i0], x[i1], (q - ft[i0]) / (ft[i1] - ft[i0]))
 
     def run(self, iterations: int) -> ProgressiveState:
         """Run ``iterations`` more iterations; returns the last state."""
@@ -214,4 +336,4 @@ class ProgressiveRenderer:
     @property
     def memory_frames(self) -> int:
         """Most rendered frames held at once (the time window), independent of the clip length."""
-        return max(len(self._needed(q)) for q in self.query_times)
+        return max(len(self._needed(q)) for q in self._query_times)

@@ -77,6 +77,14 @@ class BandwidthSchedule:
         self.alpha = _check_alpha(alpha)
         self.min_sigma_s = float(min_sigma_s)
 
+    def replace(self, **changes) -> "BandwidthSchedule":
+        """A schedule of the same type with some of ``sigma_s``, ``sigma_r``, ``alpha``, ``min_sigma_s`` changed."""
+        args = {"sigma_s": self.sigma_s0, "sigma_r": self.sigma_r0, "alpha": self.alpha, "min_sigma_s": self.min_sigma_s}
+        unknown = sorted(set(changes) - set(args))
+        if unknown:
+            raise TypeError(f"replace: unknown schedule argument(s) {unknown}; expected some of {sorted(args)}")
+        return type(self)(**{**args, **changes})
+
     def factor(self, iteration: int) -> float:
         return bandwidth_factor(iteration, self.alpha)
 
