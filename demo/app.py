@@ -41,10 +41,9 @@ from tqdm import tqdm  # noqa: E402
 from demo import controls  # noqa: E402
 from demo.overlay import render_overlay  # noqa: E402
 from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
-from demo.pipeline_engine import PipelineProgression  # noqa: E402
-from demo.progression import (  # noqa: E402
-    FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams, Progression, torch_threads,
-)  # noqa: E402
+from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams  # noqa: E402
+from demo.session import DemoSession, torch_threads  # noqa: E402
+from torchmanifold.timewindow import bracket, frame_at  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
 
@@ -118,9 +117,8 @@ class DemoApp(WindowConfig):
             tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
             temporal_mode=args.temporal_mode,
         )
-        engine = PipelineProgression if args.engine == "pipeline" else Progression
-        self.progression = engine(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
-                                  threads=args.threads or None)
+        self.progression = DemoSession(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
+                                       threads=args.threads or None)
         self.make_current()
         self.panels = PanelRenderer(self.ctx, args.width, args.height)
         if reference is not None:
@@ -223,8 +221,9 @@ class DemoApp(WindowConfig):
             self._last_advance = now
         if now - self._last_advance >= 1.0 / self.clip_fps:
             self._last_advance = now
-            later = [t for t in self.frame_times if t > self.show_time + 1e-9]
-            self.show_time = later[0] if later else self.frame_times[0]
+            i0, i1, w = bracket(self.frame_times, self.show_time)
+            nxt = i1 if w > 0 else i0 + 1  # the next frame after the shown time
+            self.show_time = self.frame_times[nxt] if nxt < len(self.frame_times) else self.frame_times[0]
 
     def on_render(self, time_s: float, frame_time: float) -> None:
         prog = self.progression
@@ -264,9 +263,10 @@ class DemoApp(WindowConfig):
 
     def _reference_image(self) -> np.ndarray | None:
         prog = self.progression
-        if prog.reference is None or self.show_time not in prog.frame_times:
+        k = frame_at(prog.frame_times, self.show_time)
+        if prog.reference is None or k is None:
             return None  # in-between times have no reference frame: the heat map hides
-        return prog.reference[prog.frame_times.index(self.show_time)].permute(1, 2, 0).contiguous().numpy()
+        return prog.reference[k].permute(1, 2, 0).contiguous().numpy()
 
     def draw(self) -> None:
         layout, prog = self.layout, self.progression
@@ -308,13 +308,9 @@ class DemoApp(WindowConfig):
             title = PANEL_TITLES[slot]
             if i == 0 and self.feature_view is not None:
                 title = f"feature: {self.feature_view}"
-            if slot != "ours" and self.show_time not in prog.frame_times:
-                # only "ours" is filtered at the in-between time; the others come from rendered frames
-                if prog.raw_in_between == "nearest":
-                    near = prog.frame_times[int(np.argmin([abs(t - self.show_time) for t in prog.frame_times]))]
-                    title += f" (t={near:g})"
-                else:
-                    title += " (lerp)"
+            if slot != "ours" and frame_at(prog.frame_times, self.show_time) is None:
+                # only "ours" is filtered at the in-between time; the others interpolate rendered frames
+                title += " (lerp)"
             labels.append((layout.panel_rect(i)[:2], title))
         if has_heat:
             labels.append((layout.panel_rect(3)[:2], f"|error| {SLOTS[self.heat_slot]}"))
@@ -324,8 +320,8 @@ class DemoApp(WindowConfig):
         # Labels sit in the strip above the panels, cut to the panel width.
         labels = [((x, 0), text, layout.panel_size[0]) for (x, _), text in labels]
         p = prog.params
-        sigma_s, sigma_r = p.bandwidth(max(prog.iteration, 1))
-        guide = ",".join(prog.guide_channels()) or "colour"
+        sigma_s, sigma_r = prog.bandwidth()
+        guide = ",".join(prog.guide_channels()) or "default"
         _, trace_ms, filter_ms, display_ms = self._shown_timing
         lines = [
             f"iteration {prog.iteration}   spp {prog.spp}   t = {self.show_time:.2f}"
@@ -336,7 +332,7 @@ class DemoApp(WindowConfig):
             + (f"{p.clamp:g}" if p.clamp else "off"),
             f"feature set {p.feature_set}: {guide}",
             f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure "
-            f"{self.exposure:.2f}   engine {self.argv.engine}",
+            f"{self.exposure:.2f}",
             "",
             "H: help   SPACE: play/pause   arrows: scrub   R: restart",
         ]
@@ -377,10 +373,6 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--scale", type=int, default=3, help="panel zoom factor (default 3)")
     g.add_argument("--clip", type=int, default=3, help="clip length in frames (default 3)")
     g.add_argument("--clip-fps", type=float, default=4.0, help="playback speed in frames/s (default 4)")
-    g.add_argument("--engine", default="pipeline", choices=("pipeline", "thin"),
-                   help="pipeline: torchmanifold.pipeline.ProgressiveRenderer drives the iterations (default); "
-                        "thin: the demo's own loop over tracer + filter (colour-guided set, in-between frames "
-                        "join without a restart)")
     g.add_argument("--scene", default=None,
                    help="built-in scene name (cornell_box, torus_box) or a scene TOML file (default: cornell_box)")
     g.add_argument("--seed", type=int, default=0)
@@ -388,8 +380,9 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--max-iterations", type=int, default=1024)
     g.add_argument("--sigma-s", type=float, default=d.sigma_s, help=f"spatial sigma, pixels (default {d.sigma_s})")
     g.add_argument("--sigma-r", type=float, default=d.sigma_r,
-                   help=f"range sigma in normalised feature units (default {d.sigma_r})")
-    g.add_argument("--a", type=float, default=d.a, help="bandwidth reduction, in (0, 1) (default 2/3)")
+                   help=f"range scale: {d.sigma_r} keeps the engine's per-feature range sigmas, others scale them "
+                        f"(default {d.sigma_r})")
+    g.add_argument("--a", type=float, default=d.a, help=f"bandwidth reduction, in (0, 1) (default {d.a})")
     g.add_argument("--time-window", type=int, default=d.time_window,
                    help=f"temporal radius in frames (default {d.time_window})")
     g.add_argument("--temporal-mode", default=d.temporal_mode, choices=TEMPORAL_MODES,
@@ -398,7 +391,8 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--feature-set", default=d.feature_set,
                    help=f"guide channels: {', '.join(FEATURE_SETS)} (default {d.feature_set})")
     g.add_argument("--clamp", type=float, default=d.clamp,
-                   help=f"firefly clamp on 1-spp irradiance, grows as sqrt(iteration); 0 = off (default {d.clamp})")
+                   help="firefly clamp: 1-spp samples above this multiple of the running estimate are clamped; "
+                        f"it grows as sqrt(iteration); 0 = off (default {d.clamp})")
     g.add_argument("--exposure", type=float, default=1.0)
     g.add_argument("--threads", type=int, default=1,
                    help="torch threads for the filter, 0 = torch's default (default 1: the images are small)")

@@ -1,12 +1,92 @@
-"""Key bindings of the demo as named actions, so the same actions run from keys, tests and scripts.
+"""What the user can change in the demo: the filter parameters and the keys, as named actions.
 
-Every binding is (key name in moderngl-window's ``Keys``, action, help text). Parameter actions
-return new :class:`~demo.progression.FilterParams` within sane bounds; changing a filter parameter
-restarts the progression, because the running buffer was built with the old one.
+:class:`FilterParams` holds the live controls; :mod:`demo.session` maps them onto the one progressive
+engine (:class:`torchmanifold.pipeline.progressive.ProgressiveRenderer`). Every key binding is (key name
+in moderngl-window's ``Keys``, action, help text), so the same actions run from keys, tests and
+scripts. Parameter actions return new :class:`FilterParams` within sane bounds; changing a filter
+parameter restarts the progression, because the running buffer was built with the old one.
 """
 from __future__ import annotations
 
-from demo.progression import FEATURE_SETS, TEMPORAL_MODES, FilterParams
+from dataclasses import dataclass, replace
+
+from torchmanifold.pipeline import DEFAULT_ALPHA, DenoiseSettings
+
+#: Feature groups by name; the guide of a feature set is made of the groups the scene provides.
+FEATURE_GROUPS = {
+    "T": ("T",),
+    "Z": ("Z",),
+    "albedo": ("Mr", "Mg", "Mb"),
+    "normal": ("Nx", "Ny", "Nz"),
+    "reflect": ("Dx", "Dy", "Dz"),
+    "shadow": ("Sx", "Sy", "Sz"),
+}
+
+#: Selectable guides (which channels steer the filter). The engine has no colour-guided mode: "colour"
+#: guides by every feature the scene provides (see :func:`demo.session.guide_channels`).
+FEATURE_SETS = {
+    "all": ("T", "Z", "albedo", "normal", "reflect", "shadow"),
+    "albedo+normal+depth": ("Z", "albedo", "normal"),
+    "albedo+normal": ("albedo", "normal"),
+    "normal+depth": ("Z", "normal"),
+    "colour": (),
+}
+
+#: How neighbour frames are combined: mean of the window then filter, or joint space-time filter.
+TEMPORAL_MODES = ("window", "spacetime")
+
+#: Feature buffers that can be shown instead of the raw image.
+FEATURE_VIEWS = ("Z", "albedo", "normal", "reflect", "shadow", "T")
+
+#: The demo's ``sigma_r`` at which the engine's per-group range sigmas apply unscaled; ``sigma_r``
+#: multiplies them by ``sigma_r / SIGMA_R_UNSCALED``.
+SIGMA_R_UNSCALED = 0.3
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """What the user can change live. Bandwidths are those of the first iteration.
+
+    sigma_s: spatial sigma in pixels. sigma_r: range scale; at ``SIGMA_R_UNSCALED`` every feature group
+    has the engine's own range sigma (albedo 0.1, normals 0.3, depth 15% of the scene, ...).
+    a: bandwidth reduction in (0, 1). time_window: radius in frames of the temporal Gaussian window
+    (0 = each frame alone; sigma_t = radius / 2). tree_height: manifold tree height.
+    clamp: firefly clamp: 1-spp samples brighter than ``clamp`` times the running estimate are clamped
+    (0 = off); the multiple grows as sqrt(iteration), so its bias fades and the result stays consistent.
+    temporal_mode: "window" (average the window, then filter: the paper's accumulation) or "spacetime"
+    (joint filter, no ghosts of moving objects; slower).
+    """
+
+    sigma_s: float = 3.0
+    sigma_r: float = SIGMA_R_UNSCALED
+    a: float = DEFAULT_ALPHA  # the pipeline's measured default
+    time_window: int = 1
+    tree_height: int = 2
+    feature_set: str = "albedo+normal+depth"
+    clamp: float = DenoiseSettings.firefly_k  # the engine's default threshold
+    temporal_mode: str = "window"
+
+    def __post_init__(self):
+        if not self.sigma_s >= 1.0:
+            raise ValueError(f"sigma_s: expected >= 1 pixel, got {self.sigma_s}")
+        if not self.sigma_r > 0.0:
+            raise ValueError(f"sigma_r: expected > 0, got {self.sigma_r}")
+        if not 0.0 < self.a < 1.0:
+            raise ValueError(f"a: expected a value in (0, 1), got {self.a}")
+        if not (isinstance(self.time_window, int) and self.time_window >= 0):
+            raise ValueError(f"time_window: expected an int >= 0 (frames), got {self.time_window!r}")
+        if not (isinstance(self.tree_height, int) and 1 <= self.tree_height <= 8):
+            raise ValueError(f"tree_height: expected an int in [1, 8], got {self.tree_height!r}")
+        if not self.clamp >= 0.0:
+            raise ValueError(f"clamp: expected >= 0 (0 = off), got {self.clamp}")
+        if self.temporal_mode not in TEMPORAL_MODES:
+            raise ValueError(f"temporal_mode: expected one of {TEMPORAL_MODES}, got {self.temporal_mode!r}")
+        if self.feature_set not in FEATURE_SETS:
+            raise ValueError(f"feature_set: expected one of {sorted(FEATURE_SETS)}, got {self.feature_set!r}")
+
+    def with_(self, **changes) -> "FilterParams":
+        return replace(self, **changes)
+
 
 BINDINGS = (
     ("SPACE", "play", "play / pause the clip"),
@@ -69,7 +149,7 @@ def adjust_params(params: FilterParams, action: str) -> FilterParams | None:
     if action == "temporal_mode":
         return p.with_(temporal_mode=next_in(TEMPORAL_MODES, p.temporal_mode))
     if action == "clamp":
-        return p.with_(clamp=0.0 if p.clamp > 0 else FilterParams().clamp or 4.0)
+        return p.with_(clamp=0.0 if p.clamp > 0 else FilterParams().clamp)
     if action == "feature_set":
         return p.with_(feature_set=next_in(FEATURE_SETS, p.feature_set))
     return None

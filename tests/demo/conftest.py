@@ -15,12 +15,12 @@ import demo.app  # noqa: E402,F401
 from _demo_helpers import SMALL  # noqa: E402
 
 
-@pytest.fixture(scope="module", params=["pipeline", "thin"])
-def headless_run(request, tmp_path_factory):
-    """The real WindowConfig, headless (EGL): 3 frames = 3 iterations, then a screenshot; with the
-    pipeline's ProgressiveRenderer and with the demo's own loop."""
+@pytest.fixture(scope="module")
+def headless_run(tmp_path_factory):
+    """The real WindowConfig, headless (EGL): 3 frames = 3 iterations of the progressive engine, then a
+    screenshot."""
     from demo.app import run
 
     shot = tmp_path_factory.mktemp("demo") / "shot.png"
-    app = run(SMALL + ["--headless", "--frames", "3", "--engine", request.param, "--screenshot", str(shot)])
+    app = run(SMALL + ["--headless", "--frames", "3", "--screenshot", str(shot)])
     return app, shot

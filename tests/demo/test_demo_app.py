@@ -143,7 +143,7 @@ def test_feature_set_switch_changes_guide(live_app):
         app.apply_action("feature_set")
         step_frame(app)
         seen.add(tuple(app.progression.guide_channels()))
-    assert len(seen) >= 3  # several guides (the thin loop's colour-guided one: test_demo_progression)
+    assert len(seen) >= 3  # several guides
 
 
 def test_feature_view_replaces_raw_panel(live_app):
