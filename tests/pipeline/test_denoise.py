@@ -8,7 +8,20 @@ from torchmanifold.pipeline.denoise import default_guide_sigmas
 from torchmanifold.pipeline.progressive import gaussian_baseline
 
 CROP = (slice(64, 192), slice(32, 224))
-BEST_CLASSIC = 28.52  # best classic filter on this clip (shared/data/README.md)
+
+
+def best_classic(c, f, ref) -> float:
+    """Best PSNR of the classic filters over a small sweep: Gaussian blur and a kornia joint bilateral
+    guided by albedo, normal and depth (the baselines of shared/data/README.md, computed here)."""
+    import kornia
+
+    guide = torch.cat([f[:, 0:3].clamp(0, 1), f[:, 3:6] * 0.5 + 0.5, f[:, 6:7] / f[:, 6:7].amax()], 1)
+    best = max(M.psnr(gaussian_baseline(c, s), ref) for s in (1.0, 1.5, 2.0, 3.0))
+    for ss in (2.0, 3.0):
+        for sr in (0.1, 0.2, 0.4):
+            out = kornia.filters.joint_bilateral_blur(c, guide, 9, sr, (ss, ss), color_distance_type="l2")
+            best = max(best, M.psnr(out, ref))
+    return best
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +35,7 @@ def test_mitsuba_crop_beats_classic_filters(clip):
     out, stats = denoise_frames(c, f, FEATURES, settings=DenoiseSettings(tree_height=3), return_stats=True)
     ours = M.psnr(out, ref)
     gauss = max(M.psnr(gaussian_baseline(c, s), ref) for s in (1.0, 1.5, 2.0, 3.0))
-    assert ours > BEST_CLASSIC, ours
+    assert ours > best_classic(c, f, ref) + 0.5, ours
     assert ours > gauss + 2.0, (ours, gauss)
     assert ours > M.psnr(c, ref) + 6.0
     assert M.relmse(out, ref) < M.relmse(gaussian_baseline(c, 1.5), ref)
@@ -101,8 +114,11 @@ def test_firefly_clamped_and_energy_reported():
 def test_guide_sigmas_and_errors():
     f = torch.zeros(1, 4, 8, 8)
     f[:, 3] = torch.linspace(0, 10, 8)  # P spans 10 units -> sigma scales with it
+    f = torch.cat([f, f * 0.5])  # a second frame that spans 5 units: its own sigma
     sig = default_guide_sigmas(["N.X", "N.Y", "N.Z", "P.X"], f)
-    assert sig[:3] == [0.3, 0.3, 0.3] and sig[3] == pytest.approx(0.04 * 10 * 0.98, rel=0.05)
+    assert sig.shape == (2, 4) and sig[:, :3].eq(0.3).all()
+    assert sig[0, 3] == pytest.approx(0.04 * 10 * 0.98, rel=0.05) and sig[1, 3] == pytest.approx(sig[0, 3] / 2)
+    f = f[:1]
     c = torch.rand(1, 3, 8, 8)
     with pytest.raises(ValueError, match="'nope' not found"):
         denoise_frames(c, f, ["N.X", "N.Y", "N.Z", "P.X"], settings=DenoiseSettings(guide=["nope"]))
@@ -131,3 +147,83 @@ def test_inbetween_queries_interpolate():
     assert at.shape == (3, 3, 16, 16)
     mid = at[1].mean()
     assert at[0].mean() < mid < at[2].mean()
+
+
+# --- one synthetic case per failure class seen on foreign renders -----------------------------------
+def _plane(T, H, W, albedo=0.7, normal=(0.0, -1.0, 0.0), seed=0):
+    """Features of a flat diffuse plane: constant albedo and normal, depth rising across the image."""
+    alb = torch.full((T, 3, H, W), albedo)
+    nrm = torch.tensor(normal).view(1, 3, 1, 1).expand(T, 3, H, W).clone()
+    z = torch.linspace(2.0, 3.0, W).view(1, 1, 1, W).expand(T, 1, H, W).clone()
+    return torch.cat([alb, nrm, z], 1), FEATURES[:7]
+
+
+def _noisy(mean: torch.Tensor, seed: int) -> torch.Tensor:
+    """1-spp-like samples of ``mean``: exponentially distributed (unbiased, heavy-ish tail)."""
+    g = torch.Generator().manual_seed(seed)
+    return mean * torch.empty_like(mean).exponential_(generator=g)
+
+
+def test_light_flush_with_ceiling_leaves_no_halo():
+    """An area light set in a ceiling, no emission AOV: its features are the ceiling's (Mitsuba). The
+    energy in an 8-pixel ring around it stays within 5% of the truth."""
+    T, H, W = 2, 64, 64
+    f, names = _plane(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.1 * 0.7)
+    light = (slice(None), slice(None), slice(26, 38), slice(24, 40))
+    truth[light] = 15.0
+    color = _noisy(truth, 1)
+    color[light] = 15.0  # a directly seen emitter is the same in every sample
+    out = denoise_frames(color, f, names)
+    ring = torch.zeros(H, W, dtype=torch.bool)
+    ring[18:46, 16:48] = True
+    ring[26:38, 24:40] = False
+    ratio = float(out[..., ring].mean() / truth[..., ring].mean())
+    assert abs(ratio - 1) < 0.05, ratio
+    torch.testing.assert_close(out[light], truth[light], rtol=0.05, atol=0)
+
+
+def test_zero_albedo_object_leaves_no_ring():
+    """A glass or mirror object has albedo 0 (Mitsuba's delta BSDFs): no bright rim at its silhouette."""
+    T, H, W = 1, 64, 64
+    f, names = _plane(T, H, W, albedo=0.6)
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    disc = ((yy - 32) ** 2 + (xx - 32) ** 2) < 14 ** 2
+    f[:, 0:3, disc] = 0.0
+    truth = torch.full((T, 3, H, W), 0.6 * 0.5)
+    truth[:, :, disc] = 0.4  # what is seen through the glass
+    out = denoise_frames(_noisy(truth, 2), f, names)
+    rim = (((yy - 32) ** 2 + (xx - 32) ** 2) >= 12 ** 2) & (((yy - 32) ** 2 + (xx - 32) ** 2) < 16 ** 2)
+    bias = float((out - truth)[..., rim].mean() / truth[..., rim].mean())
+    assert abs(bias) < 0.05, bias
+    assert (out / truth)[..., rim].amax() < 1.5  # a rim draws pixels far brighter than either side
+
+
+def test_moving_shadow_leaves_no_ghost():
+    """A contact shadow moves 8 pixels a frame over a plane whose features never change: joined in
+    space-time, the lit ground where the shadow was a frame earlier or later stays lit."""
+    T, H, W = 3, 48, 64
+    f, names = _plane(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.8 * 0.7)
+    for t in range(T):
+        truth[t, :, 16:32, 16 + 8 * t:32 + 8 * t] = 0.02
+    s = DenoiseSettings(temporal_radius=1, mode="spacetime")
+    out = denoise_frames(_noisy(truth, 3), f, names, settings=s, query_times=[1.0])
+    was = torch.zeros(H, W, dtype=torch.bool)
+    was[18:30, 18:22] = True  # shadowed at t=0 only, lit now
+    lit_now = out[0][:, was].mean()
+    assert lit_now > 0.9 * truth[1][:, was].mean(), lit_now
+    assert out[0][:, 18:30, 26:38].mean() < 0.1  # the shadow itself stays dark
+
+
+def test_border_stays_clean():
+    """No frame of error around the image: border pixels are as accurate as interior ones."""
+    T, H, W = 2, 48, 48
+    f, names = _plane(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.3)
+    out = denoise_frames(_noisy(truth, 4), f, names)
+    rel = (out / truth - 1).mean(1)
+    border = torch.cat([rel[:, 0], rel[:, -1], rel[:, :, 0], rel[:, :, -1]], 1)
+    inner = rel[:, 8:-8, 8:-8]
+    assert border.mean().abs() < 0.03 and border.abs().mean() < 2 * inner.abs().mean() + 0.02, \
+        (border.mean(), border.abs().mean(), inner.abs().mean())

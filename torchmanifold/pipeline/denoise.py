@@ -22,13 +22,13 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import torch
 from torch import Tensor, nn
 
-from torchmanifold.timewindow import interpolate, window
+from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 
 __all__ = [
     "DenoiseSettings",
@@ -81,52 +81,66 @@ def footprint_blur(x: Tensor, sigma: float) -> Tensor:
     return torch.nn.functional.conv2d(xp, k.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
 
 
-def _extent(x: Tensor, valid: Tensor) -> float:
-    """Robust spread (1st to 99th percentile, largest over channels) of (N, C, H, W) where valid."""
-    spreads = []
-    for c in range(x.shape[1]):
-        v = x[:, c][valid[:, 0]]
-        if v.numel() < 2:
-            continue
-        if v.numel() > 200_000:  # quantile of a deterministic subsample is plenty
-            v = v[:: v.numel() // 100_000]
-        lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64))
-        spreads.append(float(hi - lo))
-    s = max(spreads) if spreads else 0.0
-    return s if s > 0 and math.isfinite(s) else 1.0
+def _extent(x: Tensor, valid: Tensor) -> Tensor:
+    """Robust spread (1st to 99th percentile, largest over channels) of each frame of ``(T, C, H, W)``
+    where ``valid`` ``(T, 1, H, W)``: ``(T,)``, 1 where a frame has too few valid samples.
 
+    Per frame, so a frame's guide never depends on which other frames share the call (streaming and
+    sharded runs give the same frames)."""
+    out = []
+    for t in range(x.shape[0]):
+        spreads = []
+        for c in range(x.shape[1]):
+            v = x[t, c][valid[t, 0]]
+            if v.numel() < 2:
+                continue
+            if v.numel() > 200_000:  # quantile of a deterministic subsample is plenty
+                v = v[:: v.numel() // 100_000]
+            lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64))
+            spreads.append(float(hi - lo))
+        s = max(spreads) if spreads else 0.0
+        out.append(s if s > 0 and math.isfinite(s) else 1.0)
+    return torch.tensor(out, dtype=torch.float64)
+
+
+#: guide-sigma key of the log-radiance channel the denoiser adds to the renderer's features
+RADIANCE_GUIDE = "log_radiance"
+#: the log-radiance guide's offset as a fraction of the frame's mean luminance (validation set: 0.1
+#: separates shadows and lights as well as 0 does in bright scenes, without resolving noise in dark ones)
+_LOG_RADIANCE_OFFSET = 0.1
+#: firefly clamp floor as a fraction of the frame's mean pilot luminance
+_FIREFLY_FLOOR = 0.25
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 GROUP_SIGMAS = {"albedo": 0.1, "N": 0.3, "P": 0.04, "Z": 0.15, "D": 0.6, "S": 0.6}
 
 
 def default_guide_sigmas(names: Sequence[str], features: Tensor | None = None,
-                         valid: Tensor | None = None) -> list[float]:
-    """Range sigma of every guide channel, from its group (see ``GROUP_SIGMAS``).
+                         valid: Tensor | None = None) -> Tensor:
+    """Range sigma of every guide channel in every frame, from its group (see ``GROUP_SIGMAS``).
 
     World position and depth have scene units, so their sigma is a fraction of the robust extent of
-    the data in ``features`` ``(N, D, H, W)`` (1 scene unit when not given).
+    each frame's data in ``features`` ``(T, D, H, W)`` (1 scene unit when not given).
+
+    Returns:
+        ``(T, D)`` float64 sigmas (``T = 1`` without ``features``).
     """
-    out = []
-    extents: dict[str, float] = {}
+    T = 1 if features is None else features.shape[0]
+    out = torch.empty(T, len(names), dtype=torch.float64)
     for k, n in enumerate(names):
         g = feature_group(n)
         if g not in GROUP_SIGMAS:
             raise ValueError(f"guide_sigmas: no default sigma for feature channel {n!r}; pass guide_sigmas "
                              f"explicitly (known groups: {sorted(GROUP_SIGMAS)})")
-        s = GROUP_SIGMAS[g]
-        if g in ("P", "Z"):
-            if g not in extents:
-                idx = [j for j, m in enumerate(names) if feature_group(m) == g]
-                if features is None:
-                    extents[g] = 1.0
-                else:
-                    v = valid if valid is not None else torch.ones_like(features[:, :1], dtype=torch.bool)
-                    if g == "Z":  # depth 0 marks background in Mitsuba and our tracer
-                        v = v & (features[:, idx[0]:idx[0] + 1] > 0)
-                    extents[g] = _extent(features[:, idx], v)
-            s = s * extents[g]
-        out.append(float(s))
+        out[:, k] = GROUP_SIGMAS[g]
+    for g in ("P", "Z"):
+        idx = [j for j, m in enumerate(names) if feature_group(m) == g]
+        if not idx or features is None:
+            continue
+        v = valid if valid is not None else torch.ones_like(features[:, :1], dtype=torch.bool)
+        if g == "Z":  # depth 0 marks background in Mitsuba and our tracer
+            v = v & (features[:, idx[0]:idx[0] + 1] > 0)
+        out[:, idx] *= _extent(features[:, idx], v)[:, None]
     return out
 
 
@@ -143,9 +157,15 @@ class DenoiseSettings:
         tree_height: manifold tree height.
         firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
             biased dark), or ``"none"``.
-        firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor).
+        firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor); 3 measured on the
+            validation set (2 removed 8% of the energy of exponentially distributed samples).
         albedo_blur: sigma (pixels) of the footprint average of the albedo used to multiply back.
-        albedo_eps: smallest albedo divided by (darker albedo is treated as this).
+        albedo_eps: albedo luminance below which a pixel is not demodulated (delta BSDFs and black
+            surfaces, whose first-hit albedo says nothing about the light there).
+        radiance_sigma: range sigma of the log-radiance guide channel (see :func:`_log_radiance`),
+            which keeps lights, shadows and what is seen through glass apart where the renderer's
+            features cannot; 0 leaves it out. 1.0 measured best on the validation set's tuning part
+            (``benchmarks/validation``).
         demodulate: divide by albedo when albedo channels are present.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
         sigma_t: temporal sigma in frames.
@@ -159,9 +179,10 @@ class DenoiseSettings:
     guide_sigmas: Mapping[str, float] = field(default_factory=dict)
     tree_height: int = 2
     firefly: str = "clamp"
-    firefly_k: float = 2.0
+    firefly_k: float = 3.0
     albedo_blur: float = 0.5
     albedo_eps: float = 0.02
+    radiance_sigma: float = 1.0
     demodulate: bool = True
     temporal_radius: int = 0
     sigma_t: float = 1.0
@@ -178,6 +199,7 @@ class DenoiseSettings:
         pos("firefly_k", self.firefly_k)
         pos("albedo_blur", self.albedo_blur, allow_zero=True)
         pos("albedo_eps", self.albedo_eps)
+        pos("radiance_sigma", self.radiance_sigma, allow_zero=True)
         pos("sigma_t", self.sigma_t)
         if self.firefly not in ("clamp", "log", "none"):
             raise ValueError(f"firefly must be 'clamp', 'log' or 'none', got {self.firefly!r}")
@@ -221,33 +243,39 @@ class _Filter:
     frames within ``temporal_radius`` (time units) of the query join through the temporal op.
     """
 
-    def __init__(self, guide: Tensor, sigmas: list[float], settings: DenoiseSettings,
+    def __init__(self, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
                  frame_times: list[float], query_times: list[float],
                  sigma_s: float | None = None, range_scale: float = 1.0):
-        self.g, self.gs, self.st = guide, [s * range_scale for s in sigmas], settings
+        self.g, self.gs, self.st = guide, sigmas * range_scale, settings
         self.sigma_s = settings.sigma_s if sigma_s is None else sigma_s
         self.ft, self.qt = frame_times, query_times
 
     def _window(self, q: float) -> list[int]:
         return window(self.ft, q, self.st.temporal_radius)
 
+    def _sigmas_at(self, q: float) -> Tensor:
+        """Range sigmas of the frame nearest ``q``: one scale for every frame joined at that query."""
+        i0, i1, w = bracket(self.ft, q)
+        return self.gs[i1 if w > 0.5 else i0]
+
     def __call__(self, values: Tensor, mask: Tensor) -> Tensor:
         from torchmanifold.ops import adaptive_manifold_filter, temporal_adaptive_manifold_filter
 
         st = self.st
         x = torch.cat([values * mask, mask], 1)
-        exact = [self.ft.index(q) if q in self.ft else None for q in self.qt]
-        if st.temporal_radius == 0 and all(k is not None for k in exact):
-            y = adaptive_manifold_filter(x[exact], self.g[exact], self.sigma_s, 1.0,
-                                         tree_height=st.tree_height, guide_sigmas=self.gs)
-        else:
-            outs = []
-            for q in self.qt:
+        exact = [frame_at(self.ft, q) for q in self.qt]
+        outs = []
+        for q, k in zip(self.qt, exact):
+            if st.temporal_radius == 0 and k is not None:
+                outs.append(adaptive_manifold_filter(x[k:k + 1], self.g[k:k + 1], self.sigma_s, 1.0,
+                                                     tree_height=st.tree_height, guide_sigmas=self.gs[k])[0])
+            else:
                 ids = self._window(q)
                 outs.append(temporal_adaptive_manifold_filter(
                     x[ids][None], self.g[ids][None], [self.ft[k] for k in ids], [q], self.sigma_s, 1.0,
-                    sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height, guide_sigmas=self.gs)[0, 0])
-            y = torch.stack(outs)
+                    sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
+                    guide_sigmas=self._sigmas_at(q))[0, 0])
+        y = torch.stack(outs)
         num, den = y[:, :-1], y[:, -1:]
         ok = den > 1e-8
         # no valid sample under the kernel: fall back to the interpolated (masked) input
@@ -273,7 +301,8 @@ class _Filter:
         """Largest of the window's frames around each query (the bound of what the filter may mix)."""
         outs = []
         for q in self.qt:
-            ids = self._window(q) if self.st.temporal_radius > 0 or q not in self.ft else [self.ft.index(q)]
+            k = frame_at(self.ft, q)
+            ids = self._window(q) if self.st.temporal_radius > 0 or k is None else [k]
             outs.append(x[ids].amax(0))
         return torch.stack(outs)
 
@@ -348,48 +377,13 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
     k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
 
     dt = settings.dtype
-    c = color.to(dt)
-    f = features.to(dt)
-    fin_c = torch.isfinite(c).all(1, keepdim=True)
-    fin_f = torch.isfinite(f).all(1, keepdim=True)
-    mask = (fin_c & fin_f).to(dt)
-    stats = {"nonfinite_color": int((~torch.isfinite(c)).sum()),
-             "nonfinite_features": int((~torch.isfinite(f)).sum()),
-             "masked_pixels": int((mask == 0).sum())}
-    c = torch.where(torch.isfinite(c), c, 0.0)
-    f = torch.where(torch.isfinite(f), f, 0.0)
-    em = None
-    if emission is not None:
-        em = emission.to(dt)
-        em = torch.where(torch.isfinite(em), em, 0.0)
-        c = (c - em).clamp_min(0.0)
-
-    canon = [canonical_name(n) for n in names]
-    has_albedo = all(a in canon for a in _ALBEDO)
-    if settings.demodulate and has_albedo:
-        alb = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(settings.albedo_eps)
-    else:
-        alb = torch.ones_like(c)
+    c, f, mask, em, stats = _sanitize(color.to(dt), features.to(dt),
+                                      None if emission is None else emission.to(dt))
+    alb, flat = _demodulation_albedo(f, names, settings)
     e = c / alb
-
-    gi = _select_guide(names, settings)
-    gnames = [names[k] for k in gi]
-    guide = f[:, gi] if gi else torch.zeros(T, 1, H, W, dtype=dt)
-    if gi:
-        sig = default_guide_sigmas(gnames, guide, mask > 0)
-        over = {canonical_name(k): float(v) for k, v in dict(settings.guide_sigmas).items()}
-        unknown = [k for k in over if k not in [canonical_name(n) for n in gnames]]
-        if unknown:
-            raise ValueError(f"guide_sigmas: channels {unknown} are not guide channels {gnames}")
-        sig = [over.get(canonical_name(n), s) for n, s in zip(gnames, sig)]
-        ai = [k for k, n in enumerate(gnames) if feature_group(n) == "albedo"]
-        if ai:  # renderer albedo may exceed 1 (conductors); the guide only needs its colour
-            guide = guide.clone()
-            guide[:, ai] = guide[:, ai].clamp(0.0, 1.0)
-    else:
-        sig = [1.0]
+    guide, sig = _guide(f, names, e, mask, settings)
     filt = _Filter(guide, sig, settings, ft, qt, sigma_s, range_scale)
-    alb_fp = footprint_blur(alb, settings.albedo_blur)
+    alb_fp = _footprint_albedo(alb, flat, settings.albedo_blur)
 
     if settings.firefly == "none":
         out = filt(e, mask)
@@ -400,30 +394,135 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
             pe = torch.where(torch.isfinite(pe), pe, 0.0)
             if em is not None:
                 pe = pe - em
-            pe = pe.clamp_min(0.0) / alb_fp.clamp_min(settings.albedo_eps)
+            pe = pe.clamp_min(0.0) / alb_fp
         else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
-            pf = _Filter(guide, sig, DenoiseSettings(**{**settings.__dict__, "temporal_radius": 0}),
-                         ft, ft, sigma_s, range_scale)
+            pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, sigma_s, range_scale)
             pe = torch.expm1(pf(torch.log1p(e.clamp_min(0.0)), mask))
         if settings.firefly == "log" and pilot is None:
             out = filt.at_queries(pe) if qt != ft else pe
             stats["firefly_energy_removed"] = 0.0
         else:
-            lp = luminance(pe).clamp_min(0.0)
-            floor = 0.25 * float((lp * mask).sum() / mask.sum().clamp_min(1.0))
-            thr = k_ff * (lp + floor)
-            L = luminance(e)
-            scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
-            ec = e * scale
-            total = float(((e * alb) * mask).sum())
-            stats["firefly_energy_removed"] = float((((e - ec) * alb) * mask).sum()) / max(total, 1e-30)
-            stats["firefly_clamped_samples"] = int(((scale < 1) & (mask > 0)).sum())
+            ec = _clamp_fireflies(e, alb, pe, mask, k_ff, stats)
             out = filt(ec, mask)
     out = out * filt.at_queries(alb_fp)
     if em is not None:
         out = out + filt.at_queries(em)
     out = out.to(color.dtype)
     return (out, stats) if return_stats else out
+
+
+def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
+    """Zero non-finite samples and mark them with weight 0; take emission out of the colour."""
+    mask = (torch.isfinite(c).all(1, keepdim=True) & torch.isfinite(f).all(1, keepdim=True)).to(c.dtype)
+    stats = {"nonfinite_color": int((~torch.isfinite(c)).sum()),
+             "nonfinite_features": int((~torch.isfinite(f)).sum()),
+             "masked_pixels": int((mask == 0).sum())}
+    c = torch.where(torch.isfinite(c), c, 0.0)
+    f = torch.where(torch.isfinite(f), f, 0.0)
+    if em is not None:
+        em = torch.where(torch.isfinite(em), em, 0.0)
+        c = (c - em).clamp_min(0.0)
+    return c, f, mask, em, stats
+
+
+def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
+    """The albedo the colour is divided by, ``(T, 3, H, W)``, and where it is flat (1), ``(T, 1, H, W)``.
+
+    A first-hit albedo darker than ``albedo_eps`` says nothing about the light there: renderers give 0 on
+    delta BSDFs (Mitsuba's glass and mirrors) and on black surfaces. Dividing by a clamped tiny albedo
+    and multiplying back by a blurred one draws bright rims, so such pixels are not demodulated at all.
+    """
+    canon = [canonical_name(n) for n in names]
+    T, _, H, W = f.shape
+    if not (settings.demodulate and all(a in canon for a in _ALBEDO)):
+        return f.new_ones(T, 3, H, W), f.new_ones(T, 1, H, W, dtype=torch.bool)
+    alb = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
+    flat = luminance(alb) < settings.albedo_eps
+    return torch.where(flat, 1.0, alb.clamp_min(settings.albedo_eps)), flat
+
+
+def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
+    """The albedo to multiply back: its average over the pixel footprint, from demodulated pixels only
+    (a normalised blur), and 1 where the colour was not demodulated."""
+    if sigma <= 0:
+        return alb
+    keep = (~flat).to(alb.dtype)
+    avg = footprint_blur(alb * keep, sigma) / footprint_blur(keep, sigma).clamp_min(1e-6)
+    return torch.where(flat, 1.0, avg)
+
+
+def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
+    """Log luminance of the demodulated colour, ``(T, 1, H, W)``: a guide channel that tells lights from
+    the surface they sit in (no renderer AOV does), shadows from lit ground and what is seen through glass.
+
+    ``log(L + 0.1 mean(L))`` is the same for any exposure and does not resolve noise far below the
+    frame's level; each pixel takes the mean of the least varying of the four 3x3 windows that hold it
+    in a corner (a Kuwahara filter), so a pixel on the edge of a light still reads as the light.
+    """
+    L = luminance(e).clamp_min(0.0)
+    mean = (L * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+    lg = torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-12))
+    H, W = lg.shape[-2:]
+    moments = torch.nn.functional.pad(torch.cat([lg, lg * lg], 1), (2, 2, 2, 2), mode="replicate")
+    moments = torch.nn.functional.avg_pool2d(moments, 3, 1)
+    best_v = best_m = None
+    for dy in (0, 2):
+        for dx in (0, 2):
+            mu = moments[:, 0:1, dy:dy + H, dx:dx + W]
+            v = moments[:, 1:2, dy:dy + H, dx:dx + W] - mu * mu
+            if best_v is None:
+                best_v, best_m = v, mu
+            else:
+                take = v < best_v
+                best_v, best_m = torch.where(take, v, best_v), torch.where(take, mu, best_m)
+    return best_m
+
+
+def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: DenoiseSettings):
+    """The guide ``(T, G, H, W)`` and its range sigmas ``(T, G)`` per frame."""
+    T, _, H, W = e.shape
+    gi = _select_guide(names, settings)
+    gnames = [names[k] for k in gi]
+    parts, sig = [], []
+    if gi:
+        guide = f[:, gi]
+        s = default_guide_sigmas(gnames, guide, mask > 0)
+        over = {canonical_name(k): float(v) for k, v in dict(settings.guide_sigmas).items()}
+        unknown = [k for k in over if k not in [canonical_name(n) for n in gnames] + [RADIANCE_GUIDE]]
+        if unknown:
+            raise ValueError(f"guide_sigmas: channels {unknown} are not guide channels {gnames + [RADIANCE_GUIDE]}")
+        for k, n in enumerate(gnames):
+            if canonical_name(n) in over:
+                s[:, k] = over[canonical_name(n)]
+        ai = [k for k, n in enumerate(gnames) if feature_group(n) == "albedo"]
+        if ai:  # renderer albedo may exceed 1 (conductors); the guide only needs its colour
+            guide = guide.clone()
+            guide[:, ai] = guide[:, ai].clamp(0.0, 1.0)
+        parts.append(guide)
+        sig.append(s)
+    rs = float(dict(settings.guide_sigmas).get(RADIANCE_GUIDE, settings.radiance_sigma))
+    if rs > 0:
+        parts.append(_log_radiance(e, mask))
+        sig.append(torch.full((T, 1), rs, dtype=torch.float64))
+    if not parts:
+        return e.new_zeros(T, 1, H, W), torch.ones(T, 1, dtype=torch.float64)
+    return torch.cat(parts, 1), torch.cat(sig, 1)
+
+
+def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
+    """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
+    energy removed goes to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark
+    regions next to noise-free black do not clamp every lit sample (measured on shared/data)."""
+    lp = luminance(pe).clamp_min(0.0)
+    floor = _FIREFLY_FLOOR * (lp * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+    thr = k * (lp + floor)
+    L = luminance(e)
+    scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
+    ec = e * scale
+    total = float(((e * alb) * mask).sum())
+    stats["firefly_energy_removed"] = float((((e - ec) * alb) * mask).sum()) / max(total, 1e-30)
+    stats["firefly_clamped_samples"] = int(((scale < 1) & (mask > 0)).sum())
+    return ec
 
 
 class Denoiser(nn.Module):
