@@ -17,32 +17,28 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from torchmanifold import features as feature_table
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
 
-#: Feature groups by name; the guide of a feature set is made of the groups the scene provides.
-FEATURE_GROUPS = {
-    "T": ("T",),
-    "Z": ("Z",),
-    "albedo": ("Mr", "Mg", "Mb"),
-    "normal": ("Nx", "Ny", "Nz"),
-    "reflect": ("Dx", "Dy", "Dz"),
-    "shadow": ("Sx", "Sy", "Sz"),
-}
+#: Feature groups the tracer makes (the feature table's groups and tracer channel names); the guide
+#: of a feature set is made of the groups the scene provides.
+FEATURE_GROUPS = {g: feature_table.tracer_channels(g) for g in feature_table.groups()
+                  if feature_table.tracer_channels(g)}
 
 #: Selectable guides (which channels steer the filter). "colour" guides by the noisy image itself.
 FEATURE_SETS = {
-    "all": ("T", "Z", "albedo", "normal", "reflect", "shadow"),
-    "albedo+normal+depth": ("Z", "albedo", "normal"),
-    "albedo+normal": ("albedo", "normal"),
-    "normal+depth": ("Z", "normal"),
+    "all": tuple(FEATURE_GROUPS),
+    "albedo+normal+depth": ("Z", "albedo", "N"),
+    "albedo+normal": ("albedo", "N"),
+    "normal+depth": ("Z", "N"),
     "colour": (),
 }
 
 #: How neighbour frames are combined: mean of the window then filter, or joint space-time filter.
 TEMPORAL_MODES = ("window", "spacetime")
 
-#: Feature buffers that can be shown instead of the raw image.
-FEATURE_VIEWS = ("Z", "albedo", "normal", "reflect", "shadow", "T")
+#: Feature buffers that can be shown instead of the raw image (time last: the least telling to look at).
+FEATURE_VIEWS = (*[g for g in FEATURE_GROUPS if g != "T"], "T")
 
 
 @dataclass(frozen=True)
@@ -380,7 +376,7 @@ class Progression:
             finite = x[x.isfinite() & (x > 0)]
             top = float(finite.max()) if finite.numel() else 1.0
             x = (x / top).clamp(0, 1)
-        elif group in ("normal", "reflect", "shadow"):
+        elif group in ("N", "D", "S"):  # unit vectors
             x = 0.5 + 0.5 * x
         elif group == "T":
             # the sample's time inside the shutter around the frame time, centred on grey

@@ -153,7 +153,7 @@ def test_pipeline_engine_is_the_progressive_renderer(tracer):
     # the feature view shows the mean of the very samples the pipeline used
     mean = sum(tracer.render(times=[1.0], spp=1, seed=5, sample_offset=i).features[0] for i in range(2)) / 2
     n = [prog.feature_names.index(c) for c in ("Nx", "Ny", "Nz")]
-    assert torch.allclose(prog.feature_view(1.0, "normal"), (0.5 + 0.5 * mean[n]).clamp(0, 1), atol=1e-6)
+    assert torch.allclose(prog.feature_view(1.0, "N"), (0.5 + 0.5 * mean[n]).clamp(0, 1), atol=1e-6)
 
 
 def test_pipeline_engine_in_between_time_restarts_with_it(tracer):
