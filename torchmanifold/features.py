@@ -13,8 +13,9 @@ its storage precision, its default range sigma with where that figure came from,
 guides the denoiser by default.
 
 Meanings: ``T`` the sample's time in frames; ``Z`` the distance along the camera ray to the first hit
-(0 where the ray leaves the scene; Blender's ``Denoising Depth`` counts from the camera's clip start:
-measured on a Blender 5.0.1 render, the ray distance minus the default ``clip_start`` 0.1); ``Zplane`` the distance along the camera's view axis (Blender's
+(0 where the ray leaves the scene; Blender's ``Denoising Depth`` counts from where the ray crosses
+the camera's near clip plane, ``clip_start`` 0.1 by default: checked on a Blender 5.0.1 render in
+``tests/io``); ``Zplane`` the distance along the camera's view axis (Blender's
 ``Depth`` pass: planar depth, background written as 1e10, read as 0); ``albedo`` the first hit's
 diffuse reflectance (Mitsuba: 0 on glass and mirrors; Blender's denoising albedo looks through
 near-specular surfaces); ``N`` the world-space normal facing the ray; ``Ncam`` the camera-space normal
@@ -34,7 +35,7 @@ from typing import Iterable, Iterator, Mapping, Sequence
 
 __all__ = [
     "Feature", "FEATURES", "RENDERERS", "register", "feature", "feature_of", "groups", "canonical_name",
-    "group_of", "default_sigma", "guides_by_default", "is_half", "tracer_names", "tracer_channels", "exr_channels",
+    "group_of", "default_sigma", "guides_by_default", "is_half", "tracer_names", "tracer_channels",
     "channel_aliases", "renderer_channel", "shader_defines", "GroupSigmas",
 ]
 
@@ -262,11 +263,6 @@ def tracer_names() -> list[str]:
 def tracer_channels(group: str) -> tuple[str, ...]:
     """The tracer's channel names of ``group`` (``()`` if the tracer does not make it)."""
     return feature(group).tracer
-
-
-def exr_channels() -> dict[str, str]:
-    """Tracer channel name -> our EXR channel name, for every channel the tracer makes."""
-    return {t: c for f in FEATURES for t, c in zip(f.tracer, f.channels)}
 
 
 def channel_aliases(renderer: str) -> dict[str, str]:

@@ -206,3 +206,20 @@ def test_several_view_layers_need_a_choice(tmp_path, capsys, mitsuba_available):
     assert rc == 0, err
     assert json.loads(out.strip().splitlines()[-1])["layer"] == "Back.001"
     assert sorted(read_exr(tmp_path / "out2" / "two.exr")) == [f"Back.001.Combined.{c}" for c in "ABGR"]
+
+
+def test_a_real_blender5_frame_through_the_cli(tmp_path, capsys):
+    """The frame Blender 5.0.1 wrote (tests/io/data): denoised, and given back as Blender multilayer."""
+    from pathlib import Path
+
+    src = Path(__file__).parents[1] / "io" / "data" / "blender5_frame.exr"
+    rc, out, err = run(capsys, src, "--out", tmp_path / "out")
+    assert rc == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["sources"]["albedo.R"] == f"{LAYER}.Denoising Albedo.R"
+    assert summary["sources"]["Ncam.X"] == f"{LAYER}.Denoising Normal.X"
+    d = read_exr(tmp_path / "out" / src.name)
+    assert sorted(d) == [f"{LAYER}.Combined.{c}" for c in "ABGR"]
+    assert all(np.isfinite(v).all() for v in d.values())
+    with OpenEXR.File(str(tmp_path / "out" / src.name)) as f:
+        assert f.header()["BlenderMultiChannel"] == "Blender V2.55.1 and newer"

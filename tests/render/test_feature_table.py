@@ -57,6 +57,8 @@ def test_table_lookups():
     assert feature_group("Sx") == "S" and feature_group("emission.R") == "emission"
     assert feature_table.renderer_channel("N.X", "blender") == "Normal.X"
     assert feature_table.renderer_channel("D.X", "mitsuba") is None
+    assert feature_table.default_sigma("Mr") == 0.1 and feature_table.default_sigma("T") is None
+    assert feature_table.is_half("Nx") and not feature_table.is_half("Z") and not feature_table.is_half("emission.R")
     assert dict(GROUP_SIGMAS) == {f.group: f.sigma for f in feature_table.FEATURES if f.sigma is not None}
     # the default guide: D/S (random per sample) and T never; Z only without P; N only without Ncam
     names = ["T", "Z", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "D.X", "D.Y", "D.Z", "P.X", "P.Y", "P.Z"]
