@@ -76,7 +76,7 @@ def test_a_real_blender5_file(tmp_path):
 
     path = Path(__file__).parent / "data" / "blender5_frame.exr"
     with OpenEXR.File(str(path), separate_channels=True) as f:
-        assert len(f.parts) == 7 and f.parts[0].name() == "ViewLayer.Combined"
+        assert len(f.parts) == 8 and f.parts[0].name() == "ViewLayer.Combined"
         assert list(f.channels()) == [f"ViewLayer.Combined.{c}" for c in "ABGR"]  # the first part alone
     fr = read_render_frame(path)
     assert fr.layout == "blender" and fr.layer == "ViewLayer" and fr.size == (24, 32)
@@ -96,3 +96,7 @@ def test_a_real_blender5_file(tmp_path):
     # Denoising Normal is in camera space: facing the camera means Z < 0; Normal is world space (+Z floor)
     assert np.all(fr.features["Ncam.Z"][hit] < 0)
     assert np.median(fr.features["N.Z"][hit]) > 0.9
+    # Emission: the tile's radiance where the camera sees it, part of Combined
+    lit = fr.emission.sum(0) > 0
+    assert lit.any() and np.allclose(fr.emission[:, lit], np.array([5.0, 2.5, 1.0])[:, None])
+    assert np.all(fr.color >= fr.emission - 1e-5) and fr.sources["emission.G"] == "ViewLayer.Emission.G"

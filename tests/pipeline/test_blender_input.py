@@ -209,7 +209,8 @@ def test_several_view_layers_need_a_choice(tmp_path, capsys, mitsuba_available):
 
 
 def test_a_real_blender5_frame_through_the_cli(tmp_path, capsys):
-    """The frame Blender 5.0.1 wrote (tests/io/data): denoised, and given back as Blender multilayer."""
+    """The frame Blender 5.0.1 wrote (tests/io/data): denoised, its emitter kept out of the filter, and
+    given back as Blender multilayer."""
     from pathlib import Path
 
     src = Path(__file__).parents[1] / "io" / "data" / "blender5_frame.exr"
@@ -221,5 +222,9 @@ def test_a_real_blender5_frame_through_the_cli(tmp_path, capsys):
     d = read_exr(tmp_path / "out" / src.name)
     assert sorted(d) == [f"{LAYER}.Combined.{c}" for c in "ABGR"]
     assert all(np.isfinite(v).all() for v in d.values())
+    emission = read_render_frame(src).emission
+    lit = emission.sum(0) > 0
+    den = np.stack([d[f"{LAYER}.Combined.{c}"] for c in "RGB"])
+    assert lit.any() and np.all(den[:, lit] >= emission[:, lit] - 1e-4)  # the tile is not blurred away
     with OpenEXR.File(str(tmp_path / "out" / src.name)) as f:
         assert f.header()["BlenderMultiChannel"] == "Blender V2.55.1 and newer"

@@ -8,8 +8,9 @@ Two layouts are recognised from the channel names:
 - ``"blender"``: Blender's multilayer EXR, ``<view layer>.<pass>.<channel>``: colour from
   ``ViewLayer.Combined.R/G/B`` (``A`` kept for the output), features from the passes
   ``Denoising Albedo``, ``Denoising Normal`` (camera space), ``Denoising Depth``, ``Normal`` (world
-  space), ``Depth`` (planar; its background value 1e10 is read as 0) and ``Position``. Blender 5
-  writes one part per pass, older versions one part with every channel; both read the same.
+  space), ``Depth`` (planar; its background value 1e10 is read as 0) and ``Position``; its
+  ``Emission`` pass (``Emit`` before) is the emission at the first hit, like our ``emission.R/G/B``.
+  Blender 5 writes one part per pass, older versions one part with every channel; both read the same.
 
 Features come back under their canonical names (:mod:`torchmanifold.features`). Bad input raises a
 ``ValueError`` naming the file, the layer and the channel; nothing is guessed silently: what the
@@ -32,6 +33,8 @@ __all__ = ["RenderFrame", "read_render_frame", "write_color", "LAYOUTS"]
 LAYOUTS = ("flat", "blender")
 _COMBINED = "Combined"
 _EMISSION = ("emission.R", "emission.G", "emission.B")
+#: Blender's pass of radiance emitted at the first hit (part of Combined): its 5.0 name, then the older one
+_BLENDER_EMISSION = ("Emission", "Emit")
 #: header attribute that marks a Blender multilayer file (the value Blender 5.0 writes)
 BLENDER_HEADER = {"BlenderMultiChannel": "Blender V2.55.1 and newer"}
 
@@ -51,7 +54,7 @@ class RenderFrame:
             "albedo.R": "ViewLayer.Denoising Albedo.R", ...}``).
         alpha: ``(H, W)`` float32 Blender ``Combined.A``, or ``None``.
         emission: ``(3, H, W)`` float32 radiance emitted at the first hit (our tracer's
-            ``emission.R/G/B``), or ``None``.
+            ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
     """
 
@@ -89,7 +92,7 @@ def _where(path: Path, layer: str | None) -> str:
 def _blender_layers(chans: Sequence[str]) -> dict[str, dict[str, list[str]]]:
     """``{view layer: {pass: [channel suffixes]}}`` of the channels named ``<layer>.<pass>.<c>`` with a
     pass Blender writes (``Combined`` or one the feature table lists)."""
-    passes = {_COMBINED} | {a.rsplit(".", 1)[0] for f in F.FEATURES for a in f.blender}
+    passes = {_COMBINED, *_BLENDER_EMISSION} | {a.rsplit(".", 1)[0] for f in F.FEATURES for a in f.blender}
     layers: dict[str, dict[str, list[str]]] = {}
     for name in chans:
         bits = name.rsplit(".", 2)
@@ -129,12 +132,15 @@ def _read_blender(path: Path, chans: dict, layers: dict, layer: str | None, fram
         _color_from(path, chans, color_channels, frame)
     elif _COMBINED not in passes:
         raise ValueError(f"{_where(path, layer)}: no {_COMBINED} pass ({layer}.{_COMBINED}.R/G/B); the layer "
-                         f"has passes {sorted(passes)}")
+                         f"has passes {sorted(passes)} (name the colour channels with --color)")
     else:
         _check_pass(path, layer, _COMBINED, passes[_COMBINED], "RGB", optional="A")
         frame.sources.update({c: f"{layer}.{_COMBINED}.{c}" for c in "RGB"})
         if "A" in passes[_COMBINED]:
             frame.sources["A"] = f"{layer}.{_COMBINED}.A"
+    for name in [n for n in _BLENDER_EMISSION if n in passes][:1]:
+        _check_pass(path, layer, name, passes[name], "RGB", optional="A")
+        frame.sources.update({e: f"{layer}.{name}.{c}" for e, c in zip(_EMISSION, "RGB")})
     for f in F.FEATURES:
         if not f.blender:
             continue
@@ -182,6 +188,8 @@ def _choose_features(path: Path, frame: RenderFrame, chans: dict, wanted: Sequen
     for w in wanted:
         short = w[len(frame.layer) + 1:] if frame.layer and w.startswith(frame.layer + ".") else w
         c = F.canonical_name(short)
+        if c in out:
+            continue  # named twice (e.g. by two aliases)
         if c in frame.sources:
             out.append(c)
         elif w in chans:
@@ -247,7 +255,7 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
 
     color_src = [frame.sources[c] for c in "RGB"]
     size = chans[color_src[0]].shape
-    extra = names + (["A"] if "A" in frame.sources else [])
+    extra = names + [c for c in ("A", *_EMISSION) if c in frame.sources]
     for src in color_src + [frame.sources[n] for n in extra]:
         if chans[src].shape != size:
             raise ValueError(f"{_where(path, frame.layer)}: channel {src!r} is {chans[src].shape[1]}x"
@@ -264,8 +272,10 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
                 frame.features[n] = np.where(far, 0.0, frame.features[n]).astype(np.float32)
                 frame.notes.append(f"{frame.sources[n]}: background value {bg:g} read as 0 (as in ours and "
                                    f"Mitsuba's files)")
-    if frame.layout == "flat" and all(c in chans and chans[c].shape == size for c in _EMISSION):
-        frame.emission = np.stack([chans[c] for c in _EMISSION])
+    if frame.layout == "flat" and all(c in chans for c in _EMISSION):
+        frame.sources.update({c: c for c in _EMISSION})
+    if all(c in frame.sources for c in _EMISSION):
+        frame.emission = np.stack([chans[frame.sources[c]] for c in _EMISSION])
     if not frame.features:
         frame.notes.append("no feature channels: the colour is all there is to go by")
     _check_feature_values(path, frame)
