@@ -132,8 +132,10 @@ FEATURES: tuple[Feature, ...] = (
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.04,
             sigma_source=_TUNED, sigma_of_extent=True, guides=True),
-    # Blender's denoising normal: consistent with its denoising albedo (both look through glass), so
-    # it is preferred to its world-space Normal pass when a file has both
+    # Blender's denoising normal goes with its denoising albedo: both look through near-specular
+    # surfaces, as OIDN wants (seen on a Blender 5.0.1 render of a glass sphere before a red wall:
+    # through the glass both are the wall's, at about half weight; the Normal pass is the sphere's), so it
+    # is preferred to the world-space Normal pass when a file has both
     Feature("Ncam", _xyz("Ncam"), blender=_xyz("Denoising Normal"), sigma=0.3, sigma_source=_AS_N,
             guides=True),
     Feature("Zplane", ("Zplane",), blender=("Depth.Z",), half=False, sigma=0.15, sigma_source=_AS_Z,
