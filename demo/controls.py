@@ -10,33 +10,29 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from torchmanifold import features as feature_table
 from torchmanifold.pipeline import DEFAULT_ALPHA, DenoiseSettings
 
-#: Feature groups by name; the guide of a feature set is made of the groups the scene provides.
-FEATURE_GROUPS = {
-    "T": ("T",),
-    "Z": ("Z",),
-    "albedo": ("Mr", "Mg", "Mb"),
-    "normal": ("Nx", "Ny", "Nz"),
-    "reflect": ("Dx", "Dy", "Dz"),
-    "shadow": ("Sx", "Sy", "Sz"),
-}
+#: Feature groups the tracer makes (the feature table's groups and tracer channel names); the guide
+#: of a feature set is made of the groups the scene provides.
+FEATURE_GROUPS = {g: feature_table.tracer_channels(g) for g in feature_table.groups()
+                  if feature_table.tracer_channels(g)}
 
 #: Selectable guides (which channels steer the filter). The engine has no colour-guided mode: "colour"
 #: guides by every feature the scene provides (see :func:`demo.session.guide_channels`).
 FEATURE_SETS = {
-    "all": ("T", "Z", "albedo", "normal", "reflect", "shadow"),
-    "albedo+normal+depth": ("Z", "albedo", "normal"),
-    "albedo+normal": ("albedo", "normal"),
-    "normal+depth": ("Z", "normal"),
+    "all": tuple(FEATURE_GROUPS),
+    "albedo+normal+depth": ("Z", "albedo", "N"),
+    "albedo+normal": ("albedo", "N"),
+    "normal+depth": ("Z", "N"),
     "colour": (),
 }
 
 #: How neighbour frames are combined: mean of the window then filter, or joint space-time filter.
 TEMPORAL_MODES = ("window", "spacetime")
 
-#: Feature buffers that can be shown instead of the raw image.
-FEATURE_VIEWS = ("Z", "albedo", "normal", "reflect", "shadow", "T")
+#: Feature buffers that can be shown instead of the raw image (time last: the least telling to look at).
+FEATURE_VIEWS = (*[g for g in FEATURE_GROUPS if g != "T"], "T")
 
 #: The demo's ``sigma_r`` at which the engine's per-group range sigmas apply unscaled; ``sigma_r``
 #: multiplies them by ``sigma_r / SIGMA_R_UNSCALED``.

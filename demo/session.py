@@ -189,7 +189,7 @@ class DemoSession:
             finite = x[x.isfinite() & (x > 0)]
             top = float(finite.max()) if finite.numel() else 1.0
             x = (x / top).clamp(0, 1)
-        elif group in ("normal", "reflect", "shadow"):
+        elif group in ("N", "D", "S"):  # unit vectors
             x = 0.5 + 0.5 * x
         elif group == "T":
             x = 0.5 + (x - t)  # the sample's time inside the shutter around the shown time, centred on grey

@@ -1,7 +1,7 @@
 """Command line: ``torchmanifold render`` (the main job) and ``torchmanifold denoise FRAME.exr ... --out DIR``.
 
-A thin layer over :func:`torchmanifold.pipeline.job.render_job` and
-:func:`torchmanifold.pipeline.job.denoise_files`; errors in the input end the program with exit code 2 and a
+A thin layer over :func:`torchmanifold.pipeline.render_job.render_job` and
+:func:`torchmanifold.pipeline.denoise_files.denoise_files`; errors in the input end the program with exit code 2 and a
 one-line message naming the file and channel.
 """
 from __future__ import annotations
@@ -68,7 +68,8 @@ def _add_threads_arg(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from torchmanifold.pipeline.job import RENDER_DEFAULTS
+    from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
+    from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
 
     p = argparse.ArgumentParser(prog="torchmanifold", description=__doc__.split("\n")[0])
@@ -98,15 +99,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_filter_args(r, temporal_radius=1, mode="spacetime")
 
     d = sub.add_parser("denoise", help="denoise EXR frames rendered elsewhere",
-                       description="Denoise one multi-channel EXR per frame (colour R,G,B plus feature "
-                                   "channels such as albedo.R/G/B, N.X/Y/Z, Z, P.X/Y/Z); writes the filtered "
-                                   "R,G,B under the input file names in --out.")
+                       description="Denoise one multi-channel EXR per frame: colour R,G,B plus feature "
+                                   "channels such as albedo.R/G/B, N.X/Y/Z, Z, P.X/Y/Z (ours, Mitsuba's), or "
+                                   "Blender's multilayer ViewLayer.Combined with its Denoising Albedo/Normal/Depth, "
+                                   "Normal and Depth passes (single- or multi-part). Writes the filtered colour "
+                                   "under the input file names in --out.")
     d.add_argument("frames", nargs="+", help="EXR frames in frame order")
     d.add_argument("--out", required=True, help="output folder")
     d.add_argument("--overwrite", action="store_true", help="reuse a non-empty --out")
-    d.add_argument("--color", nargs=3, default=["R", "G", "B"], metavar="CH", help="colour channels (R G B)")
+    d.add_argument("--color", nargs=3, default=None, metavar="CH",
+                   help="colour channels (default: R G B, or Blender's <layer>.Combined.R/G/B)")
     d.add_argument("--features", nargs="+", default=None, metavar="CH",
-                   help="feature channels to read (default: the known ones each file has)")
+                   help="feature channels to read, by any name (albedo.R, Mr, Denoising Albedo.R, ...; "
+                        "default: the known ones the first file has)")
+    d.add_argument("--layer", default=None, help="Blender view layer to read (needed when a file has several)")
+    d.add_argument("--output-layout", choices=OUTPUT_LAYOUTS, default="input",
+                   help="input: colour under the channels it was read from (Blender: <layer>.Combined); "
+                        "plain: R,G,B (%(default)s)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_threads_arg(d)
     _add_filter_args(d, temporal_radius=1, mode="spacetime")
@@ -121,7 +130,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     try:
         if args.command == "render":
-            from torchmanifold.pipeline.job import render_job
+            from torchmanifold.pipeline.render_job import render_job
 
             res = render_job(args.out, scene=args.scene, frames=args.frames, iterations=args.iterations,
                              width=args.width, height=args.height, seed=args.seed,
@@ -135,14 +144,16 @@ def main(argv=None) -> int:
                       f"needs ~{res['spp_plain_to_match_ours_final']:.0f} spp to match ours")
             print(f"wrote {args.out}")
         else:
-            from torchmanifold.pipeline.job import denoise_files
+            from torchmanifold.pipeline.denoise_files import denoise_files
 
             res = denoise_files(args.frames, args.out, settings=_settings(args, 3), color_channels=args.color,
                                 feature_channels=args.features, overwrite=args.overwrite,
-                                progress=not args.quiet)
+                                progress=not args.quiet, layer=args.layer, output_layout=args.output_layout)
             if res["nonfinite_samples"]:
                 print(f"warning: {res['nonfinite_samples']} non-finite samples (colour {res['nonfinite_color']}, "
                       f"features {res['nonfinite_features']}) were kept out of the filter", file=sys.stderr)
+            for note in res["notes"]:
+                print(f"note: {note}", file=sys.stderr)
             print(json.dumps({k: v for k, v in res.items() if k != "outputs"}))
     except (FileNotFoundError, FileExistsError, ValueError, TypeError) as exc:
         print(f"torchmanifold {args.command}: error: {exc}", file=sys.stderr)

@@ -40,7 +40,7 @@ def test_session_shows_the_engine_run_built_by_hand(tracer):
     session = DemoSession(tracer, [0.0, 1.0], seed=5)
     by_hand = ProgressiveRenderer(tracer, [0.0, 1.0], seed=5, alpha=DEFAULT_ALPHA, settings=DenoiseSettings(
         sigma_s=3.0, temporal_radius=1, sigma_t=0.5, mode="window", tree_height=2,
-        guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=2.0))
+        guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=3.0))
     for _ in range(2):
         session.step()
         state = by_hand.step()
@@ -51,7 +51,7 @@ def test_session_shows_the_engine_run_built_by_hand(tracer):
         assert torch.equal(session.gaussian(t), state.gaussian[k])
     mean = sum(tracer.render(times=[1.0], spp=1, seed=5, sample_offset=i).features[0] for i in range(2)) / 2
     n = [session.feature_names.index(c) for c in ("Nx", "Ny", "Nz")]
-    assert torch.allclose(session.feature_view(1.0, "normal"), (0.5 + 0.5 * mean[n]).clamp(0, 1), atol=1e-6)
+    assert torch.allclose(session.feature_view(1.0, "N"), (0.5 + 0.5 * mean[n]).clamp(0, 1), atol=1e-6)
 
 
 def test_in_between_time_joins_without_a_restart(tracer):

@@ -6,7 +6,8 @@ import pytest
 import torch
 from _render_helpers import pixel_dirs, plane_scene_dict
 
-from torchmanifold.render import FEATURE_NAMES, PathTracer, scene_from_dict
+from torchmanifold import features as feature_table
+from torchmanifold.render import PathTracer, scene_from_dict
 
 W = H = 32
 
@@ -98,7 +99,7 @@ def test_adding_features_keeps_colour(ctx):
 
     scene = default_scene()
     base = PathTracer(scene, 24, 24, features=[], ctx=ctx).render([1.0], spp=2, seed=5)
-    for feats in (["Z"], ["Sz", "T", "Mr"], list(FEATURE_NAMES)):
+    for feats in (["Z"], ["Sz", "T", "Mr"], feature_table.tracer_names()):
         res = PathTracer(scene, 24, 24, features=feats, ctx=ctx).render([1.0], spp=2, seed=5)
         assert torch.equal(res.color, base.color), feats
         assert res.features.shape == (1, len(feats), 24, 24) and res.feature_names == feats

@@ -6,10 +6,9 @@ import pytest
 import torch
 import trimesh
 
+from torchmanifold import features as feature_table
 from torchmanifold.io.exr import read_exr
 from torchmanifold.render import (
-    EXR_CHANNELS,
-    FEATURE_NAMES,
     PathTracer,
     default_scene,
     load_scene,
@@ -37,7 +36,7 @@ material = "white"
 def test_default_scene_features_and_exr(ctx, tmp_path):
     scene = default_scene()
     assert scene.is_dynamic and scene.has_lights and scene.shutter > 0
-    assert scene.needed_features() == list(FEATURE_NAMES)
+    assert scene.needed_features() == feature_table.tracer_names()
     assert any(scene.materials[o.material].type == "glass" for o in scene.objects)
     res = PathTracer(scene, 24, 16, ctx=ctx).render([0.0, 0.5], spp=2, seed=4)
     assert res.color.shape == (2, 3, 16, 24) and res.features.shape == (2, 14, 16, 24)
@@ -53,7 +52,6 @@ def test_default_scene_features_and_exr(ctx, tmp_path):
     # half-float channels (albedo, normal, directions) round to 1e-3; T and Z stay float32
     torch.testing.assert_close(feats, res.features[1], atol=1e-3, rtol=1e-3)
     assert torch.equal(feats[names.index("T")], res.feature("T")[1])
-    assert set(EXR_CHANNELS) == set(FEATURE_NAMES)
 
 
 def test_static_scene_without_lights_drops_t_and_s(tmp_path):

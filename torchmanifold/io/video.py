@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchmanifold.io.files import atomic_path
+
 __all__ = ["to_uint8_srgb", "write_mp4"]
 
 
@@ -44,18 +46,11 @@ def write_mp4(path: str | os.PathLike, frames, fps: float = 12.0, quality: int =
     ph, pw = h + h % 2, w + w % 2
     if (ph, pw) != (h, w):
         frames = np.pad(frames, ((0, 0), (0, ph - h), (0, pw - w), (0, 0)), mode="edge")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    try:
+    with atomic_path(path) as tmp:
         writer = imageio_ffmpeg.write_frames(str(tmp), (pw, ph), fps=fps, quality=quality, pix_fmt_out="yuv420p",
                                              macro_block_size=1)
         writer.send(None)
         for f in frames:
             writer.send(np.ascontiguousarray(f))
         writer.close()
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return Path(path)

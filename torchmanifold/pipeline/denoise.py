@@ -28,6 +28,7 @@ from typing import Mapping, Sequence
 import torch
 from torch import Tensor, nn
 
+from torchmanifold import features as feature_table
 from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 
 __all__ = [
@@ -41,24 +42,18 @@ __all__ = [
 ]
 
 _ALBEDO = ("albedo.R", "albedo.G", "albedo.B")
-_TRACER_TO_EXR = {
-    "T": "T", "Z": "Z", "Mr": "albedo.R", "Mg": "albedo.G", "Mb": "albedo.B",
-    "Nx": "N.X", "Ny": "N.Y", "Nz": "N.Z", "Dx": "D.X", "Dy": "D.Y", "Dz": "D.Z",
-    "Sx": "S.X", "Sy": "S.Y", "Sz": "S.Z", "Px": "P.X", "Py": "P.Y", "Pz": "P.Z",
-}
 
 
 def canonical_name(name: str) -> str:
-    """Tracer feature names (``Mr``, ``Nx``) mapped to EXR channel names (``albedo.R``, ``N.X``)."""
-    return _TRACER_TO_EXR.get(name, name)
+    """Tracer (``Mr``), Mitsuba or Blender (``Denoising Albedo.R``) channel names mapped to the canonical
+    EXR channel names (``albedo.R``) of :mod:`torchmanifold.features`; unknown names unchanged."""
+    return feature_table.canonical_name(name)
 
 
 def feature_group(name: str) -> str:
-    """The group a feature channel belongs to: ``albedo``, ``N``, ``P``, ``Z``, ``D``, ``S``, ``T`` or
-    the name itself for unknown channels."""
-    name = canonical_name(name)
-    head = name.split(".")[0]
-    return head
+    """The group a feature channel belongs to (``albedo``, ``N``, ``P``, ``Z`` ..., see
+    :mod:`torchmanifold.features`), or the part before the first dot for unknown channels."""
+    return feature_table.group_of(name)
 
 
 def luminance(x: Tensor) -> Tensor:
@@ -112,7 +107,8 @@ _LOG_RADIANCE_OFFSET = 0.1
 _FIREFLY_FLOOR = 0.25
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
-GROUP_SIGMAS = {"albedo": 0.1, "N": 0.3, "P": 0.04, "Z": 0.15, "D": 0.6, "S": 0.6}
+#: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
+GROUP_SIGMAS = feature_table.GroupSigmas()
 
 
 def default_guide_sigmas(names: Sequence[str], features: Tensor | None = None,
@@ -133,12 +129,12 @@ def default_guide_sigmas(names: Sequence[str], features: Tensor | None = None,
             raise ValueError(f"guide_sigmas: no default sigma for feature channel {n!r}; pass guide_sigmas "
                              f"explicitly (known groups: {sorted(GROUP_SIGMAS)})")
         out[:, k] = GROUP_SIGMAS[g]
-    for g in ("P", "Z"):
-        idx = [j for j, m in enumerate(names) if feature_group(m) == g]
-        if not idx or features is None:
+    for g in {feature_group(n) for n in names}:
+        if features is None or not feature_table.feature(g).sigma_of_extent:
             continue
+        idx = [j for j, m in enumerate(names) if feature_group(m) == g]
         v = valid if valid is not None else torch.ones_like(features[:, :1], dtype=torch.bool)
-        if g == "Z":  # depth 0 marks background in Mitsuba and our tracer
+        if feature_table.feature(g).zero_is_no_hit:  # depth 0 marks background
             v = v & (features[:, idx[0]:idx[0] + 1] > 0)
         out[:, idx] *= _extent(features[:, idx], v)[:, None]
     return out
@@ -216,10 +212,9 @@ class DenoiseSettings:
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
     if settings.guide is None:
-        groups = {feature_group(n) for n in names}
-        # per-sample random directions (D, S) make a noisy guide; world position makes depth redundant
-        skip = {"D", "S", "T"} | ({"Z"} if "P" in groups else set())
-        return [k for k, n in enumerate(names) if feature_group(n) in GROUP_SIGMAS and feature_group(n) not in skip]
+        # the feature table says which groups guide (not D/S: one random draw per sample) and which
+        # make others redundant (world position makes depth redundant)
+        return [k for k, n in enumerate(names) if feature_table.guides_by_default(n, names)]
     canon = [canonical_name(n) for n in names]
     idx = []
     for g in settings.guide:

@@ -6,9 +6,10 @@
 >>> write_frame_exr("frame_0000.exr", res, 0)
 """
 from torchmanifold.render.context import create_context
-from torchmanifold.render.frames import EXR_CHANNELS, RenderResult, read_frame_exr, write_frame_exr
+from torchmanifold.render.frames import RenderResult, read_frame_exr, write_frame_exr
 from torchmanifold.render.scene import (
-    FEATURE_NAMES,
+    MATERIAL_TYPES,
+    PRIM_KINDS,
     Camera,
     CameraKey,
     Keyframe,
@@ -25,6 +26,6 @@ from torchmanifold.render.tracer import PathTracer
 
 __all__ = [
     "create_context", "load_scene", "default_scene", "scene_from_dict", "PathTracer", "RenderResult",
-    "write_frame_exr", "read_frame_exr", "EXR_CHANNELS", "FEATURE_NAMES", "Scene", "Material", "Sphere",
+    "write_frame_exr", "read_frame_exr", "MATERIAL_TYPES", "PRIM_KINDS", "Scene", "Material", "Sphere",
     "Quad", "Mesh", "Camera", "CameraKey", "Keyframe",
 ]

@@ -55,12 +55,16 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
 import numpy as np
 
-FEATURE_NAMES = ("T", "Z", "Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Dx", "Dy", "Dz", "Sx", "Sy", "Sz")
+from torchmanifold import features as feature_table
+
+#: material type -> the integer the shader reads (``MAT_<TYPE>`` in GLSL, see ``tracer.shader_defines``)
 MATERIAL_TYPES = {"diffuse": 0, "mirror": 1, "glass": 2}
+#: object kind -> the integer the shader reads (``PRIM_<KIND>`` in GLSL)
+PRIM_KINDS = {"sphere": 0, "quad": 1, "mesh": 2}
 SCENES_DIR = Path(__file__).parent / "scenes"
 
 
@@ -86,6 +90,7 @@ class Keyframe:
 
 @dataclass
 class Sphere:
+    kind: ClassVar[str] = "sphere"
     center: tuple[float, float, float]
     radius: float
     material: str
@@ -95,6 +100,7 @@ class Sphere:
 
 @dataclass
 class Quad:
+    kind: ClassVar[str] = "quad"
     origin: tuple[float, float, float]
     u: tuple[float, float, float]
     v: tuple[float, float, float]
@@ -105,6 +111,7 @@ class Quad:
 
 @dataclass
 class Mesh:
+    kind: ClassVar[str] = "mesh"
     vertices: np.ndarray  # (N, 3)
     faces: np.ndarray  # (M, 3) int
     material: str
@@ -157,19 +164,13 @@ class Scene:
         return isinstance(obj, (Sphere, Quad)) and self.materials[obj.material].emissive
 
     def needed_features(self) -> list[str]:
-        """The feature channels this scene carries information in (canonical order).
+        """The tracer's feature channels this scene carries information in (shader-slot order).
 
         ``T`` only when something moves, ``S*`` only when lights are sampled, ``D*`` only when
-        paths go past the first hit.
+        paths go past the first hit; every other feature the tracer makes always.
         """
-        names = ["Z", "Mr", "Mg", "Mb", "Nx", "Ny", "Nz"]
-        if self.is_dynamic:
-            names = ["T"] + names
-        if self.max_depth > 1:
-            names += ["Dx", "Dy", "Dz"]
-        if self.has_lights:
-            names += ["Sx", "Sy", "Sz"]
-        return names
+        skip = {"T": not self.is_dynamic, "D": self.max_depth <= 1, "S": not self.has_lights}
+        return [n for n in feature_table.tracer_names() if not skip.get(feature_table.group_of(n), False)]
 
 
 # --------------------------------------------------------------------------- loading
@@ -239,6 +240,11 @@ class _Reader:
             self.fail(f"{where}{extra[0]}", f"one of the fields {sorted(allowed)}", extra[0])
 
 
+def _increasing(r: _Reader, where: str, times: list[float]) -> None:
+    if times != sorted(times) or len(set(times)) != len(times):
+        r.fail(where, "keyframes in strictly increasing time", times)
+
+
 def _motion(r: _Reader, obj: Mapping, where: str) -> list[Keyframe]:
     raw = obj.get("motion", [])
     if not isinstance(raw, list):
@@ -250,37 +256,24 @@ def _motion(r: _Reader, obj: Mapping, where: str) -> list[Keyframe]:
             r.fail(f"{where}motion[{j}]", "a table {time, offset}", k)
         r.unknown(k, ["time", "offset"], w)
         keys.append(Keyframe(r.number(k, "time", w), r.vec3(k, "offset", w)))
-    times = [k.time for k in keys]
-    if times != sorted(times) or len(set(times)) != len(times):
-        r.fail(f"{where}motion", "keyframes in strictly increasing time", times)
+    _increasing(r, f"{where}motion", [k.time for k in keys])
     return keys
 
 
-def scene_from_dict(data: Mapping, source: str = "<dict>", base_dir: str | Path | None = None) -> Scene:
-    """Build a :class:`Scene` from the parsed form of a scene file (see the module docstring).
-
-    Args:
-        data: the TOML content as nested dicts/lists.
-        source: name used in error messages (the file path when loading a file).
-        base_dir: folder that relative mesh ``file`` paths are resolved against.
-
-    Raises:
-        ValueError: a field is missing, has the wrong type or an impossible value; the message names
-            ``source``, the field (``objects[2].radius``) and what was expected.
-    """
-    r = _Reader(source)
-    base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
-    if not isinstance(data, Mapping):
-        r.fail("top level", "a table", data)
-    r.unknown(data, ["render", "camera", "materials", "objects"], "")
-
+def _read_render(r: _Reader, data: Mapping) -> dict:
+    """The ``[render]`` table as :class:`Scene` keyword arguments."""
     ren = r.table(data, "render", "")
     r.unknown(ren, ["shutter", "max_depth", "rr_depth", "background"], "render.")
-    shutter = r.number(ren, "shutter", "render.", default=0.0, lo=0.0)
-    max_depth = r.number(ren, "max_depth", "render.", default=8, lo=1, hi=1024, integer=True)
-    rr_depth = r.number(ren, "rr_depth", "render.", default=3, lo=1, integer=True)
-    background = r.vec3(ren, "background", "render.", default=(0.0, 0.0, 0.0), nonneg=True)
+    return dict(
+        shutter=r.number(ren, "shutter", "render.", default=0.0, lo=0.0),
+        max_depth=r.number(ren, "max_depth", "render.", default=8, lo=1, hi=1024, integer=True),
+        rr_depth=r.number(ren, "rr_depth", "render.", default=3, lo=1, integer=True),
+        background=r.vec3(ren, "background", "render.", default=(0.0, 0.0, 0.0), nonneg=True),
+    )
 
+
+def _read_camera(r: _Reader, data: Mapping) -> Camera:
+    """The ``[camera]`` table: one static key or ``[[camera.keyframes]]``, each with a usable view."""
     cam = r.table(data, "camera", "", required=True)
     r.unknown(cam, ["eye", "target", "fov", "up", "keyframes"], "camera.")
     fov = r.number(cam, "fov", "camera.", default=40.0, lo=1e-3, hi=179.0)
@@ -301,9 +294,7 @@ def scene_from_dict(data: Mapping, source: str = "<dict>", base_dir: str | Path 
                 CameraKey(r.number(k, "time", w), r.vec3(k, "eye", w), r.vec3(k, "target", w),
                           r.number(k, "fov", w, default=fov, lo=1e-3, hi=179.0))
             )
-        times = [k.time for k in ckeys]
-        if times != sorted(times) or len(set(times)) != len(times):
-            r.fail("camera.keyframes", "keyframes in strictly increasing time", times)
+        _increasing(r, "camera.keyframes", [k.time for k in ckeys])
     else:
         ckeys = [CameraKey(0.0, r.vec3(cam, "eye", "camera."), r.vec3(cam, "target", "camera."), fov)]
     for j, k in enumerate(ckeys):
@@ -311,7 +302,10 @@ def scene_from_dict(data: Mapping, source: str = "<dict>", base_dir: str | Path 
         if np.linalg.norm(fwd) < 1e-9 or np.linalg.norm(np.cross(fwd, up)) < 1e-9 * np.linalg.norm(fwd):
             r.fail(f"camera (key {j})", "target != eye and a view direction not parallel to up",
                    {"eye": k.eye, "target": k.target, "up": up})
+    return Camera(ckeys, up)
 
+
+def _read_materials(r: _Reader, data: Mapping) -> dict[str, Material]:
     mats_raw = r.table(data, "materials", "", required=True)
     materials: dict[str, Material] = {}
     for name, m in mats_raw.items():
@@ -325,41 +319,81 @@ def scene_from_dict(data: Mapping, source: str = "<dict>", base_dir: str | Path 
             emission=r.vec3(m, "emission", w, default=(0.0, 0.0, 0.0), nonneg=True),
             ior=r.number(m, "ior", w, default=1.5, lo=1.0),
         )
+    return materials
 
+
+_OBJECT_FIELDS = ["type", "material", "motion", "name"]
+
+
+def _read_sphere(r: _Reader, o: Mapping, w: str, common: tuple, base_dir: Path) -> Sphere:
+    r.unknown(o, _OBJECT_FIELDS + ["center", "radius"], w)
+    return Sphere(r.vec3(o, "center", w), r.number(o, "radius", w, lo=1e-9), *common)
+
+
+def _read_quad(r: _Reader, o: Mapping, w: str, common: tuple, base_dir: Path) -> Quad:
+    r.unknown(o, _OBJECT_FIELDS + ["origin", "u", "v"], w)
+    q = Quad(r.vec3(o, "origin", w), r.vec3(o, "u", w), r.vec3(o, "v", w), *common)
+    if np.linalg.norm(np.cross(q.u, q.v)) <= 0.0:
+        r.fail(f"{w}u/v", "two non-parallel edges", (q.u, q.v))
+    return q
+
+
+def _read_mesh(r: _Reader, o: Mapping, w: str, common: tuple, base_dir: Path) -> Mesh:
+    r.unknown(o, _OBJECT_FIELDS + ["file", "scale", "translate"], w)
+    path = Path(r.string(o, "file", w))
+    if not path.is_absolute():
+        path = base_dir / path
+    scale = r.number(o, "scale", w, default=1.0, lo=1e-12)
+    translate = r.vec3(o, "translate", w, default=(0.0, 0.0, 0.0))
+    verts, faces = _load_mesh(r, path, f"{w}file")
+    return Mesh(verts * scale + np.asarray(translate), faces, *common)
+
+
+#: object ``type`` -> reader of its fields (one per entry of ``PRIM_KINDS``)
+_OBJECT_READERS = {"sphere": _read_sphere, "quad": _read_quad, "mesh": _read_mesh}
+
+
+def _read_objects(r: _Reader, data: Mapping, materials: Mapping[str, Material],
+                  base_dir: Path) -> list[Sphere | Quad | Mesh]:
     objs_raw = data.get("objects")
     if not isinstance(objs_raw, list) or not objs_raw:
         r.fail("objects", "a non-empty array of tables [[objects]]", objs_raw)
-    objects: list[Sphere | Quad | Mesh] = []
+    objects = []
     for i, o in enumerate(objs_raw):
         w = f"objects[{i}]."
         if not isinstance(o, Mapping):
             r.fail(f"objects[{i}]", "a table", o)
-        kind = r.string(o, "type", w, choices=("sphere", "quad", "mesh"))
+        kind = r.string(o, "type", w, choices=tuple(PRIM_KINDS))
         mat = r.string(o, "material", w)
         if mat not in materials:
             r.fail(f"{w}material", f"one of the materials {sorted(materials)}", mat)
-        motion = _motion(r, o, w)
-        name = r.string(o, "name", w, default=f"{kind}{i}")
-        common = ["type", "material", "motion", "name"]
-        if kind == "sphere":
-            r.unknown(o, common + ["center", "radius"], w)
-            objects.append(Sphere(r.vec3(o, "center", w), r.number(o, "radius", w, lo=1e-9), mat, motion, name))
-        elif kind == "quad":
-            r.unknown(o, common + ["origin", "u", "v"], w)
-            q = Quad(r.vec3(o, "origin", w), r.vec3(o, "u", w), r.vec3(o, "v", w), mat, motion, name)
-            if np.linalg.norm(np.cross(q.u, q.v)) <= 0.0:
-                r.fail(f"{w}u/v", "two non-parallel edges", (q.u, q.v))
-            objects.append(q)
-        else:
-            r.unknown(o, common + ["file", "scale", "translate"], w)
-            path = Path(r.string(o, "file", w))
-            if not path.is_absolute():
-                path = base_dir / path
-            scale = r.number(o, "scale", w, default=1.0, lo=1e-12)
-            translate = r.vec3(o, "translate", w, default=(0.0, 0.0, 0.0))
-            verts, faces = _load_mesh(r, path, f"{w}file")
-            objects.append(Mesh(verts * scale + np.asarray(translate), faces, mat, motion, name))
-    return Scene(objects, materials, Camera(ckeys, up), shutter, max_depth, rr_depth, background, source)
+        common = (mat, _motion(r, o, w), r.string(o, "name", w, default=f"{kind}{i}"))
+        objects.append(_OBJECT_READERS[kind](r, o, w, common, base_dir))
+    return objects
+
+
+def scene_from_dict(data: Mapping, source: str = "<dict>", base_dir: str | Path | None = None) -> Scene:
+    """Build a :class:`Scene` from the parsed form of a scene file (see the module docstring).
+
+    Args:
+        data: the TOML content as nested dicts/lists.
+        source: name used in error messages (the file path when loading a file).
+        base_dir: folder that relative mesh ``file`` paths are resolved against.
+
+    Raises:
+        ValueError: a field is missing, has the wrong type or an impossible value; the message names
+            ``source``, the field (``objects[2].radius``) and what was expected.
+    """
+    r = _Reader(source)
+    base_dir = Path(base_dir) if base_dir is not None else Path.cwd()
+    if not isinstance(data, Mapping):
+        r.fail("top level", "a table", data)
+    r.unknown(data, ["render", "camera", "materials", "objects"], "")
+    render = _read_render(r, data)
+    camera = _read_camera(r, data)
+    materials = _read_materials(r, data)
+    objects = _read_objects(r, data, materials, base_dir)
+    return Scene(objects, materials, camera, source=source, **render)
 
 
 def _load_mesh(r: _Reader, path: Path, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -425,10 +459,8 @@ def pack_scene(scene: Scene) -> dict[str, np.ndarray]:
         row = prims[i]
         if isinstance(o, Sphere):
             row[0:4] = [*o.center, o.radius]
-            kind = 0
         elif isinstance(o, Quad):
             row[0:3], row[4:7], row[8:11] = o.origin, o.u, o.v
-            kind = 1
         else:
             tris = o.vertices[o.faces]  # (M, 3, 3)
             nodes, order = build_bvh(tris)
@@ -440,11 +472,10 @@ def pack_scene(scene: Scene) -> dict[str, np.ndarray]:
             t4 = np.zeros((len(order), 3, 4), np.float32)
             t4[:, :, :3] = tris[order]
             tri_chunks.append(t4.reshape(-1, 4))
-            kind = 2
             pints[i, 17] = n_nodes
             n_nodes += len(nodes)
             n_tris += len(order)
-        pints[i, 12:16] = [kind, mat_names.index(o.material), len(keys), len(o.motion)]
+        pints[i, 12:16] = [PRIM_KINDS[o.kind], mat_names.index(o.material), len(keys), len(o.motion)]
         keys += [[k.time, *k.offset] for k in o.motion]
         if scene.is_light(o):
             pints[i, 16] = 1

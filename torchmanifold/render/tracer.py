@@ -14,13 +14,33 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from torchmanifold import features as feature_table
 from torchmanifold.render.context import create_context, make_current
 from torchmanifold.render.frames import RenderResult
-from torchmanifold.render.scene import FEATURE_NAMES, Scene, pack_scene
+from torchmanifold.render.scene import MATERIAL_TYPES, PRIM_KINDS, Scene, pack_scene
 
 SHADER_PATH = Path(__file__).parent / "shaders" / "pathtracer.comp"
 GROUP = 8  # local_size_x/y declared in the shader
 MAX_BAKED_OBJECTS = 256  # scenes up to this size become shader constants
+
+#: storage-buffer binding points (``BIND_<NAME>`` in the shader): scene inputs, then outputs
+BINDINGS = {
+    "prims": 0, "materials": 1, "keys": 2, "camkeys": 3, "lights": 4, "times": 5,
+    "color": 6, "emission": 7, "features": 8, "aux": 9, "nodes": 10, "tris": 11,
+}
+_SCENE_BUFFERS = ("prims", "materials", "keys", "camkeys", "lights")  # pack_scene's arrays, always bound
+_MESH_BUFFERS = ("nodes", "tris")  # bound only for scenes with meshes
+_OUTPUT_BUFFERS = ("color", "emission", "features", "aux")
+
+
+def shader_defines() -> str:
+    """The ``#define`` lines that name, in GLSL, what Python defines: feature slots (``N_FEAT``,
+    ``FEAT_<NAME>``, from :mod:`torchmanifold.features`), ``MAT_<TYPE>``, ``PRIM_<KIND>`` and
+    ``BIND_<BUFFER>``."""
+    lines = [f"#define MAT_{k.upper()} {v}" for k, v in MATERIAL_TYPES.items()]
+    lines += [f"#define PRIM_{k.upper()} {v}" for k, v in PRIM_KINDS.items()]
+    lines += [f"#define BIND_{k.upper()} {v}" for k, v in BINDINGS.items()]
+    return feature_table.shader_defines() + "\n".join(lines) + "\n"
 
 
 def _glsl_floats(a) -> str:
@@ -55,9 +75,20 @@ def _scene_constants(packed: dict) -> str:
 
 def _shader_source(packed: dict, has_mesh: bool, baked: bool) -> str:
     src = SHADER_PATH.read_text()
-    defines = f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
+    defines = f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n" + shader_defines()
     src = src.replace("#version 430\n", defines, 1)
     return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
+
+
+def _check_features(features) -> list[str]:
+    names = feature_table.tracer_names()
+    if isinstance(features, str) or not all(isinstance(f, str) for f in features):
+        raise TypeError(f"features must be a sequence of names from {names}, got {features!r}")
+    features = list(features)
+    bad = [f for f in features if f not in names]
+    if bad or len(set(features)) != len(features):
+        raise ValueError(f"features must be distinct names from {names}, got {features}")
+    return features
 
 
 def _check_int(name: str, value, lo: int, hi: int | None = None) -> int:
@@ -74,8 +105,8 @@ class PathTracer:
     Args:
         scene: the :class:`~torchmanifold.render.scene.Scene` to render.
         width, height: image size in pixels.
-        features: feature channel names to output (any order, from ``FEATURE_NAMES``);
-            ``None`` = ``scene.needed_features()``.
+        features: feature channel names to output (any order, from
+            :func:`torchmanifold.features.tracer_names`); ``None`` = ``scene.needed_features()``.
         ctx: a moderngl context with GL >= 4.3 (e.g. a window's); ``None`` = :func:`create_context`.
         spp_per_dispatch: most samples one dispatch takes (bounds the length of one GPU job).
         bake_scene: paste the scene into the shader as constants (faster; a new tracer per scene
@@ -107,61 +138,55 @@ class PathTracer:
         self.width = _check_int("width", width, 1, 1 << 14)
         self.height = _check_int("height", height, 1, 1 << 14)
         self.spp_per_dispatch = _check_int("spp_per_dispatch", spp_per_dispatch, 1)
-        if features is None:
-            features = scene.needed_features()
-        if isinstance(features, str) or not all(isinstance(f, str) for f in features):
-            raise TypeError(f"features must be a sequence of names from {FEATURE_NAMES}, got {features!r}")
-        features = list(features)
-        bad = [f for f in features if f not in FEATURE_NAMES]
-        if bad or len(set(features)) != len(features):
-            raise ValueError(f"features must be distinct names from {list(FEATURE_NAMES)}, got {features}")
         self.scene = scene
-        self.feature_names = features
+        self.feature_names = _check_features(scene.needed_features() if features is None else features)
         if ctx is not None and not isinstance(ctx, moderngl.Context):
             raise TypeError(f"ctx must be a moderngl.Context or None, got {type(ctx).__name__}")
         self.ctx = ctx if ctx is not None else create_context()
         if self.ctx.version_code < 430:
             raise ValueError(f"ctx must support OpenGL 4.3 compute shaders, got version {self.ctx.version_code}")
-
-        # output buffers in batches of frames: one storage block may not exceed the driver's limit
-        # (128 MiB on llvmpipe; 12 frames of 14 features at 512x512 would not fit)
-        limit = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 27))
-        if max_buffer_bytes is not None:
-            limit = min(limit, _check_int("max_buffer_bytes", max_buffer_bytes, 1))
-        frame_bytes = 4 * self.width * self.height * max(3, len(features))
-        if frame_bytes > limit:
-            raise ValueError(
-                f"width x height: one frame needs {frame_bytes} bytes per output buffer, over this GL driver's "
-                f"storage-block limit of {limit}; render a smaller image or fewer features")
-        self.frames_per_batch = min(limit // frame_bytes, 65535)  # 65535: the least dispatch-size limit
+        self.frames_per_batch = self._frames_per_batch(max_buffer_bytes)
 
         make_current(self.ctx)
-        packed = pack_scene(scene)
-        self.has_mesh = packed["has_mesh"]
-        self.n_lights = packed["n_lights"]
-        # small scenes are pasted into the shader as constants (about 2x faster on llvmpipe)
-        if bake_scene is None:
-            bake_scene = len(scene.objects) <= MAX_BAKED_OBJECTS and len(packed["keys"]) <= MAX_BAKED_OBJECTS
-        self.baked = bool(bake_scene)
-        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked))
-        self._scene_bufs = {
-            0: self.ctx.buffer(packed["prims"].tobytes()),
-            1: self.ctx.buffer(packed["materials"].tobytes()),
-            2: self.ctx.buffer(packed["keys"].tobytes()),
-            3: self.ctx.buffer(packed["camkeys"].tobytes()),
-            4: self.ctx.buffer(packed["lights"].tobytes()),
-        }
-        if self.has_mesh:
-            self._scene_bufs[10] = self.ctx.buffer(packed["nodes"].tobytes())
-            self._scene_bufs[11] = self.ctx.buffer(packed["tris"].tobytes())
+        self._upload_scene(bake_scene)
         self._times_buf: moderngl.Buffer | None = None
         self._batches: list[dict[str, moderngl.Buffer]] = []
         self._batch_frames: list[int] = []  # frames each batch holds
         self._last: dict | None = None
+        self._set_scene_uniforms()
 
-        slots = [-1] * len(FEATURE_NAMES)
+    def _frames_per_batch(self, max_buffer_bytes: int | None) -> int:
+        """Frames one set of output buffers holds: one storage block may not exceed the driver's limit
+        (128 MiB on llvmpipe; 12 frames of 14 features at 512x512 would not fit)."""
+        limit = int(self.ctx.info.get("GL_MAX_SHADER_STORAGE_BLOCK_SIZE") or (1 << 27))
+        if max_buffer_bytes is not None:
+            limit = min(limit, _check_int("max_buffer_bytes", max_buffer_bytes, 1))
+        frame_bytes = 4 * self.width * self.height * max(3, len(self.feature_names))
+        if frame_bytes > limit:
+            raise ValueError(
+                f"width x height: one frame needs {frame_bytes} bytes per output buffer, over this GL driver's "
+                f"storage-block limit of {limit}; render a smaller image or fewer features")
+        return min(limit // frame_bytes, 65535)  # 65535: the least dispatch-size limit
+
+    def _upload_scene(self, bake_scene: bool | None) -> None:
+        """Compile the shader for this scene and upload its storage buffers."""
+        packed = pack_scene(self.scene)
+        self.has_mesh = packed["has_mesh"]
+        self.n_lights = packed["n_lights"]
+        # small scenes are pasted into the shader as constants (about 2x faster on llvmpipe)
+        if bake_scene is None:
+            bake_scene = max(len(self.scene.objects), len(packed["keys"])) <= MAX_BAKED_OBJECTS
+        self.baked = bool(bake_scene)
+        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked))
+        names = _SCENE_BUFFERS + (_MESH_BUFFERS if self.has_mesh else ())
+        self._scene_bufs = {BINDINGS[n]: self.ctx.buffer(packed[n].tobytes()) for n in names}
+
+    def _set_scene_uniforms(self) -> None:
+        """Uniforms fixed for this tracer: image size, scene sizes, feature slots, render settings."""
+        scene = self.scene
+        slots = [-1] * len(feature_table.tracer_names())
         for j, name in enumerate(self.feature_names):
-            slots[FEATURE_NAMES.index(name)] = j
+            slots[feature_table.tracer_names().index(name)] = j
         self._set("u_size", (self.width, self.height))
         self._set("u_n_prims", len(scene.objects))
         self._set("u_n_lights", self.n_lights)
@@ -256,15 +281,15 @@ class PathTracer:
 
         for binding, buf in self._scene_bufs.items():
             buf.bind_to_storage_buffer(binding)
-        self._times_buf.bind_to_storage_buffer(5)
+        self._times_buf.bind_to_storage_buffer(BINDINGS["times"])
         self._set("u_seed", seed)
         tiles = [(x0, y0) for y0 in range(0, self.height, th) for x0 in range(0, self.width, tw)]
         batches = [(f0, min(self.frames_per_batch, n - f0)) for f0 in range(0, n, self.frames_per_batch)]
         bar = tqdm(total=math.ceil(spp / self.spp_per_dispatch) * len(tiles) * len(batches), disable=not progress,
                    desc=f"path tracing {n}x{self.width}x{self.height} @ {spp} spp", unit="dispatch")
         for b, (f0, nb) in enumerate(batches):
-            for binding, key in ((6, "color"), (7, "emission"), (8, "features"), (9, "aux")):
-                self._batches[b][key].bind_to_storage_buffer(binding)
+            for key in _OUTPUT_BUFFERS:
+                self._batches[b][key].bind_to_storage_buffer(BINDINGS[key])
             self._set("u_frame_base", f0)
             done = 0
             while done < spp:

@@ -3,7 +3,10 @@
 // lights with next-event estimation, Russian roulette, keyframed translation of objects and camera,
 // per-sample time in the shutter interval. One invocation = one pixel of one frame; it loops over its
 // samples and writes SUMS (the host divides by spp), so the host reads back once per render.
-// HAS_MESH is defined by the host (0/1) so mesh-free scenes compile without the BVH code.
+// HAS_MESH is defined by the host (0/1) so mesh-free scenes compile without the BVH code. The host also
+// defines the names shared with Python (tracer.py: shader_defines): feature slots N_FEAT / FEAT_<name>
+// (from the feature table, torchmanifold/features.py), material types MAT_*, primitive kinds PRIM_* and
+// storage-buffer bindings BIND_*.
 layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 
 #ifndef HAS_MESH
@@ -15,13 +18,12 @@ layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 
 const float PI = 3.14159265358979;
 const float INF = 1e30;
-const int N_FEAT = 14;  // T Z Mr Mg Mb Nx Ny Nz Dx Dy Dz Sx Sy Sz
 
-// Primitive: type 0 sphere (a.xyz centre, a.w radius), 1 quad (a origin, b edge u, c edge v; front = u x v),
-// 2 mesh (info2.y = BVH root node). info = (type, material, first keyframe, keyframe count),
+// Primitive: kind PRIM_SPHERE (a.xyz centre, a.w radius), PRIM_QUAD (a origin, b edge u, c edge v;
+// front = u x v), PRIM_MESH (info2.y = BVH root node). info = (kind, material, first keyframe, keyframe count),
 // info2 = (is sampled light, bvh root, -, -).
 struct Prim { vec4 a; vec4 b; vec4 c; ivec4 info; ivec4 info2; };
-// Material: colour.rgb + type (0 diffuse, 1 mirror, 2 glass), emission.rgb + index of refraction.
+// Material: colour.rgb + type (MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS), emission.rgb + index of refraction.
 struct Material { vec4 color_type; vec4 emission_ior; };
 
 #if CONST_SCENE
@@ -29,23 +31,23 @@ struct Material { vec4 color_type; vec4 emission_ior; };
 // N_PRIMS, N_LIGHTS, N_CAMKEYS: llvmpipe then reads plain constants instead of bounds-checked buffers (~2x)
 SCENE_CONSTANTS
 #else
-layout(std430, binding = 0) readonly buffer Prims { Prim prims[]; };
-layout(std430, binding = 1) readonly buffer Materials { Material mats[]; };
-layout(std430, binding = 2) readonly buffer Keys { vec4 keys[]; };       // (time, offset.xyz)
-layout(std430, binding = 3) readonly buffer CamKeys { vec4 camkeys[]; }; // pairs (time, eye), (target, vfov_deg)
-layout(std430, binding = 4) readonly buffer Lights { int lights[]; };
+layout(std430, binding = BIND_PRIMS) readonly buffer Prims { Prim prims[]; };
+layout(std430, binding = BIND_MATERIALS) readonly buffer Materials { Material mats[]; };
+layout(std430, binding = BIND_KEYS) readonly buffer Keys { vec4 keys[]; };       // (time, offset.xyz)
+layout(std430, binding = BIND_CAMKEYS) readonly buffer CamKeys { vec4 camkeys[]; }; // pairs (time, eye), (target, vfov_deg)
+layout(std430, binding = BIND_LIGHTS) readonly buffer Lights { int lights[]; };
 #define N_PRIMS u_n_prims
 #define N_LIGHTS u_n_lights
 #define N_CAMKEYS u_n_camkeys
 #endif
-layout(std430, binding = 5) readonly buffer Times { float frame_times[]; };
-layout(std430, binding = 6) buffer OutColor { float out_color[]; };       // (T, 3, H, W) sums
-layout(std430, binding = 7) buffer OutEmission { float out_emission[]; }; // (T, 3, H, W) sums
-layout(std430, binding = 8) buffer OutFeat { float out_feat[]; };         // (T, D, H, W) sums
-layout(std430, binding = 9) buffer OutAux { float out_aux[]; };           // (T, 3, H, W): id, motion x, y
+layout(std430, binding = BIND_TIMES) readonly buffer Times { float frame_times[]; };
+layout(std430, binding = BIND_COLOR) buffer OutColor { float out_color[]; };       // (T, 3, H, W) sums
+layout(std430, binding = BIND_EMISSION) buffer OutEmission { float out_emission[]; }; // (T, 3, H, W) sums
+layout(std430, binding = BIND_FEATURES) buffer OutFeat { float out_feat[]; };         // (T, D, H, W) sums
+layout(std430, binding = BIND_AUX) buffer OutAux { float out_aux[]; };           // (T, 3, H, W): id, motion x, y
 #if HAS_MESH
-layout(std430, binding = 10) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, left|first), (bmax, count)
-layout(std430, binding = 11) readonly buffer Tris { vec4 tris[]; };    // triples v0, v1, v2
+layout(std430, binding = BIND_NODES) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, left|first), (bmax, count)
+layout(std430, binding = BIND_TRIS) readonly buffer Tris { vec4 tris[]; };    // triples v0, v1, v2
 #endif
 
 uniform ivec2 u_size;          // image W, H
@@ -232,11 +234,11 @@ float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, bool a
     vec3 ro = info.w > 0 ? o - prim_offset(i, time) : o;  // objects only translate: move the ray instead
     n = vec3(0.0);
     float t = INF;
-    if (info.x == 0) {
+    if (info.x == PRIM_SPHERE) {
         vec4 a = prims[i].a;
         t = hit_sphere(ro, d, a.xyz, a.w, tmin);
         if (t < tmax) n = (ro + t * d - a.xyz) / a.w;
-    } else if (info.x == 1) {
+    } else if (info.x == PRIM_QUAD) {
         vec3 u = prims[i].b.xyz, v = prims[i].c.xyz;
         t = hit_quad(ro, d, prims[i].a.xyz, u, v, tmin);
         if (t < tmax) n = normalize(cross(u, v));
@@ -302,7 +304,7 @@ vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     float u1 = rnd(), u2 = rnd();
     float dist, inv_pdf;  // inv_pdf = 1 / (solid-angle pdf of sdir)
     sdir = vec3(0.0);
-    if (lp.info.x == 0) {
+    if (lp.info.x == PRIM_SPHERE) {
         vec3 c = lp.a.xyz + off;
         float r = lp.a.w;
         vec3 wc = c - p;
@@ -359,7 +361,7 @@ void main() {
         vec3 d = camera_dir(cam, vec2(pix) + jitter);
         vec3 L = vec3(0.0), beta = vec3(1.0);
         bool count_light = true;  // emission of sampled lights counts unless NEE already did
-        feat[0] += time;
+        feat[FEAT_T] += time;
         for (int depth = 0; depth < u_max_depth; ++depth) {
             Hit h;
             if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
@@ -376,24 +378,24 @@ void main() {
                 vec3 a = albedo;
                 vec3 e = m.emission_ior.rgb;
                 if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
-                feat[1] += h.t; feat[2] += a.r; feat[3] += a.g; feat[4] += a.b;
-                feat[5] += nf.x; feat[6] += nf.y; feat[7] += nf.z;
+                feat[FEAT_Z] += h.t; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
+                feat[FEAT_NX] += nf.x; feat[FEAT_NY] += nf.y; feat[FEAT_NZ] += nf.z;
             }
             vec3 nd;
-            if (mtype == 0) {                               // diffuse
+            if (mtype == MAT_DIFFUSE) {
                 if (N_LIGHTS > 0) {
                     vec3 sdir;
                     L += beta * sample_light(x, nf, albedo, time, sdir);
-                    if (depth == 0) { feat[11] += sdir.x; feat[12] += sdir.y; feat[13] += sdir.z; }
+                    if (depth == 0) { feat[FEAT_SX] += sdir.x; feat[FEAT_SY] += sdir.y; feat[FEAT_SZ] += sdir.z; }
                 }
                 nd = cosine_dir(nf, rnd(), rnd());
                 beta *= albedo;
                 count_light = false;
-            } else if (mtype == 1) {                        // mirror
+            } else if (mtype == MAT_MIRROR) {
                 nd = reflect(d, nf);
                 beta *= albedo;
                 count_light = true;
-            } else {                                        // glass (exact dielectric Fresnel)
+            } else {                                        // MAT_GLASS (exact dielectric Fresnel)
                 float ior = m.emission_ior.w;
                 bool entering = dot(h.n, d) < 0.0;
                 float eta = entering ? 1.0 / ior : ior;
@@ -412,7 +414,7 @@ void main() {
                 beta *= albedo;
                 count_light = true;
             }
-            if (depth == 0) { feat[8] += nd.x; feat[9] += nd.y; feat[10] += nd.z; }
+            if (depth == 0) { feat[FEAT_DX] += nd.x; feat[FEAT_DY] += nd.y; feat[FEAT_DZ] += nd.z; }
             o = x + (dot(nd, nf) > 0.0 ? nf : -nf) * ray_eps(x);
             d = nd;
             if (depth + 1 >= u_rr_depth) {                 // Russian roulette

@@ -1,0 +1,102 @@
+"""read_render_frame on flat files (ours, Mitsuba's) and write_color's layouts; the Blender layout is
+tested end to end in tests/pipeline/test_blender_input.py."""
+import numpy as np
+import pytest
+
+from torchmanifold.io import read_exr, read_render_frame, write_color, write_exr
+
+H, W = 6, 7
+RNG = np.random.default_rng(1)
+
+
+def _rand(*names):
+    return {n: RNG.random((H, W), dtype=np.float32) + 0.1 for n in names}
+
+
+def mitsuba_like(path, **extra):
+    chans = _rand("R", "G", "B", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z", "P.X", "P.Y", "P.Z")
+    chans.update(extra)
+    write_exr(path, chans)
+    return chans
+
+
+def test_flat_file_features_in_table_order(tmp_path):
+    chans = mitsuba_like(tmp_path / "m.exr", **_rand("emission.R", "emission.G", "emission.B", "T"))
+    fr = read_render_frame(tmp_path / "m.exr")
+    assert fr.layout == "flat" and fr.layer is None and fr.notes == []
+    assert fr.feature_names == ["T", "Z", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y",
+                                "P.Z"]
+    np.testing.assert_array_equal(fr.color[1], chans["G"])
+    np.testing.assert_array_equal(fr.stack(["P.Z", "Z"]), np.stack([chans["P.Z"], chans["Z"]]))
+    np.testing.assert_array_equal(fr.emission[2], chans["emission.B"])
+    # chosen by any alias; a channel the table does not know is read under its own name
+    fr = read_render_frame(tmp_path / "m.exr", feature_channels=["Mg", "Normal.X", "emission.R"])
+    assert fr.feature_names == ["albedo.G", "N.X", "emission.R"]
+    np.testing.assert_array_equal(fr.features["N.X"], chans["N.X"])
+
+
+def test_flat_file_errors_name_file_and_channel(tmp_path):
+    chans = _rand("R", "G", "B", "albedo.R", "albedo.G")
+    write_exr(tmp_path / "a.exr", chans)
+    with pytest.raises(ValueError, match=r"a\.exr: feature 'albedo' has channels \['albedo.G', 'albedo.R'\] "
+                                         r"but not 'albedo.B'"):
+        read_render_frame(tmp_path / "a.exr")
+    mitsuba_like(tmp_path / "z.exr", **{"N.X": np.zeros((H, W), np.float32), "N.Y": np.zeros((H, W), np.float32),
+                                        "N.Z": np.zeros((H, W), np.float32)})
+    with pytest.raises(ValueError, match=r"z\.exr: channel\(s\) N\.X, N\.Y, N\.Z: every value is 0"):
+        read_render_frame(tmp_path / "z.exr")
+    # time may be 0 everywhere (frame 0 without motion blur)
+    mitsuba_like(tmp_path / "t.exr", T=np.zeros((H, W), np.float32))
+    assert "T" in read_render_frame(tmp_path / "t.exr").features
+    with pytest.raises(ValueError, match=r"t\.exr: feature channel 'Q' not found"):
+        read_render_frame(tmp_path / "t.exr", feature_channels=["Q"])
+    with pytest.raises(ValueError, match="color_channels must name 3 channels"):
+        read_render_frame(tmp_path / "t.exr", color_channels=["R", "G"])
+
+
+def test_write_color_layouts(tmp_path):
+    mitsuba_like(tmp_path / "m.exr", **_rand("beauty.R", "beauty.G", "beauty.B"))
+    fr = read_render_frame(tmp_path / "m.exr", color_channels=["beauty.R", "beauty.G", "beauty.B"])
+    col = RNG.random((3, H, W), dtype=np.float32)
+    assert sorted(read_exr(write_color(tmp_path / "o1.exr", col, fr))) == ["beauty.B", "beauty.G", "beauty.R"]
+    d = read_exr(write_color(tmp_path / "o2.exr", col, fr, layout="plain"))
+    assert sorted(d) == ["B", "G", "R"] and np.array_equal(d["G"], col[1])
+    with pytest.raises(ValueError, match=r"color must be \(3, H, W\)"):
+        write_color(tmp_path / "o3.exr", col[:2], fr)
+    assert not (tmp_path / "o3.exr").exists()
+
+
+def test_a_real_blender5_file(tmp_path):
+    """A frame Blender 5.0.1 wrote (tests/io/data/make_blender5_frame.py): one part per pass, all read,
+    with the meanings the feature table gives them (camera at (0, -4, 2), clip start 0.1)."""
+    import OpenEXR
+
+    from torchmanifold.io.exr import read_exr as raw_read
+    from pathlib import Path
+
+    path = Path(__file__).parent / "data" / "blender5_frame.exr"
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        assert len(f.parts) == 8 and f.parts[0].name() == "ViewLayer.Combined"
+        assert list(f.channels()) == [f"ViewLayer.Combined.{c}" for c in "ABGR"]  # the first part alone
+    fr = read_render_frame(path)
+    assert fr.layout == "blender" and fr.layer == "ViewLayer" and fr.size == (24, 32)
+    assert fr.feature_names == ["Z", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z",
+                                "Ncam.X", "Ncam.Y", "Ncam.Z", "Zplane"]
+    raw = raw_read(path)
+    hit = fr.features["Z"] > 0
+    assert 0 < hit.sum() < hit.size  # some rays leave the scene
+    # Depth: planar, 1e10 where nothing is hit (read as 0); Denoising Depth: ray distance from the clip start
+    assert np.all(raw["ViewLayer.Depth.Z"][~hit] == 1e10) and np.all(fr.features["Zplane"][~hit] == 0)
+    p = fr.stack(["P.X", "P.Y", "P.Z"]) - np.array([0, -4, 2], np.float32)[:, None, None]
+    fwd = np.array([0, np.sin(1.2), -np.cos(1.2)], np.float32)
+    planar, ray = np.einsum("i,ihw->hw", fwd, p)[hit], np.linalg.norm(p, axis=0)[hit]
+    np.testing.assert_allclose(fr.features["Zplane"][hit], planar, atol=1e-4)
+    # the ray starts on the near plane: clip_start 0.1 along the axis is 0.1 * ray / planar along the ray
+    np.testing.assert_allclose(fr.features["Z"][hit], ray - 0.1 * ray / planar, atol=1e-4)
+    # Denoising Normal is in camera space: facing the camera means Z < 0; Normal is world space (+Z floor)
+    assert np.all(fr.features["Ncam.Z"][hit] < 0)
+    assert np.median(fr.features["N.Z"][hit]) > 0.9
+    # Emission: the tile's radiance where the camera sees it, part of Combined
+    lit = fr.emission.sum(0) > 0
+    assert lit.any() and np.allclose(fr.emission[:, lit], np.array([5.0, 2.5, 1.0])[:, None])
+    assert np.all(fr.color >= fr.emission - 1e-5) and fr.sources["emission.G"] == "ViewLayer.Emission.G"

@@ -1,0 +1,309 @@
+"""One rendered frame from an EXR file, whatever renderer wrote it: colour plus named features.
+
+Two layouts are recognised from the channel names:
+
+- ``"flat"``: colour ``R, G, B`` and feature channels under their own names: our tracer's files
+  (``albedo.R``, ``N.X``, ``Z``, ``D.X`` ..., ``emission.R/G/B``) and Mitsuba 3's ``aov`` integrator
+  (``albedo.R/G/B``, ``N.X/Y/Z``, ``Z``, ``P.X/Y/Z``), which share names.
+- ``"blender"``: Blender's multilayer EXR, ``<view layer>.<pass>.<channel>``: colour from
+  ``ViewLayer.Combined.R/G/B`` (``A`` kept for the output), features from the passes
+  ``Denoising Albedo``, ``Denoising Normal`` (camera space), ``Denoising Depth``, ``Normal`` (world
+  space), ``Depth`` (planar; its background value 1e10 is read as 0) and ``Position``; its
+  ``Emission`` pass (``Emit`` before) is the emission at the first hit, like our ``emission.R/G/B``.
+  Blender 5 writes one part per pass, older versions one part with every channel; both read the same.
+
+Features come back under their canonical names (:mod:`torchmanifold.features`). Bad input raises a
+``ValueError`` naming the file, the layer and the channel; nothing is guessed silently: what the
+reader changed (background depth read as 0, no feature passes at all) is listed in ``notes``.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from torchmanifold import features as F
+from torchmanifold.io.exr import read_exr, write_exr
+
+__all__ = ["RenderFrame", "read_render_frame", "write_color", "LAYOUTS"]
+
+LAYOUTS = ("flat", "blender")
+_COMBINED = "Combined"
+_EMISSION = ("emission.R", "emission.G", "emission.B")
+#: Blender's pass of radiance emitted at the first hit (part of Combined): its 5.0 name, then the older one
+_BLENDER_EMISSION = ("Emission", "Emit")
+#: header attribute that marks a Blender multilayer file (the value Blender 5.0 writes)
+BLENDER_HEADER = {"BlenderMultiChannel": "Blender V2.55.1 and newer"}
+
+
+@dataclass
+class RenderFrame:
+    """One frame read by :func:`read_render_frame`.
+
+    Attributes:
+        path: the file.
+        color: ``(3, H, W)`` float32 linear radiance.
+        features: ``{canonical name: (H, W) float32}`` in feature-table order (channels the table does
+            not know, when asked for by name, come last under their file names).
+        layout: ``"flat"`` or ``"blender"`` (see the module docstring).
+        layer: Blender view layer the frame came from (``None`` for flat files).
+        sources: file channel each colour / feature channel was read from (``{"R": "ViewLayer.Combined.R",
+            "albedo.R": "ViewLayer.Denoising Albedo.R", ...}``).
+        alpha: ``(H, W)`` float32 Blender ``Combined.A``, or ``None``.
+        emission: ``(3, H, W)`` float32 radiance emitted at the first hit (our tracer's
+            ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
+        notes: what the reader changed or found missing, one sentence each.
+    """
+
+    path: Path
+    color: np.ndarray
+    features: dict[str, np.ndarray]
+    layout: str
+    layer: str | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+    alpha: np.ndarray | None = None
+    emission: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def feature_names(self) -> list[str]:
+        return list(self.features)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return tuple(self.color.shape[1:])
+
+    def stack(self, names: Sequence[str] | None = None) -> np.ndarray:
+        """Features ``names`` (default: all) as one ``(D, H, W)`` float32 array."""
+        names = self.feature_names if names is None else list(names)
+        if not names:
+            return np.zeros((0, *self.size), np.float32)
+        return np.stack([self.features[n] for n in names])
+
+
+def _where(path: Path, layer: str | None) -> str:
+    return f"{path}: layer {layer!r}" if layer is not None else str(path)
+
+
+def _blender_layers(chans: Sequence[str]) -> dict[str, dict[str, list[str]]]:
+    """``{view layer: {pass: [channel suffixes]}}`` of the channels named ``<layer>.<pass>.<c>`` with a
+    pass Blender writes (``Combined`` or one the feature table lists)."""
+    passes = {_COMBINED, *_BLENDER_EMISSION} | {a.rsplit(".", 1)[0] for f in F.FEATURES for a in f.blender}
+    layers: dict[str, dict[str, list[str]]] = {}
+    for name in chans:
+        bits = name.rsplit(".", 2)
+        if len(bits) == 3 and bits[1] in passes:
+            layers.setdefault(bits[0], {}).setdefault(bits[1], []).append(bits[2])
+    return layers
+
+
+def _pick_layer(path: Path, layers: dict, layer: str | None) -> str:
+    if layer is not None:
+        if layer not in layers:
+            raise ValueError(f"{path}: layer {layer!r} not found; the file has view layers {sorted(layers)}")
+        return layer
+    if len(layers) > 1:
+        raise ValueError(f"{path}: the file has several view layers {sorted(layers)}; choose one (--layer)")
+    return next(iter(layers))
+
+
+def _check_pass(path: Path, layer: str, name: str, have: list[str], expected: Sequence[str],
+                optional: Sequence[str] = ()) -> None:
+    extra = sorted(set(have) - set(expected) - set(optional))
+    missing = [c for c in expected if c not in have]
+    if missing or extra:
+        raise ValueError(
+            f"{_where(path, layer)}: pass {name!r} has channels {sorted(have)}, expected {list(expected)}"
+            + (f" (+ optional {list(optional)})" if optional else "")
+            + (f"; missing {layer}.{name}.{missing[0]}" if missing
+               else f"; unexpected {layer}.{name}.{extra[0]}"))
+
+
+def _read_blender(path: Path, chans: dict, layers: dict, layer: str | None, frame: RenderFrame,
+                  color_channels: Sequence[str] | None) -> None:
+    layer = _pick_layer(path, layers, layer)
+    passes = layers[layer]
+    frame.layout, frame.layer = "blender", layer
+    if color_channels is not None:
+        _color_from(path, chans, color_channels, frame)
+    elif _COMBINED not in passes:
+        raise ValueError(f"{_where(path, layer)}: no {_COMBINED} pass ({layer}.{_COMBINED}.R/G/B); the layer "
+                         f"has passes {sorted(passes)} (name the colour channels with --color)")
+    else:
+        _check_pass(path, layer, _COMBINED, passes[_COMBINED], "RGB", optional="A")
+        frame.sources.update({c: f"{layer}.{_COMBINED}.{c}" for c in "RGB"})
+        if "A" in passes[_COMBINED]:
+            frame.sources["A"] = f"{layer}.{_COMBINED}.A"
+    for name in [n for n in _BLENDER_EMISSION if n in passes][:1]:
+        _check_pass(path, layer, name, passes[name], "RGB", optional="A")
+        frame.sources.update({e: f"{layer}.{name}.{c}" for e, c in zip(_EMISSION, "RGB")})
+    for f in F.FEATURES:
+        if not f.blender:
+            continue
+        name = f.blender[0].rsplit(".", 1)[0]
+        if name not in passes:
+            continue
+        _check_pass(path, layer, name, passes[name], [a.rsplit(".", 1)[1] for a in f.blender])
+        for alias, canon in zip(f.blender, f.channels):
+            frame.sources[canon] = f"{layer}.{alias}"
+
+
+def _color_from(path: Path, chans: dict, color_channels: Sequence[str], frame: RenderFrame) -> None:
+    if len(color_channels) != 3:
+        raise ValueError(f"color_channels must name 3 channels, got {list(color_channels)}")
+    missing = [c for c in color_channels if c not in chans]
+    if missing:
+        raise ValueError(f"{path}: colour channel(s) {missing} not found; the file has {sorted(chans)}")
+    frame.sources.update(dict(zip("RGB", color_channels)))
+
+
+def _read_flat(path: Path, chans: dict, color_channels: Sequence[str], frame: RenderFrame) -> None:
+    frame.layout = "flat"
+    _color_from(path, chans, color_channels, frame)
+    names = {**F.channel_aliases("mitsuba"), **F.channel_aliases("torchmanifold")}
+    for f in F.FEATURES:
+        found = [a for a in chans if names.get(a) in f.channels]
+        if not found:
+            continue
+        got = {names[a]: a for a in found}
+        absent = [c for c in f.channels if c not in got]
+        if absent:
+            raise ValueError(f"{path}: feature {f.group!r} has channels {sorted(found)} but not "
+                             f"{absent[0]!r}; "
+                             f"expected all of {list(f.channels)}")
+        frame.sources.update({c: got[c] for c in f.channels})
+
+
+def _choose_features(path: Path, frame: RenderFrame, chans: dict, wanted: Sequence[str] | None) -> list[str]:
+    """Canonical feature names to load: all the file has, or ``wanted`` (any alias; unknown names are
+    read as the file channel of that name)."""
+    known = [c for f in F.FEATURES for c in f.channels if c in frame.sources]
+    if wanted is None:
+        return known
+    out = []
+    for w in wanted:
+        short = w[len(frame.layer) + 1:] if frame.layer and w.startswith(frame.layer + ".") else w
+        c = F.canonical_name(short)
+        if c in out:
+            continue  # named twice (e.g. by two aliases)
+        if c in frame.sources:
+            out.append(c)
+        elif w in chans:
+            frame.sources[w] = w
+            out.append(w)
+        else:
+            raise ValueError(f"{_where(path, frame.layer)}: feature channel {w!r} not found; the file has "
+                             f"features {known} (channels {sorted(chans)})")
+    return out
+
+
+def _check_feature_values(path: Path, frame: RenderFrame) -> None:
+    for g in dict.fromkeys(F.group_of(n) for n in frame.features):
+        names = [n for n in frame.features if F.group_of(n) == g]
+        vals = [frame.features[n] for n in names]
+        src = ", ".join(frame.sources[n] for n in names)
+        if not any(np.isfinite(v).any() for v in vals):
+            raise ValueError(f"{_where(path, frame.layer)}: channel(s) {src}: no finite value (all NaN/inf)")
+        row = F.feature_of(names[0])
+        ok_zero = row is None or row.may_be_all_zero  # a channel the table does not know: 0 may be its value
+        if not ok_zero and not any(np.nan_to_num(v).any() for v in vals):
+            raise ValueError(f"{_where(path, frame.layer)}: channel(s) {src}: every value is 0 (a pass that "
+                             f"was not rendered?); leave it out with --features / feature_channels")
+
+
+def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | None = None,
+                      feature_channels: Sequence[str] | None = None, layer: str | None = None) -> RenderFrame:
+    """Read colour and features of one frame from an EXR file of any layout (see the module docstring).
+
+    Args:
+        path: the EXR file (single- or multi-part).
+        color_channels: the three file channels holding colour; ``None`` = ``R, G, B`` or Blender's
+            ``<layer>.Combined.R/G/B``.
+        feature_channels: features to load, by canonical, tracer, Mitsuba or Blender name (with or
+            without the view-layer prefix), or any file channel name; ``None`` = every feature of
+            the feature table the file has.
+        layer: Blender view layer to read (needed only when the file has several).
+
+    Returns:
+        A :class:`RenderFrame`: ``color (3, H, W)``, ``features {canonical name: (H, W)}`` (float32).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: not an EXR; no colour (a Blender file without a ``Combined`` pass); a pass with
+            missing or extra channels; a feature or colour channel of another size than the colour;
+            a feature with no finite value or (except time ``T``) all zeros. The message names the
+            file, the layer and the channel.
+
+    Example:
+        >>> fr = read_render_frame("frame_0001.exr")  # Mitsuba's, ours or Blender's
+        >>> fr.color.shape, fr.feature_names
+        ((3, 256, 256), ['Z', 'albedo.R', 'albedo.G', 'albedo.B', 'N.X', 'N.Y', 'N.Z', 'P.X', 'P.Y', 'P.Z'])
+    """
+    path = Path(path)
+    chans = read_exr(path)
+    frame = RenderFrame(path, np.zeros((3, 0, 0), np.float32), {}, "flat")
+    layers = _blender_layers(list(chans))
+    if layers:
+        _read_blender(path, chans, layers, layer, frame, color_channels)
+    else:
+        _read_flat(path, chans, color_channels or ("R", "G", "B"), frame)
+    names = _choose_features(path, frame, chans, feature_channels)
+
+    color_src = [frame.sources[c] for c in "RGB"]
+    size = chans[color_src[0]].shape
+    extra = names + [c for c in ("A", *_EMISSION) if c in frame.sources]
+    for src in color_src + [frame.sources[n] for n in extra]:
+        if chans[src].shape != size:
+            raise ValueError(f"{_where(path, frame.layer)}: channel {src!r} is {chans[src].shape[1]}x"
+                             f"{chans[src].shape[0]} pixels, the colour {color_src[0]!r} {size[1]}x{size[0]}")
+    frame.color = np.stack([chans[s] for s in color_src]).astype(np.float32, copy=False)
+    if "A" in frame.sources:
+        frame.alpha = chans[frame.sources["A"]]
+    frame.features = {n: chans[frame.sources[n]] for n in names}
+    for n in names:
+        bg = getattr(F.feature_of(n), "blender_background", None)
+        if frame.layout == "blender" and bg is not None:
+            far = frame.features[n] >= 0.5 * bg  # Blender writes exactly bg; half of it is still "no hit"
+            if far.any():
+                frame.features[n] = np.where(far, 0.0, frame.features[n]).astype(np.float32)
+                frame.notes.append(f"{frame.sources[n]}: background value {bg:g} read as 0 (as in ours and "
+                                   f"Mitsuba's files)")
+    if frame.layout == "flat" and all(c in chans for c in _EMISSION):
+        frame.sources.update({c: c for c in _EMISSION})
+    if all(c in frame.sources for c in _EMISSION):
+        frame.emission = np.stack([chans[frame.sources[c]] for c in _EMISSION])
+    if not frame.features:
+        frame.notes.append("no feature channels: the colour is all there is to go by")
+    _check_feature_values(path, frame)
+    return frame
+
+
+def write_color(path: str | os.PathLike, color: np.ndarray, like: RenderFrame | None = None,
+                layout: str = "input") -> Path:
+    """Write ``(3, H, W)`` colour as an EXR, in the layout of the frame it came from.
+
+    Args:
+        path: destination (written atomically).
+        color: ``(3, H, W)`` float32.
+        like: the frame read by :func:`read_render_frame` (for its layout); ``None`` = plain ``R, G, B``.
+        layout: ``"input"``: the channels colour was read from (Blender: ``<layer>.Combined.R/G/B``
+            with the input's ``A``, marked as a Blender multilayer file); ``"plain"``: ``R, G, B``.
+
+    Returns:
+        The path written.
+    """
+    if layout not in ("input", "plain"):
+        raise ValueError(f"layout must be 'input' or 'plain', got {layout!r}")
+    color = np.asarray(color, np.float32)
+    if color.ndim != 3 or color.shape[0] != 3:
+        raise ValueError(f"color must be (3, H, W), got {color.shape}")
+    if like is None or layout == "plain":
+        return write_exr(path, dict(zip("RGB", color)))
+    chans = {like.sources[c]: color[k] for k, c in enumerate("RGB")}
+    if like.alpha is not None:
+        chans[like.sources["A"]] = like.alpha
+    return write_exr(path, chans, attributes=BLENDER_HEADER if like.layout == "blender" else None)

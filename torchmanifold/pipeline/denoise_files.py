@@ -1,0 +1,129 @@
+"""The ``denoise`` command: other renderers' EXR frames (ours, Mitsuba's, Blender's) in, denoised
+EXR frames out, all or nothing."""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from torchmanifold.io.files import prepare_out, staged_dir
+from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
+from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
+
+__all__ = ["denoise_files", "OUTPUT_LAYOUTS"]
+
+#: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
+#: ``"plain"``: ``R, G, B``
+OUTPUT_LAYOUTS = ("input", "plain")
+
+
+def _check_inputs(inputs: Sequence, out, output_layout: str) -> tuple[list[Path], Path]:
+    inputs = [Path(p) for p in inputs]
+    if not inputs:
+        raise ValueError("inputs: expected at least one EXR frame")
+    if output_layout not in OUTPUT_LAYOUTS:
+        raise ValueError(f"output_layout must be one of {OUTPUT_LAYOUTS}, got {output_layout!r}")
+    if len({p.name for p in inputs}) != len(inputs):
+        raise ValueError("inputs: two frames share a file name; outputs are written under the input names")
+    for p in inputs:
+        if not p.is_file():
+            raise FileNotFoundError(f"EXR file not found: {p}")
+    outp = Path(out)
+    if any(p.resolve().parent == outp.resolve() for p in inputs):
+        raise ValueError(f"--out {outp} holds input frames; choose another folder")
+    return inputs, outp
+
+
+def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
+    """Every frame of a clip must have the first one's size, layout and features."""
+    for what, a, b in (("frame size", frame.size, first.size), ("layout", frame.layout, first.layout),
+                       ("view layer", frame.layer, first.layer)):
+        if a != b:
+            raise ValueError(f"{frame.path}: {what} {a} differs from {first.path} ({b})")
+
+
+def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
+                  color_channels: Sequence[str] | None = None, feature_channels: Sequence[str] | None = None,
+                  overwrite: bool = False, progress: bool = True, layer: str | None = None,
+                  output_layout: str = "input") -> dict:
+    """Denoise a sequence of multi-channel EXR frames (one file per frame, in frame order).
+
+    Frames are read by :func:`~torchmanifold.io.frames.read_render_frame` (our tracer's, Mitsuba's and
+    Blender's layouts, detected per file) as the time window needs them and released behind it, so
+    memory is bounded by the window. Outputs are staged and moved into ``out`` only when every frame
+    succeeded: a bad frame leaves ``out`` empty.
+
+    Args:
+        inputs: the frame files, in order.
+        out: output folder (new or empty unless ``overwrite``; it must not hold any input).
+        settings: :class:`DenoiseSettings` (default: ``DenoiseSettings(temporal_radius=1)``).
+        color_channels: the three colour channels to denoise (``None``: ``R, G, B`` or Blender's
+            ``<layer>.Combined.R/G/B``).
+        feature_channels: features to read, by any name the feature table knows or a file channel
+            name; ``None`` = the first frame's known features (all frames must have them). Our
+            tracer's ``emission.R/G/B``, when present, is kept out of the filter.
+        overwrite: reuse a non-empty ``out``.
+        progress: tqdm progress bar over frames.
+        layer: Blender view layer (only needed when a file has several).
+        output_layout: ``"input"`` (colour under the channels it came from; Blender files keep
+            ``<layer>.Combined.R/G/B`` and the input's ``A``) or ``"plain"`` (``R, G, B``).
+
+    Returns:
+        ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
+        [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
+        "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "seconds_per_frame": s,
+        "outputs": [...]}``; ``notes`` lists what the reader changed or found missing (deduplicated).
+
+    Raises:
+        FileNotFoundError, ValueError: missing/unreadable file, missing channel or pass, size mismatch,
+            empty feature (named by file, layer and channel).
+    """
+    from tqdm.auto import tqdm
+
+    inputs, outp = _check_inputs(inputs, out, output_layout)
+    settings = (settings or DenoiseSettings(temporal_radius=1)).check()
+    # the first frame fixes the features; fail on it before creating anything
+    first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
+    fnames = first.feature_names
+    outp = prepare_out(outp, overwrite)
+
+    r = settings.temporal_radius
+    cache: dict[int, RenderFrame] = {0: first}
+    notes = list(first.notes)
+    stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
+    t0 = time.perf_counter()
+    with staged_dir(outp) as stage:
+        for t in tqdm(range(len(inputs)), desc="denoise", unit="frame", disable=not progress):
+            ids = list(range(max(0, t - r), min(len(inputs), t + r + 1)))
+            for k in ids:
+                if k not in cache:
+                    cache[k] = read_render_frame(inputs[k], color_channels, fnames, first.layer)
+                    _same_as_first(cache[k], first)
+                    notes += [n for n in cache[k].notes if n not in notes]
+            for k in [k for k in cache if k < ids[0]]:
+                del cache[k]
+            color = torch.from_numpy(np.stack([cache[k].color for k in ids]))
+            feats = torch.from_numpy(np.stack([cache[k].stack(fnames) for k in ids]))
+            ems = [cache[k].emission for k in ids]
+            emission = torch.from_numpy(np.stack(ems)) if all(e is not None for e in ems) else None
+            y, st = denoise_frames(color, feats, fnames, emission, settings=settings, frame_times=ids,
+                                   query_times=[t], return_stats=True)
+            own = ids.index(t)  # count the frame's own samples once
+            stats_sum["nonfinite_color"] += int((~torch.isfinite(color[own])).sum())
+            stats_sum["nonfinite_features"] += int((~torch.isfinite(feats[own])).sum())
+            stats_sum["firefly_energy_removed"] += st.get("firefly_energy_removed", 0.0)
+            write_color(stage / inputs[t].name, y[0].numpy(), cache[t], output_layout)
+    outputs = [str(outp / p.name) for p in inputs]
+    n = len(inputs)
+    return {"frames": n, "size": list(first.size), "layout": first.layout, "layer": first.layer,
+            "feature_channels": fnames, "sources": {k: first.sources[k] for k in ["R", "G", "B", *fnames]},
+            "notes": notes,
+            "nonfinite_samples": stats_sum["nonfinite_color"] + stats_sum["nonfinite_features"],
+            "nonfinite_color": stats_sum["nonfinite_color"],
+            "nonfinite_features": stats_sum["nonfinite_features"],
+            "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
+            "seconds_per_frame": (time.perf_counter() - t0) / n, "outputs": outputs}
