@@ -71,6 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
     from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
+    from torchmanifold.pipeline.progressive import SCHEMES
 
     p = argparse.ArgumentParser(prog="torchmanifold", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -91,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                    help="bandwidth shrink: sigma_{i+1}^2/sigma_i^2 = (i+a)/(i+1) (%(default)s)")
     r.add_argument("--inbetween", type=int, default=0, help="extra frames between rendered frames (%(default)s)")
+    r.add_argument("--scheme", choices=SCHEMES, default="accumulate",
+                   help="filter the running mean of the samples (accumulate) or average filtered 1-spp "
+                        "iterations, the paper's scheme (%(default)s)")
     r.add_argument("--fps", type=float, default=8.0, help="MP4 frame rate (%(default)s)")
     r.add_argument("--out", required=True, help="output folder")
     r.add_argument("--overwrite", action="store_true", help="reuse a non-empty --out")
@@ -136,7 +140,7 @@ def main(argv=None) -> int:
                              width=args.width, height=args.height, seed=args.seed,
                              reference_spp=args.reference_spp, overwrite=args.overwrite,
                              settings=_settings(args, 2), alpha=args.alpha, inbetween=args.inbetween,
-                             fps=args.fps, progress=not args.quiet)
+                             fps=args.fps, progress=not args.quiet, scheme=args.scheme)
             if "final" in res:
                 f = res["final"]
                 print(f"after {args.iterations} iterations (PSNR dB): raw {f['raw']['psnr']:.2f}  "

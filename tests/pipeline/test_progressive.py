@@ -142,9 +142,11 @@ def test_estimate_between_kept_times_is_their_bracket_interpolation(small_tracer
         pr.estimate(0.0, "best")
 
 
-def test_changing_sigma_between_iterations_changes_the_next_step_only(small_tracer):
+@pytest.mark.parametrize("scheme", ["accumulate", "average"])
+def test_changing_sigma_between_iterations_changes_the_next_step_only(small_tracer, scheme):
     def engine(sigma_s):
-        return ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=DenoiseSettings(**{**EXACT, "sigma_s": sigma_s}))
+        return ProgressiveRenderer(small_tracer, [0.0, 1.0], scheme=scheme,
+                                   settings=DenoiseSettings(**{**EXACT, "sigma_s": sigma_s}))
 
     a, b, c = engine(2.0), engine(2.0), engine(4.0)
     for pr in (a, b, c):
@@ -157,7 +159,9 @@ def test_changing_sigma_between_iterations_changes_the_next_step_only(small_trac
         assert torch.equal(s_a.ours, s_b.ours)
     assert a.history[2].sigma_s == c.history[2].sigma_s == pytest.approx(4.0 * a.schedule.factor(3))
 
-    def third(pr):  # the third iteration's own filtered image, from the running averages
+    def third(pr):  # the third iteration's own filtered image (average: from the running averages)
+        if scheme == "accumulate":
+            return pr.history[2].ours.double()
         return 3 * pr.history[2].ours.double() - 2 * pr.history[1].ours.double()
 
     torch.testing.assert_close(third(a), third(c), atol=1e-5, rtol=1e-5)  # filtered with the new sigma
@@ -220,3 +224,18 @@ def test_restart_repeats_the_first_iteration_and_on_render_sees_every_frame(smal
     assert pr.iteration == 0 and pr.history == []
     again = pr.step()
     assert torch.equal(again.ours, first.ours) and torch.equal(again.raw, first.raw)
+
+
+def test_both_schemes_tend_to_the_raw_mean_as_the_bandwidth_vanishes(small_tracer):
+    """Consistency: once the filter is the identity, "accumulate" shows the running mean of the samples
+    at once, and "average" is the mean of the per-iteration images, the samples' mean again."""
+    tiny = DenoiseSettings(**{**EXACT, "sigma_s": 1e-3, "temporal_radius": 0, "albedo_blur": 0.0})
+    avg = ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=tiny, scheme="average")
+    st = avg.run(3)
+    torch.testing.assert_close(st.ours, st.raw, atol=1e-5, rtol=1e-5)
+    acc = ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=DenoiseSettings(**{**EXACT, "sigma_s": 3.0}))
+    acc.run(2)
+    assert (acc.history[-1].ours - acc.history[-1].raw).abs().max() > 1e-2  # filtered so far
+    acc.set_settings(sigma_s=1e-3, albedo_blur=0.0, sigma_t=1e-3)
+    st = acc.step()
+    torch.testing.assert_close(st.ours, st.raw, atol=1e-5, rtol=1e-5)

@@ -42,6 +42,9 @@ __all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline", "ESTI
 
 #: the running estimates the engine keeps per query time, in this order
 ESTIMATES = ("ours", "raw", "gaussian")
+#: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
+#: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
+SCHEMES = ("accumulate", "average")
 
 
 def gaussian_baseline(color: Tensor, sigma: float) -> Tensor:
@@ -106,6 +109,11 @@ class ProgressiveRenderer:
             e.g. to keep the mean of its feature buffers.
         range_scale: multiplier of every range sigma at iteration 1 (the schedule's ``sigma_r``); it
             shrinks with the same schedule.
+        scheme: ``"accumulate"`` filters the running mean of each frame's samples (and of its features)
+            at the iteration's bandwidth, so each iteration's filter sees n spp and the pixel-mean
+            albedo; ``"average"`` is the paper's literal scheme, the running average of independently
+            filtered 1-spp iterations. Both tend to the raw mean as the bandwidth shrinks (consistent);
+            ``benchmarks/bench_progressive_schemes.py`` measures them against each other.
 
     Example:
         >>> pr = ProgressiveRenderer(PathTracer(default_scene(), 32, 32), times=[0, 1, 2])  # doctest: +SKIP
@@ -119,7 +127,8 @@ class ProgressiveRenderer:
                  settings: DenoiseSettings | None = None, alpha: float = DEFAULT_ALPHA, seed: int = 0,
                  firefly_growth: float = 0.5, gaussian_sigma: float | None = None,
                  progress: Callable[[int], object] | None = None,
-                 on_render: Callable[[int, object], object] | None = None, range_scale: float = 1.0):
+                 on_render: Callable[[int, object], object] | None = None, range_scale: float = 1.0,
+                 scheme: str = "accumulate"):
         if not hasattr(tracer, "render"):
             raise TypeError(f"tracer must have a render(times, spp, seed, sample_offset) method, got "
                             f"{type(tracer).__name__}")
@@ -135,6 +144,9 @@ class ProgressiveRenderer:
         self._schedule = BandwidthSchedule(self._settings.sigma_s, range_scale, alpha)
         self.gaussian_sigma = 1.0 if gaussian_sigma is None else _finite("gaussian_sigma", gaussian_sigma, 0.0)
         self.firefly_growth = _finite("firefly_growth", firefly_growth, 0.0)
+        if scheme not in SCHEMES:
+            raise ValueError(f"scheme: expected one of {SCHEMES}, got {scheme!r}")
+        self.scheme = scheme
         self.seed = int(seed)
         self.progress = progress
         self.on_render = on_render
@@ -239,6 +251,7 @@ class ProgressiveRenderer:
         """Drop all samples: the next step is iteration 1 again (settings and query times stay)."""
         self.iteration = 0
         self._sums: Tensor | None = None  # (Q, len(ESTIMATES), 3, H, W) float64 running sums
+        self._frame_sums: dict[int, Tensor] = {}  # accumulate: frame -> sum of [colour, features, emission]
         self.history: list[ProgressiveState] = []
 
     # -- estimates ----------------------------------------------------------------------------------
@@ -264,6 +277,13 @@ class ProgressiveRenderer:
     def _needed(self, q: float) -> list[int]:
         return window(self.times, q, self._settings.temporal_radius)
 
+    def _accumulate(self, k: int, res) -> None:
+        x = torch.cat([res.color, res.features, res.emission], 1)[0].double()
+        if k in self._frame_sums:
+            self._frame_sums[k] += x
+        else:
+            self._frame_sums[k] = x
+
     def _render(self, k: int, i: int):
         res = self.tracer.render(times=[self.times[k]], spp=1, seed=self.seed, sample_offset=i - 1)
         if self.on_render is not None:
@@ -277,7 +297,11 @@ class ProgressiveRenderer:
         render_s = 0.0
         sig_s = self._schedule.sigma_s(i)
         rscale = self._schedule.sigma_r(i)
-        settings = replace(self._settings, sigma_s=sig_s)
+        # the albedo's footprint blur and the time sigma are bandwidths too: they shrink with the
+        # schedule, so the filter tends to the identity (consistency)
+        shrink = self._schedule.factor(i)
+        settings = replace(self._settings, sigma_s=sig_s, albedo_blur=self._settings.albedo_blur * shrink,
+                           sigma_t=self._settings.sigma_t * shrink)
         k_ff = self._settings.firefly_k * i ** self.firefly_growth
         qt = self._query_times
         rows: list[Tensor | None] = [None] * len(qt)
@@ -291,14 +315,21 @@ class ProgressiveRenderer:
                     tr = time.perf_counter()
                     ring[k] = self._render(k, i)
                     render_s += time.perf_counter() - tr
+                    if self.scheme == "accumulate":
+                        self._accumulate(k, ring[k])
             for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
                 del ring[k]
             rs = [ring[k] for k in need]
             ft = [self.times[k] for k in need]
-            color = torch.cat([r.color for r in rs])
-            feats = torch.cat([r.features for r in rs])
-            emis = torch.cat([r.emission for r in rs])
             names = list(rs[0].feature_names)
+            samples = torch.cat([r.color for r in rs])
+            if self.scheme == "accumulate":
+                mean = torch.stack([self._frame_sums[k] for k in need]).div_(i).float()
+                color, feats, emis = mean.split([3, len(names), 3], 1)
+            else:
+                color = samples
+                feats = torch.cat([r.features for r in rs])
+                emis = torch.cat([r.emission for r in rs])
             pilot = None
             if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
                 pilot = torch.stack([self.estimate(t) for t in ft])
@@ -306,9 +337,13 @@ class ProgressiveRenderer:
                                    frame_times=ft, query_times=[q], pilot=pilot, firefly_k=k_ff, return_stats=True)
             for key, v in st.items():
                 stats_all[key] = stats_all.get(key, 0) + v
-            x = interpolate(color, ft, q)
+            x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * self._schedule.factor(i))[0]
-            rows[qi] = torch.stack([y[0], x, gauss])
+            # accumulate: "ours" is the latest filtered mean, kept as i times itself in the sums
+            ours = y[0].double()
+            if self.scheme == "accumulate":
+                ours = ours * i - (0 if self._sums is None else self._sums[qi, 0])
+            rows[qi] = torch.stack([ours, x.double(), gauss.double()])
             if self.progress is not None:
                 self.progress(1)
         new = torch.stack(rows)

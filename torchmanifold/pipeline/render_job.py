@@ -158,7 +158,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
                height: int = RENDER_DEFAULTS["height"], seed: int = RENDER_DEFAULTS["seed"],
                reference_spp: int = RENDER_DEFAULTS["reference_spp"], overwrite: bool = False,
                settings: DenoiseSettings | None = None, alpha: float | None = None, inbetween: int = 0,
-               fps: float = 8.0, flip_every: int = 0, progress: bool = True) -> dict:
+               fps: float = 8.0, flip_every: int = 0, progress: bool = True, scheme: str = "accumulate") -> dict:
     """Render, filter and measure a clip progressively; write everything under ``out``.
 
     Args:
@@ -172,6 +172,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
         fps: frame rate of the MP4s.
         flip_every: compute FLIP every this many iterations (and always at the last); 0 = last only.
         progress: show tqdm progress bars.
+        scheme: how iterations combine (see :class:`~torchmanifold.pipeline.progressive.ProgressiveRenderer`).
 
     Returns:
         The dict written to ``metrics.json``.
@@ -201,7 +202,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     ref_seconds = time.perf_counter() - t0
 
     bar = tqdm(total=iterations * len(query), desc="iterations x frames", unit="frame", disable=not progress)
-    pr = ProgressiveRenderer(tracer, times, query, settings=settings, alpha=alpha, seed=seed,
+    pr = ProgressiveRenderer(tracer, times, query, settings=settings, alpha=alpha, seed=seed, scheme=scheme,
                              progress=bar.update)
     rows, raw_mse = _iterate(pr, iterations, ref, mask, flip_every, bar)
     bar.close()
@@ -210,7 +211,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     summary = {
         "scene": scene_name, "frames": frames, "query_times": query, "iterations": iterations,
         "width": width, "height": height, "seed": seed, "reference_spp": reference_spp,
-        "reference_seconds": ref_seconds, "alpha": alpha,
+        "reference_seconds": ref_seconds, "alpha": alpha, "scheme": scheme,
         "settings": {k: (str(v) if isinstance(v, torch.dtype) else v) for k, v in settings.__dict__.items()},
         "gaussian_sigma": pr.gaussian_sigma, "moving_object_ids": moving_ids,
         "memory_frames": pr.memory_frames, "threads": torch.get_num_threads(),

@@ -60,7 +60,9 @@ class BandwidthSchedule:
         sigma_s: spatial sigma (pixels) of iteration 1.
         sigma_r: range sigma of iteration 1 (guide units).
         alpha: the ``a`` of the shrink rule.
-        min_sigma_s: floor for the spatial sigma (the filter needs >= 1 pixel).
+        min_sigma_s: floor for the spatial sigma; it only keeps the number positive (below about 0.1
+            pixel the filter is the identity), so the schedule stays consistent: the filter tends to
+            the identity and the estimate to the raw mean.
 
     Example:
         >>> s = BandwidthSchedule(8.0, 1.0, alpha=0.5)
@@ -69,7 +71,7 @@ class BandwidthSchedule:
     """
 
     def __init__(self, sigma_s: float, sigma_r: float = 1.0, alpha: float = DEFAULT_ALPHA,
-                 min_sigma_s: float = 1.0):
+                 min_sigma_s: float = 1e-3):
         for name, v in (("sigma_s", sigma_s), ("sigma_r", sigma_r), ("min_sigma_s", min_sigma_s)):
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
                 raise ValueError(f"{name} must be a positive finite number, got {v!r}")
