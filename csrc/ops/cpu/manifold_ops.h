@@ -21,23 +21,6 @@
 namespace torchmanifold {
 namespace cpu {
 
-// df = max(1, 2^floor(log2(min(sigma_s / 4, 256 sigma_r)))): sigma_s/df lands in [4, 8).
-inline int64_t downsample_factor(double sigma_s, double sigma_r) {
-  const double m = std::min(sigma_s / 4.0, 256.0 * sigma_r);
-  if (!(m >= 2.0)) return 1;
-  const int e = std::min(30, static_cast<int>(std::floor(std::log2(m))));
-  return int64_t(1) << e;
-}
-
-// 8. The split's M = sum r r^T takes the rows of every s-th band of kGramBand rows,
-// s = max(1, floor(H W / 2^17)): still >= 2^17 samples for a D x D matrix, where the full sum costs
-// D^2 / 2 multiply-adds a pixel and a read of the guide. Bands, not single rows: a channel's band
-// is one run of memory, which streams faster than rows far apart.
-constexpr int64_t kGramBand = 4;
-inline int64_t gram_band_stride(int64_t H, int64_t W) {
-  return std::max<int64_t>(1, H * W / (int64_t(1) << 17));
-}
-
 // exp(x) for x <= 0 without a libm call, so the weight loops vectorise: x = n ln2 + r,
 // |r| <= ln2/2, Taylor polynomial in r, times 2^n built in the exponent bits. Relative error
 // ~1e-7 (float) / ~1e-16 (double); underflows to exactly 0 below the smallest normal.
