@@ -149,21 +149,25 @@ def check_numbers(name: str, values: Any, *, n: int | None = None, positive: boo
         if values.dim() != 1 or values.is_complex() or values.dtype == torch.bool:
             raise ValueError(f"{name} must be {what}, got a tensor of shape {tuple(values.shape)} and "
                              f"dtype {values.dtype}")
+        if values.numel() == 0 or (n is not None and values.numel() != n):
+            raise ValueError(f"{name} must be {what}, got {values.numel()}")
         t = values.detach().to(torch.float64)
-    elif isinstance(values, Sequence) and not isinstance(values, (str, bytes)):
-        for i, x in enumerate(values):
-            if not _is_real(x):
-                raise TypeError(f"{name} must be {what}, got {type(x).__name__} at index {i}")
-        t = torch.tensor([float(x) for x in values], dtype=torch.float64)
-    else:
-        raise TypeError(f"{name} must be {what}, got {type(values).__name__}")
-    if t.numel() == 0 or (n is not None and t.numel() != n):
-        raise ValueError(f"{name} must be {what}, got {t.numel()}")
-    if isinstance(values, Tensor) and torch.compiler.is_compiling():
+        # a data-dependent check would break a torch.compile graph: eager only
+        if not torch.compiler.is_compiling() and not (bool(torch.isfinite(t).all()) and
+                                                      (not positive or bool((t > 0).all()))):
+            raise ValueError(f"{name} must be {what}, got {t.tolist()}")
         return t
-    if not bool(torch.isfinite(t).all()) or (positive and not bool((t > 0).all())):
-        raise ValueError(f"{name} must be {what}, got {t.tolist()}")
-    return t
+    if not isinstance(values, Sequence) or isinstance(values, (str, bytes)):
+        raise TypeError(f"{name} must be {what}, got {type(values).__name__}")
+    for i, x in enumerate(values):
+        if not _is_real(x):
+            raise TypeError(f"{name} must be {what}, got {type(x).__name__} at index {i}")
+    xs = [float(x) for x in values]
+    if not xs or (n is not None and len(xs) != n):
+        raise ValueError(f"{name} must be {what}, got {len(xs)}")
+    if not all(math.isfinite(x) and (x > 0 or not positive) for x in xs):
+        raise ValueError(f"{name} must be {what}, got {xs}")
+    return torch.tensor(xs, dtype=torch.float64)
 
 
 def check_sigmas(name: str, sigmas: Any, n: int) -> Tensor:

@@ -13,17 +13,19 @@ from torchmanifold.ops import (
 )
 
 
-def _clip(B=1, T=3, C=3, D=4, H=18, W=20, seed=0, dtype=torch.float64):
-    gen = torch.Generator().manual_seed(seed)
-    v = torch.rand(B, T, C, H, W, generator=gen, dtype=torch.float64)
-    g = torch.rand(B, T, D, H, W, generator=gen, dtype=torch.float64)
-    g[..., : H // 2, :] += 0.6
-    return v.to(dtype), g.to(dtype)
+
+
+@pytest.fixture
+def clip(random_inputs):
+    """A float64 window of frames: values (B, T, C, H, W), guide (B, T, D, H, W)."""
+    def make(B=1, T=3, C=3, D=4, H=18, W=20, seed=0, dtype=torch.float64, device="cpu"):
+        return random_inputs(B, C, D, H, W, T=T, dtype=dtype, seed=seed, edge=0.6, device=device)
+    return make
 
 
 @pytest.mark.parametrize("mode", ["window", "spacetime"])
-def test_smoke_and_cardinality(mode):
-    v, g = _clip(B=2, T=4)
+def test_smoke_and_cardinality(clip, mode, device):
+    v, g = clip(B=2, T=4, device=device)
     out = temporal_adaptive_manifold_filter(v, g, [0, 1, 2, 3], [0.0, 1.5, 3.0], 5.0, 0.3, mode=mode)
     assert out.shape == (2, 3, 3, 18, 20) and out.dtype == v.dtype and torch.isfinite(out).all()
     one = temporal_adaptive_manifold_filter(v, g, torch.arange(4.0), 2.0, 5.0, 0.3, mode=mode)
@@ -38,8 +40,8 @@ def test_time_weights():
     assert w[1, 3] == 1.0 and torch.isfinite(w).all()  # a far query does not underflow to all zeros
 
 
-def test_window_matches_spatial_filter_of_the_average():
-    v, g = _clip(T=3)
+def test_window_matches_spatial_filter_of_the_average(clip):
+    v, g = clip(T=3)
     ft, q, st = [0.0, 1.0, 2.0], 0.6, 0.8
     w = torch.tensor([math.exp(-(t - q) ** 2 / (2 * st**2)) for t in ft], dtype=torch.float64)
     w = w / w.sum()
@@ -51,8 +53,8 @@ def test_window_matches_spatial_filter_of_the_average():
     torch.testing.assert_close(out[:, 0], expect, rtol=1e-12, atol=1e-12)
 
 
-def test_window_skips_nonfinite_frames():
-    v, g = _clip(T=3)
+def test_window_skips_nonfinite_frames(clip):
+    v, g = clip(T=3)
     vb = v.clone()
     vb[0, 1, :, 4, 4] = math.nan
     out = temporal_adaptive_manifold_filter(vb, g, [0, 1, 2], [1.0], 5.0, 0.3)
@@ -62,25 +64,25 @@ def test_window_skips_nonfinite_frames():
 
 
 @pytest.mark.parametrize("adjust", [False, True])
-def test_spacetime_single_frame_is_the_spatial_filter(adjust):
-    v, g = _clip(B=2, T=1)
+def test_spacetime_single_frame_is_the_spatial_filter(clip, adjust, device):
+    v, g = clip(B=2, T=1, device=device)
     out = temporal_adaptive_manifold_filter(v, g, [3.0], [3.0], 5.0, 0.25, mode="spacetime", tree_height=3,
                                             adjust_outliers=adjust)
     expect = adaptive_manifold_filter(v[:, 0], g[:, 0], 5.0, 0.25, 3, adjust_outliers=adjust, backend="torch")
     torch.testing.assert_close(out[:, 0], expect, rtol=0, atol=0)
 
 
-def test_spacetime_identical_frames_equal_the_spatial_filter():
+def test_spacetime_identical_frames_equal_the_spatial_filter(clip, device):
     """Frames that are copies of one frame, weighted in time, give back that frame's filter."""
-    v, g = _clip(T=1)
+    v, g = clip(T=1, device=device)
     out = temporal_adaptive_manifold_filter(v.expand(-1, 3, -1, -1, -1), g.expand(-1, 3, -1, -1, -1), [0, 1, 2],
                                             [0.7], 5.0, 0.25, mode="spacetime")
     expect = adaptive_manifold_filter(v[:, 0], g[:, 0], 5.0, 0.25, backend="torch")
     torch.testing.assert_close(out[:, 0], expect, rtol=1e-10, atol=1e-10)
 
 
-def test_spacetime_constant_values_exact_and_finite_with_nans():
-    _, g = _clip(T=3)
+def test_spacetime_constant_values_exact_and_finite_with_nans(clip):
+    _, g = clip(T=3)
     v = torch.full((1, 3, 3, 18, 20), 0.3217)
     out = temporal_adaptive_manifold_filter(v, g.float(), [0, 1, 2], [0.5, 2.0], 5.0, 0.1, mode="spacetime",
                                             adjust_outliers=True)
@@ -123,8 +125,8 @@ def test_spacetime_does_not_ghost_a_moving_square():
     assert errs["spacetime"][1] < 0.3 * noisy_rmse  # and it still denoises (5 frames, sigma_s 3)
 
 
-def test_module_equals_function():
-    v, g = _clip(T=3)
+def test_module_equals_function(clip, device):
+    v, g = clip(T=3, device=device)
     for mode in ("window", "spacetime"):
         m = TemporalAdaptiveManifoldFilter(5.0, 0.3, sigma_t=0.7, mode=mode, tree_height=3, adjust_outliers=True,
                                            guide_sigmas=[0.1, 0.2, 0.3, 0.4])
@@ -134,8 +136,8 @@ def test_module_equals_function():
         assert f"mode='{mode}'" in repr(m) and "sigma_t=0.7" in repr(m)
 
 
-def test_gradcheck_both_modes():
-    v, g = _clip(T=2, C=1, D=2, H=5, W=6)
+def test_gradcheck_both_modes(clip):
+    v, g = clip(T=2, C=1, D=2, H=5, W=6)
     v.requires_grad_(True)
     for mode in ("window", "spacetime"):
         assert torch.autograd.gradcheck(
