@@ -9,6 +9,17 @@ Rules, everywhere:
 - every message reads ``"<name> must be <what was expected>, got <what came>"``, where ``name`` is the
   argument as the caller knows it (``"sigma_s"``, ``"guide_sigmas[2]"``, ``"--tree-height"``).
 
+Which check for what:
+
+- numbers: :func:`check_positive` (sigmas, scales), :func:`check_nonnegative`, :func:`check_number` (any
+  interval, open or closed ends), :func:`check_int` (``min`` / ``max``), :func:`check_tree_height`
+  (``[1, MAX_TREE_HEIGHT]``, ``None`` = automatic where allowed);
+- choices: :func:`check_choice` (modes, backends, firefly treatments);
+- sequences: :func:`check_numbers` (times, ...), :func:`check_sigmas` (one positive sigma per channel; a
+  ``{name: sigma}`` mapping checks each value with ``check_positive(f"guide_sigmas[{name!r}]", v)``);
+- tensors: :func:`check_tensor` (rank, dtype), :func:`check_values_and_guide` (a filter's image pair),
+  :func:`check_same_dtype_device`.
+
 ``bool`` is not accepted as a number (``True`` is an ``int`` in Python, almost never meant as one).
 Messages are built only on failure. Each check returns the value normalised (``float``, ``int``, a
 float64 tensor) so callers write ``sigma_s = check_positive("sigma_s", sigma_s)``.
@@ -42,6 +53,7 @@ __all__ = [
     "check_sigmas",
     "check_tensor",
     "check_tree_height",
+    "check_values_and_guide",
 ]
 
 #: Largest manifold tree height, the same bound as ``kMaxTreeHeight`` in
@@ -200,6 +212,22 @@ def check_tensor(name: str, x: Any, *, dims: int | Sequence[int], layout: str | 
         names = ", ".join(str(d).replace("torch.", "") for d in dtypes)
         raise TypeError(f"{name} must have dtype {names}, got {x.dtype}")
     return x
+
+
+def check_values_and_guide(values: Any, guide: Any, *, dtypes: Sequence[torch.dtype] | None = None) -> bool:
+    """A filter's image pair: ``values`` ``(B, C, H, W)`` or ``(C, H, W)`` (dtype in ``dtypes`` when given) and
+    ``guide`` of the same rank, ``(B, D, H, W)`` or ``(D, H, W)``, sharing B, H, W, with H, W, D >= 1.
+    Returns whether they are batched (4-D)."""
+    check_tensor("values", values, dims=(3, 4), layout="(B, C, H, W) or (C, H, W)", dtypes=dtypes)
+    batched = values.dim() == 4
+    check_tensor("guide", guide, dims=values.dim(), layout="(B, D, H, W)" if batched else "(D, H, W)")
+    if values.shape[-2:] != guide.shape[-2:] or (batched and values.shape[0] != guide.shape[0]):
+        raise ValueError(f"guide must share batch size and H, W with values {tuple(values.shape)}, "
+                         f"got {tuple(guide.shape)}")
+    if values.shape[-2] < 1 or values.shape[-1] < 1 or guide.shape[-3] < 1:
+        raise ValueError(f"values and guide must have H, W and the guide channels D >= 1, got values "
+                         f"{tuple(values.shape)}, guide {tuple(guide.shape)}")
+    return batched
 
 
 def check_same_dtype_device(name: str, x: Tensor, ref_name: str, ref: Tensor) -> None:

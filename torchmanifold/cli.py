@@ -37,7 +37,7 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     g = p.add_argument_group("filter")
     g.add_argument("--sigma-s", type=float, default=d.sigma_s, help="spatial sigma in pixels (%(default)s)")
     g.add_argument("--tree-height", type=int, default=tree_height,
-                   help="manifold tree height, 1 to %d (%%(default)s)" % MAX_TREE_HEIGHT)
+                   help="manifold tree height (1 to %d; default %%(default)s)" % MAX_TREE_HEIGHT)
     g.add_argument("--guide", nargs="+", default=None, metavar="CHANNEL",
                    help="feature channels that guide the filter (default: albedo, normals, position or depth)")
     g.add_argument("--guide-sigma", action="append", metavar="NAME=SIGMA",
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--reference-spp", type=int, default=RENDER_DEFAULTS["reference_spp"],
                    help="spp of the converged reference the errors are measured against; 0 = none (%(default)s)")
     r.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
-                   help="bandwidth shrink: sigma_{i+1}^2/sigma_i^2 = (i+a)/(i+1) (%(default)s)")
+                   help="bandwidth shrink: sigma_{i+1}^2/sigma_i^2 = (i+alpha)/(i+1) (%(default)s)")
     r.add_argument("--inbetween", type=int, default=0, help="extra frames between rendered frames (%(default)s)")
     r.add_argument("--fps", type=float, default=8.0, help="MP4 frame rate (%(default)s)")
     r.add_argument("--out", required=True, help="output folder")

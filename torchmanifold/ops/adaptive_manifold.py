@@ -23,8 +23,8 @@ from torchmanifold._checks import (
     check_positive,
     check_same_dtype_device,
     check_sigmas,
-    check_tensor,
     check_tree_height,
+    check_values_and_guide,
 )
 from torchmanifold.ops._reference import adaptive_manifold_torch
 
@@ -58,15 +58,7 @@ def automatic_tree_height(sigma_s: float, sigma_r: float) -> int:
 def _check_inputs(values: Tensor, guide: Tensor) -> None:
     """values (B, C, H, W) / (C, H, W) and guide (B, D, H, W) / (D, H, W): floating, same dtype and device,
     same B, H, W, nothing empty but B and C."""
-    check_tensor("values", values, dims=(3, 4), layout="(B, C, H, W) or (C, H, W)", dtypes=_FLOATS)
-    check_tensor("guide", guide, dims=values.dim(), layout="(B, D, H, W)" if values.dim() == 4 else "(D, H, W)")
-    b = values.dim() == 4
-    if values.shape[-2:] != guide.shape[-2:] or (b and values.shape[0] != guide.shape[0]):
-        raise ValueError(f"guide must share batch size and H, W with values {tuple(values.shape)}, "
-                         f"got {tuple(guide.shape)}")
-    if values.shape[-2] < 1 or values.shape[-1] < 1 or guide.shape[-3] < 1:
-        raise ValueError(f"values and guide must have H, W and the guide channels D >= 1, got values "
-                         f"{tuple(values.shape)}, guide {tuple(guide.shape)}")
+    check_values_and_guide(values, guide, dtypes=_FLOATS)
     check_same_dtype_device("guide", guide, "values", values)
 
 

@@ -584,6 +584,8 @@ class ImageFilter {
     sl.P.resize(n * (C_ + 1) * Nl_);  // each task clears the block rows it splats into
     if (!leaf) Q.resize(n * 2 * (D_ + 1) * Nl_);  // each task clears the block rows it sums into
     const int64_t group_px = bpg_ * df_ * W_ * n;
+    // work per pixel and node (grain only): distances ~8 per guide channel, splats ~4 per value
+    // channel, a split ~6 more per guide channel
     const int64_t work = group_px * (8 * D_ + 4 * C_ + (leaf ? 0 : 6 * D_));
     parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
       // per node, the current band's distances and (splitting levels) projections' guide parts
@@ -762,6 +764,8 @@ class ImageFilter {
   void slice_and_finish() {
     int64_t nodes = 0;
     for (const Sliced& l : sliced_) nodes += l.n;
+    // work per pixel (grain only): the normalisation's ~12 operations per channel plus the slices'
+    // ~4 per channel and node
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
       std::vector<T> s0(W_), alpha(W_);
       std::vector<std::vector<RowUpsampler<T>>> up;
