@@ -209,14 +209,16 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         sigma_t: temporal standard deviation in the units of the times (> 0; default 1 frame).
         mode: ``"window"`` or ``"spacetime"``.
         tree_height, guide_sigmas, adjust_outliers, power_iterations: as
-            :func:`~torchmanifold.ops.adaptive_manifold_filter`.
+            :func:`~torchmanifold.ops.adaptive_manifold_filter` (keyword-only after ``tree_height``).
         backend: for ``"window"`` as the spatial filter; ``"spacetime"`` accepts ``"auto"`` or ``"torch"``.
 
     Returns:
         (B, Q, C, H, W) filtered frames at the query times, dtype of ``values``.
 
     Raises:
-        TypeError, ValueError: bad shapes, dtypes, devices, times, sigmas, mode or backend.
+        TypeError: a value of the wrong kind (non-tensors, non-number sigmas or times, a non-int height).
+        ValueError: a value out of range (shapes, dtypes, devices, times, sigmas, height, mode, backend);
+            see :mod:`torchmanifold._checks`.
 
     Example:
         >>> v, g = torch.rand(1, 3, 3, 16, 16), torch.rand(1, 3, 4, 16, 16)
