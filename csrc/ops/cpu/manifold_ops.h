@@ -581,22 +581,17 @@ inline void block_dot2_row(const float* a0, const float* a1, const float* b, int
     const float* pb = b + bj * 4;
     const __m128 y0 = _mm_loadu_ps(pb), y1 = _mm_loadu_ps(pb + 4);
     const __m128 y2 = _mm_loadu_ps(pb + 8), y3 = _mm_loadu_ps(pb + 12);
-    {
-      const float* pa = a0 + bj * 4;
+    // the four block sums of a * b into acc, b's loads shared by both outputs
+    auto four_blocks = [&](const float* a, float* acc) {
+      const float* pa = a + bj * 4;
       __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
       __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
       _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
       const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
-      _mm_storeu_ps(acc0 + bj, _mm_add_ps(_mm_loadu_ps(acc0 + bj), sum));
-    }
-    {
-      const float* pa = a1 + bj * 4;
-      __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
-      __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
-      _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
-      const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
-      _mm_storeu_ps(acc1 + bj, _mm_add_ps(_mm_loadu_ps(acc1 + bj), sum));
-    }
+      _mm_storeu_ps(acc + bj, _mm_add_ps(_mm_loadu_ps(acc + bj), sum));
+    };
+    four_blocks(a0, acc0);
+    four_blocks(a1, acc1);
   }
   if (bj < wl) {  // the last few blocks, partial one included
     const int64_t j0 = bj * 4;

@@ -216,19 +216,47 @@ inline void recursion_rows(float* const* y, int64_t n, Coef* a) {
 }
 #endif
 
-// Columns j in [j0, j1) of one (h, w) plane.
-template <typename T>
-inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a) {
+// Columns j in [j0, j1) of one (h, w) plane, down then up: row i steps towards row i - 1 by the
+// coefficients coef(i - 1) (a row of w, or one value for every column), then towards row i + 1 by
+// coef(i).
+template <typename T, typename Coef>
+inline void recursion_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, const Coef& coef) {
   for (int64_t i = 1; i < h; ++i) {
     T* y = p + i * w;
     const T* prev = y - w;
-    for (int64_t j = j0; j < j1; ++j) y[j] += a * (prev[j] - y[j]);
+    const auto a = coef(i - 1);
+    for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (prev[j] - y[j]);
   }
   for (int64_t i = h - 2; i >= 0; --i) {
     T* y = p + i * w;
     const T* next = y + w;
-    for (int64_t j = j0; j < j1; ++j) y[j] += a * (next[j] - y[j]);
+    const auto a = coef(i);
+    for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (next[j] - y[j]);
   }
+}
+
+// One coefficient for every element (the low-pass), indexable like a row of coefficients.
+template <typename T>
+struct Same {
+  T a;
+  T operator[](int64_t) const { return a; }
+};
+
+template <typename T>
+inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a) {
+  recursion_cols(p, h, w, j0, j1, [a](int64_t) { return Same<T>{a}; });
+}
+
+// fn(plane, j0, j1) over the kStrip-wide column strips of `planes` (h, w) planes, split over threads.
+template <typename F>
+inline void column_strips(int64_t planes, int64_t h, int64_t w, int64_t work_per_strip, const F& fn) {
+  const int64_t strips = (w + kStrip - 1) / kStrip;
+  parallel_work(0, planes * strips, work_per_strip, [&](int64_t b, int64_t e) {
+    for (int64_t t = b; t < e; ++t) {
+      const int64_t j0 = (t % strips) * kStrip;
+      fn(t / strips, j0, std::min(w, j0 + kStrip));
+    }
+  });
 }
 
 // Rows [r0, r1) of a plane, eight at a time with the running value kept in a register: eight
@@ -299,16 +327,10 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
       }
     });
   }
-  if (h > 1) {
-    const int64_t strips = (w + kStrip - 1) / kStrip;
-    parallel_work(0, planes * strips, 2 * h * kStrip, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / strips, s = t % strips;
-        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
-        lowpass_cols(data + plane * h * w, h, w, j0, j1, a);
-      }
+  if (h > 1)
+    column_strips(planes, h, w, 2 * h * kStrip, [&](int64_t plane, int64_t j0, int64_t j1) {
+      lowpass_cols(data + plane * h * w, h, w, j0, j1, a);
     });
-  }
 }
 
 // ---- domain transform -----------------------------------------------------------------------
@@ -415,28 +437,10 @@ void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, cons
       }
     });
   }
-  if (h > 1) {
-    const int64_t strips = (w + kStrip - 1) / kStrip;
-    parallel_work(0, planes * strips, 3 * h * kStrip, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / strips, s = t % strips;
-        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
-        T* p = data + plane * h * w;
-        for (int64_t i = 1; i < h; ++i) {
-          T* y = p + i * w;
-          const T* prev = y - w;
-          const T* a = av + (i - 1) * w;
-          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (prev[j] - y[j]);
-        }
-        for (int64_t i = h - 2; i >= 0; --i) {
-          T* y = p + i * w;
-          const T* next = y + w;
-          const T* a = av + i * w;
-          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (next[j] - y[j]);
-        }
-      }
+  if (h > 1)
+    column_strips(planes, h, w, 3 * h * kStrip, [&](int64_t plane, int64_t j0, int64_t j1) {
+      recursion_cols(data + plane * h * w, h, w, j0, j1, [av, w](int64_t i) { return av + i * w; });
     });
-  }
 }
 
 }  // namespace cpu
