@@ -7,41 +7,37 @@ transfer curve, PSNR with peak 1.
 """
 from __future__ import annotations
 
-import math
-
 import torch
+
+from torchmanifold._checks import check_choice, check_tensor
 
 __all__ = ["linear_to_srgb", "psnr", "psnr_linear", "relmse", "ssim", "flip", "flip_available", "evaluate"]
 
 
 def _as_batch(x: torch.Tensor, name: str) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor):
-        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    check_tensor(name, x, dims=(3, 4), layout="(B, C, H, W) or (C, H, W)")
     if x.dim() == 3:
         x = x.unsqueeze(0)
-    if x.dim() != 4:
-        raise ValueError(f"{name}: expected shape (B,C,H,W) or (C,H,W), got {tuple(x.shape)}")
     return x.to(torch.float64) if x.dtype == torch.float64 else x.float()
 
 
 def _pair(img: torch.Tensor, ref: torch.Tensor, mask: torch.Tensor | None = None):
     img, ref = _as_batch(img, "img"), _as_batch(ref, "ref")
     if img.shape != ref.shape:
-        raise ValueError(f"img and ref must have the same shape, got {tuple(img.shape)} and {tuple(ref.shape)}")
+        raise ValueError(f"ref must have the same shape as img {tuple(img.shape)}, got {tuple(ref.shape)}")
     if mask is not None:
+        check_tensor("mask", mask, dims=(2, 3, 4), layout="(B, 1, H, W), (1, H, W) or (H, W)")
         mask = _as_batch(mask if mask.dim() != 2 else mask[None], "mask")
         if mask.shape[-2:] != img.shape[-2:]:
-            raise ValueError(f"mask: expected spatial size {tuple(img.shape[-2:])}, got {tuple(mask.shape[-2:])}")
+            raise ValueError(f"mask must have the H, W of img {tuple(img.shape[-2:])}, got {tuple(mask.shape[-2:])}")
         mask = mask.expand(img.shape[0], 1, *img.shape[-2:]).to(img.dtype)
     return img, ref, mask
 
 
 def _reduce(per_image: torch.Tensor, reduction: str):
-    if reduction == "mean":
+    if check_choice("reduction", reduction, ("mean", "none")) == "mean":
         return float(per_image.mean())
-    if reduction == "none":
-        return per_image
-    raise ValueError(f"reduction: expected 'mean' or 'none', got {reduction!r}")
+    return per_image
 
 
 def _masked_mean(err: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -100,24 +96,30 @@ def ssim(img, ref, window_size: int = 11, reduction: str = "mean"):
     return _reduce(s.flatten(1).mean(1), reduction)
 
 
-def flip_available() -> bool:
-    """Whether the ``flip_evaluator`` package (NVIDIA FLIP) can be imported."""
+def _flip_evaluator():
+    """The ``flip_evaluator`` module (NVIDIA FLIP), a listed dependency: its absence is an error."""
     try:
-        import flip_evaluator  # noqa: F401
-    except Exception:
-        return False
+        import flip_evaluator
+    except ImportError as exc:
+        raise ImportError("FLIP needs the flip_evaluator package (requirements.txt: flip-evaluator); "
+                          f"it failed to import: {exc}") from exc
+    return flip_evaluator
+
+
+def flip_available() -> bool:
+    """True: FLIP is a dependency. Raises ImportError (with the import's own error) when it cannot be
+    imported, so that no caller silently drops the metric. Kept for callers that still ask."""
+    _flip_evaluator()
     return True
 
 
 def flip(img, ref, reduction: str = "mean"):
     """Mean LDR-FLIP error (0 is identical, lower is better) on clamped sRGB images.
 
-    Uses the ``flip_evaluator`` package; returns ``nan`` when it is not installed.
+    Uses the ``flip_evaluator`` package (ImportError when it is missing).
     """
     img, ref, _ = _pair(img, ref)
-    if not flip_available():
-        return _reduce(torch.full((img.shape[0],), math.nan), reduction)
-    import flip_evaluator
+    flip_evaluator = _flip_evaluator()
 
     a = linear_to_srgb(img).float().permute(0, 2, 3, 1).cpu().numpy()
     b = linear_to_srgb(ref).float().permute(0, 2, 3, 1).cpu().numpy()
@@ -136,7 +138,7 @@ def evaluate(img, ref, mask=None, with_flip: bool = True) -> dict:
         "relmse": relmse(img, ref),
         "ssim": ssim(img, ref),
     }
-    if with_flip and flip_available():
+    if with_flip:
         out["flip"] = flip(img, ref)
     if mask is not None and float(mask.sum()) > 0:
         out["psnr_masked"] = psnr(img, ref, mask=mask)

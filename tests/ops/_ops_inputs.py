@@ -1,15 +1,10 @@
-"""Inputs of the filter tests: procedural natural-looking images, PSNR and where the Mitsuba clip lies.
+"""Inputs of the filter tests: procedural natural-looking images and PSNR (random inputs and the sample
+data's path are fixtures of tests/conftest.py).
 
 A uniquely named module (not conftest) so test files import it unambiguously whatever else pytest collects."""
 import math
-from pathlib import Path
 
 import torch
-
-# shared/ lies beside the repository (CI's clean clone and a developer's checkout alike).
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "mitsuba" / "cbox_glossy_tex"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data/mitsuba/cbox_glossy_tex")
 
 
 def make_natural(H, W, seed=0, noise=0.05, dtype=torch.float64):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from _ops_inputs import DATA, make_natural, psnr
+from _ops_inputs import make_natural, psnr
 
 
 @pytest.fixture(scope="session")
@@ -17,12 +17,12 @@ def psnr_fn():
 
 
 @pytest.fixture(scope="session")
-def mitsuba_crop():
+def mitsuba_crop(mitsuba_dir):
     """A 64x64 crop of 1-spp frame 0: values (1, 3, 64, 64) clipped to [0, 1] and a 7-channel guide
     (albedo, shading normal / 2, distance / 4), float64."""
     from torchmanifold.io.exr import read_exr
 
-    d = read_exr(DATA / "frame_0000.exr")
+    d = read_exr(mitsuba_dir / "frame_0000.exr")
     sl = (slice(150, 214), slice(100, 164))
     rgb = np.stack([d[c][sl] for c in "RGB"])
     feats = [np.clip(d[f"albedo.{c}"][sl], 0, 1) for c in "RGB"]

@@ -10,12 +10,6 @@ from torchmanifold.ops._reference import downsample, downsample_factor, recursiv
 BACKENDS = ["auto", "torch"]
 
 
-def _rand(B, C, D, H, W, dtype=torch.float32, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    v = torch.rand(B, C, H, W, generator=gen, dtype=torch.float64)
-    g = torch.rand(B, D, H, W, generator=gen, dtype=torch.float64)
-    g[..., :, : W // 3] -= 0.8
-    return v.to(dtype), g.to(dtype)
 
 
 def _in_range(out, v, tol=1e-5):
@@ -27,8 +21,8 @@ def _in_range(out, v, tol=1e-5):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("adjust", [False, True])
-def test_nonfinite_samples_are_ignored(backend, adjust):
-    v, g = _rand(2, 3, 4, 30, 34)
+def test_nonfinite_samples_are_ignored(random_inputs, backend, adjust, device):
+    v, g = random_inputs(2, 3, 4, 30, 34, device=device)
     vb, gb = v.clone(), g.clone()
     vb[0, 1, 10, 10] = math.nan
     vb[1, :, 3, 30] = math.inf
@@ -67,10 +61,10 @@ def test_all_nonfinite_image(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_constant_guide_is_a_spatial_filter(backend):
+def test_constant_guide_is_a_spatial_filter(random_inputs, backend):
     """Flat guide: one manifold (children have no theta mass), so the filter is the normalised spatial
     low-pass up(h(down(f))) -- computed here from the building blocks."""
-    v, _ = _rand(1, 3, 1, 40, 36, dtype=torch.float64)
+    v, _ = random_inputs(1, 3, 1, 40, 36, dtype=torch.float64)
     g = torch.full((1, 5, 40, 36), 0.7, dtype=torch.float64)
     out = adaptive_manifold_filter(v, g, 12.0, 0.3, 3, adjust_outliers=True, backend=backend)
     df = downsample_factor(12.0, 0.3)
@@ -83,8 +77,8 @@ def test_constant_guide_is_a_spatial_filter(backend):
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_zero_centre_pixel_and_zero_guide(backend):
-    v, g = _rand(1, 3, 3, 31, 31)
+def test_zero_centre_pixel_and_zero_guide(random_inputs, backend):
+    v, g = random_inputs(1, 3, 3, 31, 31)
     g[..., 15, 15] = 0.0
     out = adaptive_manifold_filter(v, g, 8.0, 0.2, 3, backend=backend)
     assert torch.isfinite(out).all() and _in_range(out, v)
@@ -94,17 +88,17 @@ def test_zero_centre_pixel_and_zero_guide(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("sigma_r", [1e-30, 0.01, 1e6])
-def test_extreme_sigma_r(backend, sigma_r):
-    v, g = _rand(1, 3, 3, 25, 27)
+def test_extreme_sigma_r(random_inputs, backend, sigma_r, device):
+    v, g = random_inputs(1, 3, 3, 25, 27, device=device)
     for adjust in (False, True):
         out = adaptive_manifold_filter(v, g, 6.0, sigma_r, 3, adjust_outliers=adjust, backend=backend)
         assert torch.isfinite(out).all() and _in_range(out, v)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_far_from_every_manifold_returns_input(backend):
+def test_far_from_every_manifold_returns_input(random_inputs, backend, device):
     """S0 underflows to 0 everywhere: the output is the input, exactly."""
-    v, g = _rand(1, 3, 6, 20, 22)
+    v, g = random_inputs(1, 3, 6, 20, 22, device=device)
     out = adaptive_manifold_filter(v, g, 6.0, 1e-30, 2, backend=backend)
     assert torch.equal(out, v)
 
@@ -121,8 +115,8 @@ def test_128_channel_random_guide(backend):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("hw", [(1, 1), (1, 7), (5, 1), (3, 3), (17, 31)])
-def test_tiny_and_odd_sizes(backend, hw):
-    v, g = _rand(2, 2, 3, *hw)
+def test_tiny_and_odd_sizes(random_inputs, backend, hw, device):
+    v, g = random_inputs(2, 2, 3, *hw, device=device)
     out = adaptive_manifold_filter(v, g, 16.0, 0.5, 3, adjust_outliers=True, backend=backend)
     assert out.shape == v.shape and torch.isfinite(out).all() and _in_range(out, v)
     if hw == (1, 1):
@@ -131,8 +125,8 @@ def test_tiny_and_odd_sizes(backend, hw):
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
-def test_half_types_accumulate_in_float32(backend, dtype):
-    v, g = _rand(1, 3, 4, 28, 30)
+def test_half_types_accumulate_in_float32(random_inputs, backend, dtype):
+    v, g = random_inputs(1, 3, 4, 28, 30)
     ref = adaptive_manifold_filter(v.to(dtype).float(), g.to(dtype).float(), 8.0, 0.05, 2, adjust_outliers=True,
                                    backend=backend)
     out = adaptive_manifold_filter(v.to(dtype), g.to(dtype), 8.0, 0.05, 2, adjust_outliers=True, backend=backend)
@@ -167,14 +161,13 @@ def test_constant_per_image_and_channel():
 
 @pytest.mark.parametrize("backend", ["cpp", "torch"])
 @pytest.mark.parametrize("sigma_r", [0.3, 0.1])
-def test_underflowing_weights_stay_in_the_samples_range(backend, sigma_r):
+def test_underflowing_weights_stay_in_the_samples_range(mitsuba_dir, backend, sigma_r):
     # A real 1-spp frame filtered as irradiance with a sharp guide: many pixels lie so far from every
     # manifold that S and S0 are subnormal. Their ratio must not leave the range of the samples
     # (before the S0 floor, float32 gave -18 from samples in [0, 79]).
-    from _ops_inputs import DATA
     from torchmanifold.io import read_exr
 
-    d = read_exr(DATA / "frame_0006.exr")
+    d = read_exr(mitsuba_dir / "frame_0006.exr")
     stack = lambda names: torch.stack([torch.from_numpy(d[n]) for n in names])[None]  # noqa: E731
     albedo = stack(["albedo.R", "albedo.G", "albedo.B"])
     values = stack(["R", "G", "B"]) / albedo.clamp_min(1e-3)

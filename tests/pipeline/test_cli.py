@@ -5,7 +5,6 @@ import shutil
 
 import numpy as np
 
-from _pipeline_data import DATA
 from torchmanifold.cli import main
 from torchmanifold.io import read_exr, write_exr
 
@@ -37,21 +36,21 @@ def test_render_end_to_end(tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
-def _link_frames(tmp_path, n=2):
+def _link_frames(tmp_path, data, n=2):
     src = tmp_path / "in"
     src.mkdir()
     paths = []
     for i in range(n):
         p = src / f"frame_{i:04d}.exr"
-        shutil.copy(DATA / f"frame_{i:04d}.exr", p)
+        shutil.copy(data / f"frame_{i:04d}.exr", p)
         paths.append(p)
     return paths
 
 
-def test_denoise_end_to_end(tmp_path, capsys, mitsuba_available):
+def test_denoise_end_to_end(tmp_path, capsys, mitsuba_dir):
     from torchmanifold import metrics as M
 
-    paths = _link_frames(tmp_path)
+    paths = _link_frames(tmp_path, mitsuba_dir)
     before = {p: p.read_bytes() for p in paths}
     out = tmp_path / "out"
     rc = main(["denoise", *map(str, paths), "--out", str(out), "--temporal-radius", "0", "--tree-height", "2",
@@ -63,7 +62,7 @@ def test_denoise_end_to_end(tmp_path, capsys, mitsuba_available):
         assert p.read_bytes() == before[p]  # inputs untouched
         d = read_exr(out / p.name)
         assert sorted(d) == ["B", "G", "R"]
-        ref = read_exr(DATA / f"reference_{i:04d}.exr")
+        ref = read_exr(mitsuba_dir / f"reference_{i:04d}.exr")
         den = np.stack([d[c] for c in "RGB"])
         raw = np.stack([read_exr(p)[c] for c in "RGB"])
         r = np.stack([ref[c] for c in "RGB"])
@@ -73,8 +72,8 @@ def test_denoise_end_to_end(tmp_path, capsys, mitsuba_available):
     assert not (out / ".partial").exists()
 
 
-def test_denoise_bad_inputs(tmp_path, capsys, mitsuba_available):
-    paths = _link_frames(tmp_path)
+def test_denoise_bad_inputs(tmp_path, capsys, mitsuba_dir):
+    paths = _link_frames(tmp_path, mitsuba_dir)
     out = tmp_path / "out"
 
     def run(*args):
@@ -108,8 +107,8 @@ def test_denoise_bad_inputs(tmp_path, capsys, mitsuba_available):
     assert rc == 2 and "--overwrite" in err
 
 
-def test_denoise_nonfinite_reported(tmp_path, capsys, mitsuba_available):
-    paths = _link_frames(tmp_path, 1)
+def test_denoise_nonfinite_reported(tmp_path, capsys, mitsuba_dir):
+    paths = _link_frames(tmp_path, mitsuba_dir, 1)
     d = read_exr(paths[0])
     d["R"][5:9, 5:9] = np.nan
     d["N.X"][100, 100] = np.inf
@@ -141,3 +140,22 @@ def test_denoise_our_tracer_frames_keeps_emission(tmp_path, capsys):
     # at emitter pixels the output is at least the emission (nothing blurred away) and not far above it
     assert (den[:, light] >= res.emission[0][:, light] - 1e-3).all()
     assert torch.isfinite(den).all()
+
+
+def test_tree_height_is_checked_and_its_default_shown(tmp_path, capsys):
+    """--tree-height 0 is an error (it used to become the default silently); each command's help shows
+    the height it really uses."""
+    from torchmanifold.cli import build_parser
+
+    for argv in (["render", "--out", str(tmp_path / "r")], ["denoise", str(tmp_path / "x.exr"), "--out",
+                                                             str(tmp_path / "d")]):
+        for bad in ("0", "31"):
+            assert main(argv + ["--tree-height", bad, "--quiet"]) == 2
+            assert f"--tree-height must be an int in [1, 30], got {bad}" in capsys.readouterr().err
+        assert not (tmp_path / "r").exists() and not (tmp_path / "d").exists()
+    assert main(["render", "--out", str(tmp_path / "t"), "--threads", "0", "--quiet"]) == 2
+    assert "--threads must be an int >= 1, got 0" in capsys.readouterr().err
+    sub = build_parser()._subparsers._group_actions[0].choices
+    for command, height in (("render", 2), ("denoise", 3)):
+        assert sub[command].parse_args((["x"] if command == "denoise" else []) + ["--out", "o"]).tree_height == height
+        assert f"(1 to 30; default {height})" in " ".join(sub[command].format_help().split())

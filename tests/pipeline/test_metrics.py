@@ -37,12 +37,24 @@ def test_identical_and_masked():
     assert M.psnr(noisy, ref) < 30
 
 
-@pytest.mark.skipif(not M.flip_available(), reason="flip_evaluator not installed")
 def test_flip_orders_errors():
     ref = torch.rand(1, 3, 32, 32) * 0.8
     small, big = ref + 0.01, ref + 0.2
     assert M.flip(ref, ref) < 1e-6
     assert M.flip(small, ref) < M.flip(big, ref)
+
+
+def test_flip_is_a_dependency(monkeypatch):
+    """FLIP is in requirements.txt: present, flip_available() is True; missing, every FLIP call raises."""
+    import sys
+
+    assert M.flip_available() is True
+    assert "flip" in M.evaluate(torch.rand(3, 16, 16), torch.rand(3, 16, 16))
+    monkeypatch.setitem(sys.modules, "flip_evaluator", None)  # import now raises ImportError
+    for call in (M.flip_available, lambda: M.flip(torch.rand(3, 8, 8), torch.rand(3, 8, 8)),
+                 lambda: M.evaluate(torch.rand(3, 8, 8), torch.rand(3, 8, 8))):
+        with pytest.raises(ImportError, match="flip_evaluator"):
+            call()
 
 
 def test_errors_name_argument():

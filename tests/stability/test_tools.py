@@ -26,7 +26,7 @@ def test_judge_flags_each_failure_kind():
     nan = good.clone()
     nan[0, 0, 0] = float("nan")
     assert judge(p, lambda: nan).failed and "NaN" in judge(p, lambda: nan).reason
-    assert judge(p, lambda: good * 100).reason.startswith("blown up")
+    assert judge(p, lambda: good * 100).reason.startswith("left the input range")
     assert judge(p, lambda: good[:2]).reason.startswith("shape")
 
     def boom():
@@ -35,6 +35,26 @@ def test_judge_flags_each_failure_kind():
     c = _problem(constant=0.5)
     assert not judge(c, lambda: c.clip.values[0].clone()).failed
     assert judge(c, lambda: c.clip.values[0] + 1e-3).reason.startswith("constant moved")
+
+
+def test_judge_range_rule_is_tight():
+    """Any convex combination of the samples passes; leaving their range by more than the rounding slack
+    (RANGE_ULPS float32 ulps of the scale) fails, even by a percent."""
+    from cases import RANGE_ULPS
+
+    p = _problem()
+    v = p.clip.values[0]
+    lo, hi = float(v.min()), float(v.max())
+    assert not judge(p, lambda: v.mean((1, 2), keepdim=True).expand_as(v)).failed  # a convex combination
+    assert not judge(p, lambda: torch.full_like(v, hi)).failed
+    ulp = torch.finfo(torch.float32).eps * max(hi - lo, abs(lo), abs(hi))
+    inside = v.double().clone()
+    inside[0, 0, 0] = hi + (RANGE_ULPS - 1) * ulp
+    assert not judge(p, lambda: inside).failed
+    for over in (hi + (RANGE_ULPS + 1) * ulp, hi * 1.01, lo - 0.01 * (hi - lo)):
+        bad = v.double().clone()
+        bad[0, 0, 0] = over
+        assert judge(p, lambda: bad).reason.startswith("left the input range"), over
 
 
 def test_cases_are_deterministic_and_well_formed():

@@ -13,18 +13,37 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchmanifold._checks import (
+    check_int,
+    check_positive,
+    check_same_dtype_device,
+    check_tensor,
+    check_tree_height,
+)
 from torchmanifold.ops._reference import adaptive_manifold_torch
 
 OP_NAME = "torchmanifold::adaptive_manifold"
 BACKWARD_NAME = "torchmanifold::_adaptive_manifold_backward"
+_OP_FLOATS = (torch.float32, torch.float64)  # the op's dtypes; the Python function converts half types
 
 
-def _check_shapes(values: Tensor, guide: Tensor) -> None:
-    torch._check(values.dim() == 4, lambda: f"values must be (B, C, H, W), got {tuple(values.shape)}")
-    torch._check(guide.dim() == 4, lambda: f"guide must be (B, D, H, W), got {tuple(guide.shape)}")
-    torch._check(values.shape[0] == guide.shape[0] and values.shape[2:] == guide.shape[2:],
-                 lambda: f"values {tuple(values.shape)} and guide {tuple(guide.shape)} differ in B, H or W")
-    torch._check(values.dtype == guide.dtype, lambda: "values and guide must share a dtype")
+def _check_op_args(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float, tree_height: int,
+                   power_iterations: int) -> None:
+    """The C++ kernel's argument checks, for the kernels and fakes registered here (same errors).
+
+    Sizes are compared with ``torch._check_value`` (a ValueError like the rest) so that symbolic sizes
+    under ``torch.compile`` become assertions, not guards.
+    """
+    check_tensor("values", values, dims=4, layout="(B, C, H, W)", dtypes=_OP_FLOATS)
+    check_tensor("guide", guide, dims=4, layout="(B, D, H, W)")
+    check_same_dtype_device("guide", guide, "values", values)
+    torch._check_value(values.shape[0] == guide.shape[0] and values.shape[2:] == guide.shape[2:],
+                       lambda: f"guide must share B, H, W with values {tuple(values.shape)}, got {tuple(guide.shape)}")
+    torch._check_value(guide.shape[1] >= 1, lambda: f"guide must have D >= 1 channels, got {tuple(guide.shape)}")
+    check_positive("sigma_s", sigma_s)
+    check_positive("sigma_r", sigma_r)
+    check_tree_height(tree_height)
+    check_int("power_iterations", power_iterations, min=0)
 
 
 def _vjp(grad: Tensor, values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float, tree_height: int,
@@ -44,7 +63,7 @@ def _register() -> None:
 
     @torch.library.register_fake(OP_NAME)
     def _fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
-        _check_shapes(values, guide)
+        _check_op_args(values, guide, sigma_s, sigma_r, tree_height, power_iterations)
         return torch.empty_like(values, memory_format=torch.contiguous_format)
 
     @torch.library.custom_op(BACKWARD_NAME, mutates_args=())
@@ -56,7 +75,7 @@ def _register() -> None:
 
     @_adaptive_manifold_backward.register_fake
     def _backward_fake(grad, values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
-        _check_shapes(grad, guide)
+        _check_op_args(grad, guide, sigma_s, sigma_r, tree_height, power_iterations)
         return torch.empty_like(grad, memory_format=torch.contiguous_format)
 
     def _setup_context(ctx, inputs, output):
@@ -86,6 +105,7 @@ def _register() -> None:
 
     @torch.library.register_kernel(OP_NAME, "cuda")
     def _cuda(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
+        _check_op_args(values, guide, sigma_s, sigma_r, tree_height, power_iterations)
         return adaptive_manifold_torch(values, guide, sigma_s, sigma_r, tree_height, power_iterations,
                                        adjust_outliers)
 

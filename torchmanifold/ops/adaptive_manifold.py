@@ -8,7 +8,6 @@ kernel for the tensors' device and to the pure-PyTorch implementation otherwise.
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Sequence
 
 import torch
@@ -16,12 +15,23 @@ from torch import Tensor, nn
 
 import torchmanifold._extension  # noqa: F401  (loads the op loudly)
 from torchmanifold.ops import _registrations  # noqa: F401  (fake/autograd/cuda registrations)
+from torchmanifold._checks import (
+    MAX_TREE_HEIGHT,
+    check_choice,
+    check_int,
+    check_numbers,
+    check_positive,
+    check_same_dtype_device,
+    check_sigmas,
+    check_tree_height,
+    check_values_and_guide,
+)
 from torchmanifold.ops._reference import adaptive_manifold_torch
 
 __all__ = ["adaptive_manifold_filter", "AdaptiveManifoldFilter", "automatic_tree_height", "has_kernel"]
 
 _FLOATS = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
-_BACKENDS = ("auto", "cpp", "torch")
+BACKENDS = ("auto", "cpp", "torch")
 _DISPATCH_KEYS = {"cpu": "CPU", "cuda": "CUDA", "mps": "MPS", "xpu": "XPU"}
 
 
@@ -39,70 +49,43 @@ def has_kernel(device: torch.device | str = "cpu") -> bool:
 
 
 def automatic_tree_height(sigma_s: float, sigma_r: float) -> int:
-    """The paper's automatic height H = max(2, ceil((floor(log2 sigma_s) - 1) (1 - sigma_r)))."""
-    return max(2, math.ceil((math.floor(math.log2(sigma_s)) - 1) * (1.0 - sigma_r)))
+    """The paper's automatic height H = max(2, ceil((floor(log2 sigma_s) - 1) (1 - sigma_r))), at most
+    ``MAX_TREE_HEIGHT``."""
+    sigma_s, sigma_r = check_positive("sigma_s", sigma_s), check_positive("sigma_r", sigma_r)
+    return min(MAX_TREE_HEIGHT, max(2, math.ceil((math.floor(math.log2(sigma_s)) - 1) * (1.0 - sigma_r))))
 
 
-def _check_sigma(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (numbers.Real, Tensor)):
-        raise TypeError(f"{name} must be a positive finite number, got {type(value).__name__}")
-    if isinstance(value, Tensor):
-        if value.numel() != 1:
-            raise TypeError(f"{name} must be a number or a one-element tensor, got shape {tuple(value.shape)}")
-        value = value.item()
-    value = float(value)
-    if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number, got {value}")
-    return value
+def _check_inputs(values: Tensor, guide: Tensor) -> None:
+    """values (B, C, H, W) / (C, H, W) and guide (B, D, H, W) / (D, H, W): floating, same dtype and device,
+    same B, H, W, nothing empty but B and C."""
+    check_values_and_guide(values, guide, dtypes=_FLOATS)
+    check_same_dtype_device("guide", guide, "values", values)
 
 
-def _check_dtype_device(values: Tensor, guide: Tensor) -> None:
-    if values.dtype not in _FLOATS:
-        raise TypeError(f"values must be float16, bfloat16, float32 or float64, got {values.dtype}")
-    if guide.dtype != values.dtype:
-        raise ValueError(f"guide must have the dtype of values ({values.dtype}), got {guide.dtype}")
-    if guide.device != values.device:
-        raise ValueError(f"guide must be on the device of values ({values.device}), got {guide.device}")
-
-
-def _check_int(name: str, value, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"{name} must be an int >= {minimum}, got {type(value).__name__}")
-    if value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}, got {value}")
-    return int(value)
+def _check_settings(sigma_s, sigma_r, tree_height, power_iterations, backend) -> tuple:
+    """The hyper-parameters every entry point takes, normalised; tree_height None stays None."""
+    return (check_positive("sigma_s", sigma_s), check_positive("sigma_r", sigma_r),
+            check_tree_height(tree_height, allow_none=True),
+            check_int("power_iterations", power_iterations, min=0), check_choice("backend", backend, BACKENDS))
 
 
 def _guide_scales(guide_sigmas, sigma_r: float, channels: int) -> Tensor:
-    """sigma_r / sigma_c per guide channel as a float64 (D,) tensor."""
-    if isinstance(guide_sigmas, Tensor):
-        if guide_sigmas.dim() != 1:
-            raise ValueError(f"guide_sigmas must be a (D,) tensor, got shape {tuple(guide_sigmas.shape)}")
-        if guide_sigmas.numel() != channels:
-            raise ValueError(f"guide_sigmas must have one sigma per guide channel (D={channels}), "
-                             f"got {guide_sigmas.numel()}")
-        sig = guide_sigmas.detach().to(torch.float64)
-        if not torch.compiler.is_compiling():  # a data-dependent check: eager only
-            if not bool(torch.isfinite(sig).all()) or not bool((sig > 0).all()):
-                raise ValueError(f"guide_sigmas must be positive and finite, got {sig.tolist()}")
-        return sigma_r / sig
-    if not isinstance(guide_sigmas, Sequence) or isinstance(guide_sigmas, str):
-        raise TypeError(f"guide_sigmas must be None, a sequence of numbers or a (D,) tensor, "
-                        f"got {type(guide_sigmas).__name__}")
-    if not all(isinstance(s, numbers.Real) and not isinstance(s, bool) for s in guide_sigmas):
-        raise TypeError("guide_sigmas must be a sequence of numbers or a (D,) tensor")
-    sig = [float(s) for s in guide_sigmas]
-    if len(sig) != channels:
-        raise ValueError(f"guide_sigmas must have one sigma per guide channel (D={channels}), got {len(sig)}")
-    if not all(math.isfinite(s) and s > 0 for s in sig):
-        raise ValueError(f"guide_sigmas must be positive and finite, got {sig}")
-    return torch.tensor([sigma_r / s for s in sig], dtype=torch.float64)
+    """sigma_r / guide_sigmas[c] per guide channel as a float64 (D,) tensor."""
+    return sigma_r / check_sigmas("guide_sigmas", guide_sigmas, channels)
+
+
+def _stored_sigmas(guide_sigmas) -> Tensor | tuple | None:
+    """guide_sigmas as a module keeps them (checked, the count only when the guide comes)."""
+    if guide_sigmas is None:
+        return None
+    checked = check_numbers("guide_sigmas", guide_sigmas, positive=True)
+    return guide_sigmas.detach().clone() if isinstance(guide_sigmas, Tensor) else tuple(checked.tolist())
 
 
 def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
-                             tree_height: int | None = 2, guide_sigmas: Sequence[float] | Tensor | None = None,
-                             adjust_outliers: bool = False, power_iterations: int = 32,
-                             backend: str = "auto") -> Tensor:
+                             tree_height: int | None = 2, *,
+                             guide_sigmas: Sequence[float] | Tensor | None = None, adjust_outliers: bool = False,
+                             power_iterations: int = 32, backend: str = "auto") -> Tensor:
     r"""Adaptive-manifold high-dimensional Gaussian filter of ``values`` guided by ``guide``.
 
     Approximates, for every pixel i,
@@ -117,8 +100,9 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
         guide: guide features, ``(B, D, H, W)`` or ``(D, H, W)``, same dtype and device as ``values``.
         sigma_s: spatial standard deviation in pixels (> 0).
         sigma_r: range standard deviation in guide units (> 0).
-        tree_height: manifold tree height H >= 1; ``None`` = automatic height
-            (:func:`automatic_tree_height`, designed for RGB guides).
+        tree_height: manifold tree height H, an int in [1, 30] (``torchmanifold._checks.MAX_TREE_HEIGHT``);
+            ``None`` = automatic height (:func:`automatic_tree_height`, designed for RGB guides).
+            The arguments after it are keyword-only: the C++ op takes them in another order.
         guide_sigmas: optional per-channel range sigmas ``(D,)``: channel c is scaled by
             ``sigma_r / guide_sigmas[c]`` (depth, normals, albedo have different units).
         adjust_outliers: pull pixels far from every manifold back towards their input
@@ -135,43 +119,26 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
         (the filter is linear in them); the guide gets no gradient.
 
     Raises:
-        TypeError: wrong argument types (non-tensor inputs, non-floating dtypes, non-int height).
-        ValueError: wrong ranks, mismatched sizes/devices/dtypes, non-positive or non-finite sigmas,
-            tree_height < 1, guide_sigmas of the wrong length, unknown backend.
+        TypeError: a value of the wrong kind (non-tensor inputs, non-floating dtypes, a non-number
+            sigma, a non-int height, guide_sigmas that are not numbers).
+        ValueError: a value out of range (wrong ranks, mismatched sizes/devices/dtypes, non-positive or
+            non-finite sigmas, tree_height outside [1, 30], guide_sigmas of the wrong length, unknown
+            backend). See :mod:`torchmanifold._checks`.
 
     Example:
         >>> values, guide = torch.rand(2, 3, 32, 32), torch.rand(2, 7, 32, 32)
         >>> adaptive_manifold_filter(values, guide, sigma_s=8.0, sigma_r=0.3).shape
         torch.Size([2, 3, 32, 32])
     """
-    if not isinstance(values, Tensor):
-        raise TypeError(f"values must be a torch.Tensor, got {type(values).__name__}")
-    if not isinstance(guide, Tensor):
-        raise TypeError(f"guide must be a torch.Tensor, got {type(guide).__name__}")
-    if values.dim() not in (3, 4):
-        raise ValueError(f"values must be (B, C, H, W) or (C, H, W), got shape {tuple(values.shape)}")
-    if guide.dim() != values.dim():
-        raise ValueError(f"guide must have the same rank as values ({values.dim()}: "
-                         f"{'(B, D, H, W)' if values.dim() == 4 else '(D, H, W)'}), got shape {tuple(guide.shape)}")
+    _check_inputs(values, guide)
+    sigma_s, sigma_r, tree_height, power_iterations, backend = _check_settings(
+        sigma_s, sigma_r, tree_height, power_iterations, backend)
+    if tree_height is None:
+        tree_height = automatic_tree_height(sigma_s, sigma_r)
+    adjust_outliers = bool(adjust_outliers)
     unbatched = values.dim() == 3
     if unbatched:
         values, guide = values.unsqueeze(0), guide.unsqueeze(0)
-    if values.shape[0] != guide.shape[0] or values.shape[2:] != guide.shape[2:]:
-        raise ValueError(f"values {tuple(values.shape)} and guide {tuple(guide.shape)} must share "
-                         "batch size and H, W")
-    if values.shape[2] < 1 or values.shape[3] < 1 or guide.shape[1] < 1:
-        raise ValueError(f"H, W and the guide channels D must be >= 1, got values {tuple(values.shape)}, "
-                         f"guide {tuple(guide.shape)}")
-    _check_dtype_device(values, guide)
-    sigma_s = _check_sigma("sigma_s", sigma_s)
-    sigma_r = _check_sigma("sigma_r", sigma_r)
-    if tree_height is None:
-        tree_height = automatic_tree_height(sigma_s, sigma_r)
-    tree_height = _check_int("tree_height", tree_height, 1)
-    power_iterations = _check_int("power_iterations", power_iterations, 0)
-    if backend not in _BACKENDS:
-        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-    adjust_outliers = bool(adjust_outliers)
 
     out_dtype = values.dtype
     work = torch.float64 if out_dtype == torch.float64 else torch.float32
@@ -194,7 +161,33 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
     return out[0] if unbatched else out
 
 
-class AdaptiveManifoldFilter(nn.Module):
+class _FilterSettings(nn.Module):
+    """The hyper-parameters both filter modules store, checked once at construction."""
+
+    def __init__(self, sigma_s, sigma_r, tree_height, guide_sigmas, adjust_outliers, power_iterations,
+                 backend) -> None:
+        super().__init__()
+        self.sigma_s, self.sigma_r, self.tree_height, self.power_iterations, self.backend = _check_settings(
+            sigma_s, sigma_r, tree_height, power_iterations, backend)
+        self.guide_sigmas = _stored_sigmas(guide_sigmas)
+        self.adjust_outliers = bool(adjust_outliers)
+
+    def _settings(self) -> dict:
+        return dict(tree_height=self.tree_height, guide_sigmas=self.guide_sigmas,
+                    adjust_outliers=self.adjust_outliers, power_iterations=self.power_iterations,
+                    backend=self.backend)
+
+    #: the attributes extra_repr shows, in order
+    _REPR = ("sigma_s", "sigma_r", "tree_height", "guide_sigmas", "adjust_outliers", "power_iterations", "backend")
+
+    def extra_repr(self) -> str:
+        def show(v):
+            return tuple(float(x) for x in v) if isinstance(v, (Tensor, tuple)) else v
+
+        return ", ".join(f"{k}={show(getattr(self, k))!r}" for k in self._REPR)
+
+
+class AdaptiveManifoldFilter(_FilterSettings):
     r"""Module form of :func:`adaptive_manifold_filter`; stores the hyper-parameters.
 
     Args: as :func:`adaptive_manifold_filter` (without ``values`` and ``guide``).
@@ -210,30 +203,10 @@ class AdaptiveManifoldFilter(nn.Module):
         torch.Size([1, 3, 16, 16])
     """
 
-    def __init__(self, sigma_s: float, sigma_r: float, tree_height: int | None = 2,
+    def __init__(self, sigma_s: float, sigma_r: float, tree_height: int | None = 2, *,
                  guide_sigmas: Sequence[float] | Tensor | None = None, adjust_outliers: bool = False,
                  power_iterations: int = 32, backend: str = "auto") -> None:
-        super().__init__()
-        self.sigma_s = _check_sigma("sigma_s", sigma_s)
-        self.sigma_r = _check_sigma("sigma_r", sigma_r)
-        self.tree_height = None if tree_height is None else _check_int("tree_height", tree_height, 1)
-        self.guide_sigmas = (guide_sigmas.detach().clone() if isinstance(guide_sigmas, Tensor)
-                             else None if guide_sigmas is None else tuple(float(s) for s in guide_sigmas))
-        if self.guide_sigmas is not None:
-            _guide_scales(self.guide_sigmas, self.sigma_r, len(self.guide_sigmas))
-        self.adjust_outliers = bool(adjust_outliers)
-        self.power_iterations = _check_int("power_iterations", power_iterations, 0)
-        if backend not in _BACKENDS:
-            raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-        self.backend = backend
+        super().__init__(sigma_s, sigma_r, tree_height, guide_sigmas, adjust_outliers, power_iterations, backend)
 
     def forward(self, values: Tensor, guide: Tensor) -> Tensor:
-        return adaptive_manifold_filter(values, guide, self.sigma_s, self.sigma_r, self.tree_height,
-                                        self.guide_sigmas, self.adjust_outliers, self.power_iterations,
-                                        self.backend)
-
-    def extra_repr(self) -> str:
-        sig = None if self.guide_sigmas is None else tuple(float(s) for s in self.guide_sigmas)
-        return (f"sigma_s={self.sigma_s}, sigma_r={self.sigma_r}, tree_height={self.tree_height}, "
-                f"guide_sigmas={sig}, adjust_outliers={self.adjust_outliers}, "
-                f"power_iterations={self.power_iterations}, backend={self.backend!r}")
+        return adaptive_manifold_filter(values, guide, self.sigma_s, self.sigma_r, **self._settings())

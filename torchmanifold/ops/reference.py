@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchmanifold._checks import check_int, check_positive, check_values_and_guide
+
 __all__ = ["bilateral_brute_force"]
 
 
@@ -35,6 +37,11 @@ def bilateral_brute_force(values: Tensor, guide: Tensor, sigma_s: float, sigma_r
         >>> bilateral_brute_force(v, g, 2.0, 0.3).shape
         torch.Size([1, 3, 8, 8])
     """
+    check_values_and_guide(values, guide)
+    sigma_s, sigma_r = check_positive("sigma_s", sigma_s), check_positive("sigma_r", sigma_r)
+    if radius is not None:
+        radius = check_int("radius", radius, min=0)
+    chunk = check_int("chunk", chunk, min=1)
     unbatched = values.dim() == 3
     if unbatched:
         values, guide = values.unsqueeze(0), guide.unsqueeze(0)

@@ -24,12 +24,12 @@ With T = 1 and the query at the frame, ``"spacetime"`` is exactly the spatial fi
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from torchmanifold._checks import check_choice, check_numbers, check_positive, check_same_dtype_device, check_tensor
 from torchmanifold.ops._reference import (
     _domain_transform,
     _dominant_direction,
@@ -41,10 +41,8 @@ from torchmanifold.ops._reference import (
     upsample,
 )
 from torchmanifold.ops.adaptive_manifold import (
-    _BACKENDS,
-    _check_dtype_device,
-    _check_int,
-    _check_sigma,
+    _FilterSettings,
+    _check_settings,
     _guide_scales,
     adaptive_manifold_filter,
     automatic_tree_height,
@@ -53,7 +51,7 @@ from torchmanifold.timewindow import interpolate, time_weights
 
 __all__ = ["temporal_adaptive_manifold_filter", "TemporalAdaptiveManifoldFilter", "spacetime_adaptive_manifold_torch"]
 
-_MODES = ("window", "spacetime")
+MODES = ("window", "spacetime")
 
 
 def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor,
@@ -167,27 +165,9 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
     return normalise(S, S0, c, fb, min_d, has_sample, inv_r2, adjust_outliers).to(out_dtype)
 
 
-def _times(name: str, times, device) -> Tensor:
-    if isinstance(times, numbers.Real) and not isinstance(times, bool):
-        times = [float(times)]
-    if isinstance(times, Tensor):
-        t = times.detach().to("cpu", torch.float64)
-    elif isinstance(times, Sequence) and not isinstance(times, str):
-        if not all(isinstance(x, numbers.Real) and not isinstance(x, bool) for x in times):
-            raise TypeError(f"{name} must be a sequence of numbers or a 1-D tensor")
-        t = torch.tensor([float(x) for x in times], dtype=torch.float64)
-    else:
-        raise TypeError(f"{name} must be a sequence of numbers or a 1-D tensor, got {type(times).__name__}")
-    if t.dim() != 1 or t.numel() == 0:
-        raise ValueError(f"{name} must be a non-empty 1-D sequence of times, got shape {tuple(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} must be finite, got {t.tolist()}")
-    return t
-
-
 def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times, query_times, sigma_s: float,
                                       sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
-                                      tree_height: int | None = 2,
+                                      tree_height: int | None = 2, *,
                                       guide_sigmas: Sequence[float] | Tensor | None = None,
                                       adjust_outliers: bool = False, power_iterations: int = 32,
                                       backend: str = "auto") -> Tensor:
@@ -205,47 +185,37 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         sigma_t: temporal standard deviation in the units of the times (> 0; default 1 frame).
         mode: ``"window"`` or ``"spacetime"``.
         tree_height, guide_sigmas, adjust_outliers, power_iterations: as
-            :func:`~torchmanifold.ops.adaptive_manifold_filter`.
+            :func:`~torchmanifold.ops.adaptive_manifold_filter` (keyword-only after ``tree_height``).
         backend: for ``"window"`` as the spatial filter; ``"spacetime"`` accepts ``"auto"`` or ``"torch"``.
 
     Returns:
         (B, Q, C, H, W) filtered frames at the query times, dtype of ``values``.
 
     Raises:
-        TypeError, ValueError: bad shapes, dtypes, devices, times, sigmas, mode or backend.
+        TypeError: a value of the wrong kind (non-tensors, non-number sigmas or times, a non-int height).
+        ValueError: a value out of range (shapes, dtypes, devices, times, sigmas, height, mode, backend);
+            see :mod:`torchmanifold._checks`.
 
     Example:
         >>> v, g = torch.rand(1, 3, 3, 16, 16), torch.rand(1, 3, 4, 16, 16)
         >>> temporal_adaptive_manifold_filter(v, g, [0, 1, 2], [1.0, 1.5], 4.0, 0.3).shape
         torch.Size([1, 2, 3, 16, 16])
     """
-    if not isinstance(values, Tensor) or not isinstance(guide, Tensor):
-        raise TypeError(f"values and guide must be torch.Tensors, got {type(values).__name__} and "
-                        f"{type(guide).__name__}")
-    if values.dim() != 5:
-        raise ValueError(f"values must be (B, T, C, H, W), got shape {tuple(values.shape)}")
-    if guide.dim() != 5:
-        raise ValueError(f"guide must be (B, T, D, H, W), got shape {tuple(guide.shape)}")
+    check_tensor("values", values, dims=5, layout="(B, T, C, H, W)")
+    check_tensor("guide", guide, dims=5, layout="(B, T, D, H, W)")
     if values.shape[:2] != guide.shape[:2] or values.shape[3:] != guide.shape[3:]:
-        raise ValueError(f"values {tuple(values.shape)} and guide {tuple(guide.shape)} must share B, T, H, W")
-    _check_dtype_device(values, guide)
-    ft = _times("frame_times", frame_times, values.device)
-    qt = _times("query_times", query_times, values.device)
-    if ft.numel() != values.shape[1]:
-        raise ValueError(f"frame_times must have one time per frame (T={values.shape[1]}), got {ft.numel()}")
-    sigma_s = _check_sigma("sigma_s", sigma_s)
-    sigma_r = _check_sigma("sigma_r", sigma_r)
-    sigma_t = _check_sigma("sigma_t", sigma_t)
-    if mode not in _MODES:
-        raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
-    if backend not in _BACKENDS:
-        raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
+        raise ValueError(f"guide must share B, T, H, W with values {tuple(values.shape)}, got {tuple(guide.shape)}")
+    check_same_dtype_device("guide", guide, "values", values)
+    ft = check_numbers("frame_times", frame_times, n=values.shape[1]).cpu()
+    qt = check_numbers("query_times", query_times, allow_scalar=True).cpu()
+    sigma_s, sigma_r, tree_height, power_iterations, backend = _check_settings(
+        sigma_s, sigma_r, tree_height, power_iterations, backend)
+    sigma_t = check_positive("sigma_t", sigma_t)
+    mode = check_choice("mode", mode, MODES)
     if mode == "spacetime" and backend == "cpp":
-        raise ValueError("backend='cpp' is not available for mode='spacetime' (pure PyTorch); use 'auto' or 'torch'")
+        raise ValueError("backend must be 'auto' or 'torch' for mode='spacetime' (pure PyTorch), got 'cpp'")
     if tree_height is None:
         tree_height = automatic_tree_height(sigma_s, sigma_r)
-    tree_height = _check_int("tree_height", tree_height, 1)
-    power_iterations = _check_int("power_iterations", power_iterations, 0)
 
     B, T, C, H, W = values.shape
     work = torch.float64 if values.dtype == torch.float64 else torch.float32
@@ -265,7 +235,8 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         va = (wv * vz).sum(2) / wv.sum(2)
         ga = (wg * gz).sum(2) / wg.sum(2)
         out = adaptive_manifold_filter(va.flatten(0, 1), ga.flatten(0, 1), sigma_s, sigma_r, tree_height,
-                                       None, adjust_outliers, power_iterations, backend)
+                                       adjust_outliers=adjust_outliers, power_iterations=power_iterations,
+                                       backend=backend)
         out = out.reshape(B, -1, C, H, W)
     else:
         outs = []
@@ -277,7 +248,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
     return out.to(values.dtype)
 
 
-class TemporalAdaptiveManifoldFilter(nn.Module):
+class TemporalAdaptiveManifoldFilter(_FilterSettings):
     r"""Module form of :func:`temporal_adaptive_manifold_filter`; stores the hyper-parameters.
 
     Shape:
@@ -290,33 +261,15 @@ class TemporalAdaptiveManifoldFilter(nn.Module):
         torch.Size([1, 1, 3, 16, 16])
     """
 
+    _REPR = ("sigma_s", "sigma_r", "sigma_t", "mode") + _FilterSettings._REPR[2:]
+
     def __init__(self, sigma_s: float, sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
-                 tree_height: int | None = 2, guide_sigmas: Sequence[float] | Tensor | None = None,
+                 tree_height: int | None = 2, *, guide_sigmas: Sequence[float] | Tensor | None = None,
                  adjust_outliers: bool = False, power_iterations: int = 32, backend: str = "auto") -> None:
-        super().__init__()
-        self.sigma_s = _check_sigma("sigma_s", sigma_s)
-        self.sigma_r = _check_sigma("sigma_r", sigma_r)
-        self.sigma_t = _check_sigma("sigma_t", sigma_t)
-        if mode not in _MODES:
-            raise ValueError(f"mode must be one of {_MODES}, got {mode!r}")
-        self.mode = mode
-        self.tree_height = None if tree_height is None else _check_int("tree_height", tree_height, 1)
-        self.guide_sigmas = (guide_sigmas.detach().clone() if isinstance(guide_sigmas, Tensor)
-                             else None if guide_sigmas is None else tuple(float(s) for s in guide_sigmas))
-        self.adjust_outliers = bool(adjust_outliers)
-        self.power_iterations = _check_int("power_iterations", power_iterations, 0)
-        if backend not in _BACKENDS:
-            raise ValueError(f"backend must be one of {_BACKENDS}, got {backend!r}")
-        self.backend = backend
+        super().__init__(sigma_s, sigma_r, tree_height, guide_sigmas, adjust_outliers, power_iterations, backend)
+        self.sigma_t = check_positive("sigma_t", sigma_t)
+        self.mode = check_choice("mode", mode, MODES)
 
     def forward(self, values: Tensor, guide: Tensor, frame_times, query_times) -> Tensor:
         return temporal_adaptive_manifold_filter(values, guide, frame_times, query_times, self.sigma_s,
-                                                 self.sigma_r, self.sigma_t, self.mode, self.tree_height,
-                                                 self.guide_sigmas, self.adjust_outliers,
-                                                 self.power_iterations, self.backend)
-
-    def extra_repr(self) -> str:
-        sig = None if self.guide_sigmas is None else tuple(float(s) for s in self.guide_sigmas)
-        return (f"sigma_s={self.sigma_s}, sigma_r={self.sigma_r}, sigma_t={self.sigma_t}, mode={self.mode!r}, "
-                f"tree_height={self.tree_height}, guide_sigmas={sig}, adjust_outliers={self.adjust_outliers}, "
-                f"power_iterations={self.power_iterations}, backend={self.backend!r}")
+                                                 self.sigma_r, self.sigma_t, self.mode, **self._settings())

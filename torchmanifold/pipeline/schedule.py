@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import math
 
+from torchmanifold._checks import check_int, check_number, check_positive
+
 __all__ = ["DEFAULT_ALPHA", "bandwidth_factors", "bandwidth_factor", "BandwidthSchedule"]
 
 #: default ``a``, chosen by measurement on the built-in scene (64x64, 2 frames, +-1 frame window, reference
@@ -24,17 +26,12 @@ DEFAULT_ALPHA = 0.2
 
 
 def _check_alpha(alpha) -> float:
-    if not isinstance(alpha, (int, float)) or isinstance(alpha, bool):
-        raise TypeError(f"alpha must be a number in (0, 1], got {type(alpha).__name__}")
-    if not 0.0 < float(alpha) <= 1.0:
-        raise ValueError(f"alpha must be in (0, 1], got {alpha}")
-    return float(alpha)
+    return check_number("alpha", alpha, low=0.0, high=1.0, low_open=True)
 
 
 def bandwidth_factor(iteration: int, alpha: float = DEFAULT_ALPHA) -> float:
     """sigma_i / sigma_1 for the 1-based ``iteration`` i: sqrt(prod_{j<i} (j + a) / (j + 1))."""
-    if not isinstance(iteration, int) or isinstance(iteration, bool) or iteration < 1:
-        raise ValueError(f"iteration must be an int >= 1, got {iteration!r}")
+    check_int("iteration", iteration, min=1)
     alpha = _check_alpha(alpha)
     # log-space product: exact for long runs, no overflow
     s = sum(math.log((j + alpha) / (j + 1.0)) for j in range(1, iteration))
@@ -43,8 +40,7 @@ def bandwidth_factor(iteration: int, alpha: float = DEFAULT_ALPHA) -> float:
 
 def bandwidth_factors(iterations: int, alpha: float = DEFAULT_ALPHA) -> list[float]:
     """``[sigma_1/sigma_1, ..., sigma_n/sigma_1]`` for ``iterations`` = n >= 1."""
-    if not isinstance(iterations, int) or isinstance(iterations, bool) or iterations < 1:
-        raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
+    check_int("iterations", iterations, min=1)
     alpha = _check_alpha(alpha)
     out, f2 = [1.0], 1.0
     for i in range(1, iterations):
@@ -72,12 +68,9 @@ class BandwidthSchedule:
 
     def __init__(self, sigma_s: float, sigma_r: float = 1.0, alpha: float = DEFAULT_ALPHA,
                  min_sigma_s: float = 1e-3):
-        for name, v in (("sigma_s", sigma_s), ("sigma_r", sigma_r), ("min_sigma_s", min_sigma_s)):
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-        self.sigma_s0, self.sigma_r0 = float(sigma_s), float(sigma_r)
+        self.sigma_s0, self.sigma_r0 = check_positive("sigma_s", sigma_s), check_positive("sigma_r", sigma_r)
         self.alpha = _check_alpha(alpha)
-        self.min_sigma_s = float(min_sigma_s)
+        self.min_sigma_s = check_positive("min_sigma_s", min_sigma_s)
 
     def replace(self, **changes) -> "BandwidthSchedule":
         """A schedule of the same type with some of ``sigma_s``, ``sigma_r``, ``alpha``, ``min_sigma_s`` changed."""

@@ -29,6 +29,7 @@
 #include <cstdlib>
 #include <ctime>
 
+#include "ops/adaptive_manifold_common.h"
 #include "ops/cpu/manifold_ops.h"
 #include "ops/cpu/recursive_filter.h"
 #include "ops/cpu/workspace.h"
@@ -459,53 +460,132 @@ class ImageFilter {
     return v;
   }
 
-  std::vector<Node> process_level(std::vector<Node>& level, int64_t depth) {
+  // A splitting level's setup (8.): each node's direction v, its centre c (the manifold's first
+  // value, per channel, so a guide far from 0 costs no precision) and v . (eta - c) at low
+  // resolution, which the projections of the level's pass subtract. Empty for the leaves.
+  struct Split {
+    std::vector<std::vector<T>> v, centre;
+    Scratch<T> ve;  // (n, Hl, Wl)
+  };
+
+  Split split_setup(const std::vector<Node>& level, int64_t depth) {
     const int64_t n = static_cast<int64_t>(level.size());
-    const bool leaf = depth + 1 >= opt_.tree_height;
+    Split sp;
+    sp.v = split_directions(level, depth);
+    sp.centre.resize(n);
+    sp.ve.resize(n * Nl_);
+    for (int64_t k = 0; k < n; ++k) {
+      sp.centre[k].resize(D_);
+      for (int64_t d = 0; d < D_; ++d) sp.centre[k][d] = level[k].eta[d * Nl_];
+    }
+    parallel_work(0, n * Hl_, 2 * D_ * Wl_, [&](int64_t b, int64_t e) {  // tasks of low-res rows
+      for (int64_t t = b; t < e; ++t) {
+        const int64_t k = t / Hl_, r0 = (t % Hl_) * Wl_;
+        T* out = sp.ve.data() + k * Nl_ + r0;
+        const T* eta = level[k].eta.data() + r0;
+        std::fill(out, out + Wl_, T(0));
+        for (int64_t d = 0; d < D_; ++d) {
+          const T vd = sp.v[k][d], cd = sp.centre[k][d];
+          for (int64_t q = 0; q < Wl_; ++q) out[q] += vd * (eta[d * Nl_ + q] - cd);
+        }
+      }
+    });
+    clock_.lap("split dir", depth);
+    return sp;
+  }
+
+  // 7. Node k at full-res row i (block row bi): w = exp(-D / sigma_r^2) into the level's weights,
+  // min D, and the splat P += down(ms w f'), P0 += down(ms w). dr: the row's D; fp: f' ((C, W));
+  // ws: W scratch. Returns the row's w.
+  const T* splat_row(int64_t k, int64_t depth, int64_t i, int64_t bi, const T* dr, const T* fp, T* ws,
+                     Sliced& sl) {
+    const int64_t row = i * W_;
+    T* wr = sl.w.data() + k * N_ + row;
+    exp_neg_scaled_row(dr, inv_r2_, wr, W_);
+    // the splat weights: w, or 0 where the pixel is not a splat pixel
+    const T* wsplat = wr;
+    if (!(all_g_ && all_v_)) {
+      const uint8_t* sr = ms_.data() + row;
+      for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
+      wsplat = ws;
+    }
+    if (opt_.adjust_outliers) {
+      T* mr = minD_.data() + row;
+      if (depth == 0)
+        std::copy(dr, dr + W_, mr);
+      else
+        for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dr[j]);
+    }
+    T* pk = sl.P.data() + k * (C_ + 1) * Nl_;
+    for (int64_t c = 0; c < C_; ++c)
+      block_dot_row(wsplat, fp + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
+    block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
+    return wr;
+  }
+
+  // 8. The sides of node `id`'s cluster at the row at offset `row`: on entry t0 holds the
+  // projection v . r, on exit t0 = theta = 1 - w on the - side (0 elsewhere) and t1 on the + side;
+  // with keep_labels the pixels' labels become their child's id.
+  void split_sides(int64_t depth, int32_t id, bool keep_labels, int64_t row, const T* wr, T* t0,
+                   T* t1) {
+    // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
+    int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
+    const uint8_t* mg = guide_mask(row);
+    if (depth == 0 && !mg && !keep_labels) {
+      // every pixel is in the root's cluster and no labels are kept (height 2): the same sides
+      // without branches, so that the loop vectorises
+      for (int64_t j = 0; j < W_; ++j) {
+        const bool plus = t0[j] >= T(0);
+        const T theta = T(1) - wr[j];
+        t1[j] = plus ? theta : T(0);
+        t0[j] = plus ? T(0) : theta;
+      }
+      return;
+    }
+    for (int64_t j = 0; j < W_; ++j) {
+      const bool in = in_cluster(depth, lr, mg, id, j);
+      const bool plus = t0[j] >= T(0);
+      const T theta = T(1) - wr[j];
+      t0[j] = in && !plus ? theta : T(0);
+      t1[j] = in && plus ? theta : T(0);
+      if (!keep_labels) continue;
+      if (in) lr[j] = 2 * id + (plus ? 1 : 0);
+      else if (depth == 0) lr[j] = 0;  // label 0 is never a node
+    }
+  }
+
+  // 8. The children's sums of node k at full-res row i (block row bi): Q's side planes get
+  // down(T gs) and down(T) for T = t0 (-) and t1 (+).
+  void children_sums_row(int64_t k, int64_t i, int64_t bi, const T* t0, const T* t1, T* Q) const {
+    const int64_t qside = (D_ + 1) * Nl_;
+    T* q = Q + k * 2 * qside;
+    for (int64_t d = 0; d < D_; ++d) {
+      const T* gr = gs_ + d * N_ + i * W_;
+      block_dot2_row(t0, t1, gr, W_, df_, Wl_, q + d * Nl_ + bi * Wl_, q + qside + d * Nl_ + bi * Wl_);
+    }
+    block_sum_row(t0, W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
+    block_sum_row(t1, W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
+  }
+
+  // The level's pass over full-res rows, a group of block rows per task: every node splats
+  // (splat_row); at a splitting level it also splits its cluster (split_sides) and sums the
+  // children's manifolds (children_sums_row) into Q ([node][side][D + 1][Nl]). The distances
+  // and projections' guide parts are computed a band of rows at a time for all nodes.
+  void level_pass(const std::vector<Node>& level, int64_t depth, bool leaf, const Split& sp, Sliced& sl,
+                  Scratch<T>& Q) {
+    const int64_t n = static_cast<int64_t>(level.size());
     // The labels a split writes are read only by the next level's split.
     const bool keep_labels = depth + 2 < opt_.tree_height;
-
-    // 8. v, and v . (eta - c) per node at low resolution for the projections, c: the manifold's
-    // first value
-    std::vector<std::vector<T>> v;
-    Scratch<T> ve;
-    std::vector<std::vector<T>> centre(n);
-    if (!leaf) {
-      v = split_directions(level, depth);
-      ve.resize(n * Nl_);
-      for (int64_t k = 0; k < n; ++k) {
-        centre[k].resize(D_);
-        for (int64_t d = 0; d < D_; ++d) centre[k][d] = level[k].eta[d * Nl_];
-      }
-      parallel_work(0, n * Hl_, 2 * D_ * Wl_, [&](int64_t b, int64_t e) {  // tasks of low-res rows
-        for (int64_t t = b; t < e; ++t) {
-          const int64_t k = t / Hl_, r0 = (t % Hl_) * Wl_;
-          T* out = ve.data() + k * Nl_ + r0;
-          const T* eta = level[k].eta.data() + r0;
-          std::fill(out, out + Wl_, T(0));
-          for (int64_t d = 0; d < D_; ++d) {
-            const T vd = v[k][d], cd = centre[k][d];
-            for (int64_t q = 0; q < Wl_; ++q) out[q] += vd * (eta[d * Nl_ + q] - cd);
-          }
-        }
-      });
-      clock_.lap("split dir", depth);
-    }
-
-    // ---- the level's pass: D, w, min D, splat P = down(ms w f'), P0 = down(ms w); internal
-    // nodes also label, theta = 1 - w and the children's sums Q ----
     std::vector<const T*> eta_src(n), ve_src(leaf ? 0 : n);
     for (int64_t k = 0; k < n; ++k) eta_src[k] = level[k].eta.data();
-    for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = ve.data() + k * Nl_;
-    const int64_t pnode = (C_ + 1) * Nl_;
-    Sliced sl;
+    for (int64_t k = 0; k < static_cast<int64_t>(ve_src.size()); ++k) ve_src[k] = sp.ve.data() + k * Nl_;
     sl.n = n;
     sl.w.resize(n * N_);
-    sl.P.resize(n * pnode);  // each task clears the block rows it splats into
-    Scratch<T> Q;  // [node][side][D + 1][Nl]: down(T gs) planes then down(T)
-    const int64_t qside = (D_ + 1) * Nl_;
-    if (!leaf) Q.resize(n * 2 * qside);  // each task clears the block rows it sums into
+    sl.P.resize(n * (C_ + 1) * Nl_);  // each task clears the block rows it splats into
+    if (!leaf) Q.resize(n * 2 * (D_ + 1) * Nl_);  // each task clears the block rows it sums into
     const int64_t group_px = bpg_ * df_ * W_ * n;
+    // work per pixel and node (grain only): distances ~8 per guide channel, splats ~4 per value
+    // channel, a split ~6 more per guide channel
     const int64_t work = group_px * (8 * D_ + 4 * C_ + (leaf ? 0 : 6 * D_));
     parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
       // per node, the current band's distances and (splitting levels) projections' guide parts
@@ -522,103 +602,53 @@ class ImageFilter {
         for (int64_t p = 0; !leaf && p < n * 2 * (D_ + 1); ++p)
           std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = i0; i < i1; ++i) {
-          const int64_t row = i * W_;
           centred_values_row(i, fp.data());
           if (i >= band_start + band_n) {
             band_start = i;
             band_n = band_rows(i, task_end);
             std::fill(dist.begin(), dist.end(), T(0));
             std::fill(proj.begin(), proj.end(), T(0));
-            distance_band(eta, i, band_n, v, centre, dist.data(), proj.data());
+            distance_band(eta, i, band_n, sp.v, sp.centre, dist.data(), proj.data());
           }
           for (int64_t k = 0; k < n; ++k) {
             const int64_t band_row = (k * kBandRows + i - band_start) * W_;
-            const T* dr = dist.data() + band_row;
-            T* wr = sl.w.data() + k * N_ + row;
-            exp_neg_scaled_row(dr, inv_r2_, wr, W_);
-            // the splat weights: w, or 0 where the pixel is not a splat pixel
-            const T* wsplat = wr;
-            if (!(all_g_ && all_v_)) {
-              const uint8_t* sr = ms_.data() + row;
-              for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
-              wsplat = ws.data();
-            }
-            if (opt_.adjust_outliers) {
-              T* mr = minD_.data() + row;
-              if (depth == 0)
-                std::copy(dr, dr + W_, mr);
-              else
-                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dr[j]);
-            }
-            T* pk = sl.P.data() + k * pnode;
-            for (int64_t c = 0; c < C_; ++c)
-              block_dot_row(wsplat, fp.data() + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
-            block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
+            const T* wr = splat_row(k, depth, i, bi, dist.data() + band_row, fp.data(), ws.data(), sl);
             if (leaf) continue;
-            // t0 first holds the projection v . r, then theta on the - side.
             projection_from_band(ve_up[k], i, proj.data() + band_row, t0.data());
-            const int32_t id = static_cast<int32_t>(level[k].id);
-            // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
-            int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
-            const uint8_t* mg = guide_mask(row);
-            if (depth == 0 && !mg && !keep_labels) {
-              // every pixel is in the root's cluster and no labels are kept (height 2): the same
-              // sides without branches, so that the loop vectorises
-              for (int64_t j = 0; j < W_; ++j) {
-                const bool plus = t0[j] >= T(0);
-                const T theta = T(1) - wr[j];
-                t1[j] = plus ? theta : T(0);
-                t0[j] = plus ? T(0) : theta;
-              }
-            } else {
-              for (int64_t j = 0; j < W_; ++j) {
-                const bool in = in_cluster(depth, lr, mg, id, j);
-                const bool plus = t0[j] >= T(0);
-                const T theta = T(1) - wr[j];
-                t0[j] = in && !plus ? theta : T(0);
-                t1[j] = in && plus ? theta : T(0);
-                if (!keep_labels) continue;
-                if (in) lr[j] = 2 * id + (plus ? 1 : 0);
-                else if (depth == 0) lr[j] = 0;  // label 0 is never a node
-              }
-            }
-            T* q = Q.data() + k * 2 * qside;
-            for (int64_t d = 0; d < D_; ++d) {
-              const T* gr = gs_ + d * N_ + row;
-              block_dot2_row(t0.data(), t1.data(), gr, W_, df_, Wl_, q + d * Nl_ + bi * Wl_,
-                             q + qside + d * Nl_ + bi * Wl_);
-            }
-            block_sum_row(t0.data(), W_, df_, Wl_, q + D_ * Nl_ + bi * Wl_);
-            block_sum_row(t1.data(), W_, df_, Wl_, q + qside + D_ * Nl_ + bi * Wl_);
+            split_sides(depth, static_cast<int32_t>(level[k].id), keep_labels, i * W_, wr, t0.data(), t1.data());
+            children_sums_row(k, i, bi, t0.data(), t1.data(), Q.data());
           }
         }
-        for (int64_t k = 0; k < n; ++k) to_block_means(sl.P.data() + k * pnode + bi * Wl_, C_ + 1, i1 - i0);
+        for (int64_t k = 0; k < n; ++k) to_block_means(sl.P.data() + k * (C_ + 1) * Nl_ + bi * Wl_, C_ + 1, i1 - i0);
         for (int64_t side = 0; !leaf && side < 2 * n; ++side)
-          to_block_means(Q.data() + side * qside + bi * Wl_, D_ + 1, i1 - i0);
+          to_block_means(Q.data() + side * (D_ + 1) * Nl_ + bi * Wl_, D_ + 1, i1 - i0);
       }
     });
-    clock_.lap("pass", depth);
+  }
 
-    // ---- per node: low-res blur of [P, P0] steered by its manifold; the slice waits ----
-    for (int64_t k = 0; k < n; ++k) {
+  // 7. Per node: the low-res domain-transform blur of [P, P0] steered by its manifold (the slice
+  // waits for the last pass).
+  void blur_level(const std::vector<Node>& level, Sliced& sl) const {
+    for (int64_t k = 0; k < sl.n; ++k) {
       std::vector<T> ah(Nl_), av(Nl_);
       domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
                                     av.data());
-      domain_transform_planes(sl.P.data() + k * pnode, C_ + 1, Hl_, Wl_, ah.data(), av.data());
+      domain_transform_planes(sl.P.data() + k * (C_ + 1) * Nl_, C_ + 1, Hl_, Wl_, ah.data(), av.data());
     }
-    sliced_.push_back(std::move(sl));
-    clock_.lap("blur", depth);
-    std::vector<Node> next;
-    if (leaf) return next;
+  }
 
-    // ---- children: eta = h(down(T gs)) / h(down(T)), the parent's manifold where 0/0 ----
-    // Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
+  // 8. The children from their sums Q: eta = h(down(T gs)) / h(down(T)), the parent's manifold
+  // where 0/0. Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
+  std::vector<Node> children(const std::vector<Node>& level, Scratch<T>& Q) {
+    const int64_t n = static_cast<int64_t>(level.size());
+    const int64_t qside = (D_ + 1) * Nl_;
     std::vector<uint8_t> alive(2 * n);
     for (int64_t c = 0; c < 2 * n; ++c) {
       const T* q0 = Q.data() + c * qside + D_ * Nl_;
       alive[c] = std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); });
     }
     lowpass_planes(Q.data(), 2 * n * (D_ + 1), Hl_, Wl_, ss_low_);  // all children in one go
+    std::vector<Node> next;
     std::vector<int64_t> made;  // the children's indices in Q
     for (int64_t c = 0; c < 2 * n; ++c)
       if (alive[c]) {
@@ -642,6 +672,23 @@ class ImageFilter {
         }
       }
     });
+    return next;
+  }
+
+  // One level of the tree (7., 8.): splat every node, blur, keep the slices for the last pass and,
+  // but for the leaves, return the children.
+  std::vector<Node> process_level(const std::vector<Node>& level, int64_t depth) {
+    const bool leaf = depth + 1 >= opt_.tree_height;
+    const Split sp = leaf ? Split() : split_setup(level, depth);
+    Sliced sl;
+    Scratch<T> Q;
+    level_pass(level, depth, leaf, sp, sl, Q);
+    clock_.lap("pass", depth);
+    blur_level(level, sl);
+    sliced_.push_back(std::move(sl));
+    clock_.lap("blur", depth);
+    if (leaf) return {};
+    std::vector<Node> next = children(level, Q);
     clock_.lap("children", depth);
     return next;
   }
@@ -717,6 +764,8 @@ class ImageFilter {
   void slice_and_finish() {
     int64_t nodes = 0;
     for (const Sliced& l : sliced_) nodes += l.n;
+    // work per pixel (grain only): the normalisation's ~12 operations per channel plus the slices'
+    // ~4 per channel and node
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
       std::vector<T> s0(W_), alpha(W_);
       std::vector<std::vector<RowUpsampler<T>>> up;
@@ -811,34 +860,10 @@ class ImageFilter {
 at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
                                  double sigma_s, double sigma_r, int64_t tree_height,
                                  int64_t power_iterations, bool adjust_outliers) {
-  // ValueError / TypeError in Python, each naming the argument and what was expected.
-  TORCH_CHECK_VALUE(values.dim() == 4, "adaptive_manifold: values must be (B, C, H, W), got ",
-                    values.dim(), " dims");
-  TORCH_CHECK_VALUE(guide.dim() == 4, "adaptive_manifold: guide must be (B, D, H, W), got ",
-                    guide.dim(), " dims");
-  TORCH_CHECK_VALUE(values.size(0) == guide.size(0) && values.size(2) == guide.size(2) &&
-                        values.size(3) == guide.size(3),
-                    "adaptive_manifold: guide must match values in B, H, W; got values ",
-                    values.sizes(), " and guide ", guide.sizes());
-  TORCH_CHECK_VALUE(guide.size(1) >= 1,
-                    "adaptive_manifold: guide must have at least one channel, got ", guide.sizes());
-  TORCH_CHECK_TYPE(values.scalar_type() == at::kFloat || values.scalar_type() == at::kDouble,
-                   "adaptive_manifold: values must be float32 or float64, got ",
-                   values.scalar_type());
-  TORCH_CHECK_TYPE(guide.scalar_type() == values.scalar_type(),
-                   "adaptive_manifold: guide must have the dtype of values (", values.scalar_type(),
-                   "), got ", guide.scalar_type());
-  TORCH_CHECK_VALUE(values.device().is_cpu() && guide.device().is_cpu(),
+  check_adaptive_manifold_args(values, guide, sigma_s, sigma_r, tree_height, power_iterations);
+  TORCH_CHECK_VALUE(values.device().is_cpu(),
                     "adaptive_manifold: values and guide must be CPU tensors for this kernel, got ",
-                    values.device(), " and ", guide.device());
-  TORCH_CHECK_VALUE(std::isfinite(sigma_s) && sigma_s > 0,
-                    "adaptive_manifold: sigma_s must be a finite number > 0, got ", sigma_s);
-  TORCH_CHECK_VALUE(std::isfinite(sigma_r) && sigma_r > 0,
-                    "adaptive_manifold: sigma_r must be a finite number > 0, got ", sigma_r);
-  TORCH_CHECK_VALUE(tree_height >= 1 && tree_height <= 30,
-                    "adaptive_manifold: tree_height must be in [1, 30], got ", tree_height);
-  TORCH_CHECK_VALUE(power_iterations >= 0,
-                    "adaptive_manifold: power_iterations must be >= 0, got ", power_iterations);
+                    values.device());
   const at::Tensor f = values.contiguous();
   const at::Tensor g = guide.contiguous();
   at::Tensor out = at::empty_like(f);

@@ -21,26 +21,13 @@
 namespace torchmanifold {
 namespace cpu {
 
-// df = max(1, 2^floor(log2(min(sigma_s / 4, 256 sigma_r)))): sigma_s/df lands in [4, 8).
-inline int64_t downsample_factor(double sigma_s, double sigma_r) {
-  const double m = std::min(sigma_s / 4.0, 256.0 * sigma_r);
-  if (!(m >= 2.0)) return 1;
-  const int e = std::min(30, static_cast<int>(std::floor(std::log2(m))));
-  return int64_t(1) << e;
-}
-
-// 8. The split's M = sum r r^T takes the rows of every s-th band of kGramBand rows,
-// s = max(1, floor(H W / 2^17)): still >= 2^17 samples for a D x D matrix, where the full sum costs
-// D^2 / 2 multiply-adds a pixel and a read of the guide. Bands, not single rows: a channel's band
-// is one run of memory, which streams faster than rows far apart.
-constexpr int64_t kGramBand = 4;
-inline int64_t gram_band_stride(int64_t H, int64_t W) {
-  return std::max<int64_t>(1, H * W / (int64_t(1) << 17));
-}
-
 // exp(x) for x <= 0 without a libm call, so the weight loops vectorise: x = n ln2 + r,
-// |r| <= ln2/2, Taylor polynomial in r, times 2^n built in the exponent bits. Relative error
-// ~1e-7 (float) / ~1e-16 (double); underflows to exactly 0 below the smallest normal.
+// |r| <= ln2/2, Taylor polynomial in r (degree 7 for float, 13 for double: the first terms below
+// their epsilon), times 2^n built in the exponent bits; ln2 is split in a high part exact in the
+// type and a low part (Cody-Waite) so n ln2 subtracts without rounding. Relative error ~1e-7
+// (float) / ~1e-16 (double). Below -87 (float) / -708 (double) the result would be below the
+// smallest normal (e^-87.3 / e^-708.4): it is exactly 0 there, and x is clamped just below the
+// threshold first so that 2^n stays a normal number in the unused lane.
 inline float exp_nonpositive(float x) {
   x = x < -87.0f ? -87.5f : x;
   const float shifter = 12582912.0f;  // 1.5 * 2^23: rounds to nearest integer in the low bits
@@ -594,22 +581,17 @@ inline void block_dot2_row(const float* a0, const float* a1, const float* b, int
     const float* pb = b + bj * 4;
     const __m128 y0 = _mm_loadu_ps(pb), y1 = _mm_loadu_ps(pb + 4);
     const __m128 y2 = _mm_loadu_ps(pb + 8), y3 = _mm_loadu_ps(pb + 12);
-    {
-      const float* pa = a0 + bj * 4;
+    // the four block sums of a * b into acc, b's loads shared by both outputs
+    auto four_blocks = [&](const float* a, float* acc) {
+      const float* pa = a + bj * 4;
       __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
       __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
       _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
       const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
-      _mm_storeu_ps(acc0 + bj, _mm_add_ps(_mm_loadu_ps(acc0 + bj), sum));
-    }
-    {
-      const float* pa = a1 + bj * 4;
-      __m128 s0 = _mm_mul_ps(_mm_loadu_ps(pa), y0), s1 = _mm_mul_ps(_mm_loadu_ps(pa + 4), y1);
-      __m128 s2 = _mm_mul_ps(_mm_loadu_ps(pa + 8), y2), s3 = _mm_mul_ps(_mm_loadu_ps(pa + 12), y3);
-      _MM_TRANSPOSE4_PS(s0, s1, s2, s3);
-      const __m128 sum = _mm_add_ps(_mm_add_ps(s0, s1), _mm_add_ps(s2, s3));
-      _mm_storeu_ps(acc1 + bj, _mm_add_ps(_mm_loadu_ps(acc1 + bj), sum));
-    }
+      _mm_storeu_ps(acc + bj, _mm_add_ps(_mm_loadu_ps(acc + bj), sum));
+    };
+    four_blocks(a0, acc0);
+    four_blocks(a1, acc1);
   }
   if (bj < wl) {  // the last few blocks, partial one included
     const int64_t j0 = bj * 4;

@@ -29,8 +29,14 @@ namespace cpu {
 // plane stays in L2 for the backward sweep.
 constexpr int64_t kStrip = 64;
 
+// A task gets at least kGrainWork elementary operations (tens of microseconds), the grain
+// at::parallel_for's own users aim at (grain ~ 32768 / work per item): smaller tasks cost more to
+// hand out than they save. Every parallel loop states its work per item as a rough count of
+// operations per element (loads, multiply-adds, compares), which only sets this grain.
+constexpr int64_t kGrainWork = 32768;
+
 inline int64_t grain_for(int64_t work_per_item) {
-  return std::max<int64_t>(1, 32768 / std::max<int64_t>(1, work_per_item));
+  return std::max<int64_t>(1, kGrainWork / std::max<int64_t>(1, work_per_item));
 }
 
 // Below this much work (~512K elementary operations, a few hundred microseconds) a loop runs on
@@ -210,19 +216,47 @@ inline void recursion_rows(float* const* y, int64_t n, Coef* a) {
 }
 #endif
 
-// Columns j in [j0, j1) of one (h, w) plane.
-template <typename T>
-inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a) {
+// Columns j in [j0, j1) of one (h, w) plane, down then up: row i steps towards row i - 1 by the
+// coefficients coef(i - 1) (a row of w, or one value for every column), then towards row i + 1 by
+// coef(i).
+template <typename T, typename Coef>
+inline void recursion_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, const Coef& coef) {
   for (int64_t i = 1; i < h; ++i) {
     T* y = p + i * w;
     const T* prev = y - w;
-    for (int64_t j = j0; j < j1; ++j) y[j] += a * (prev[j] - y[j]);
+    const auto a = coef(i - 1);
+    for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (prev[j] - y[j]);
   }
   for (int64_t i = h - 2; i >= 0; --i) {
     T* y = p + i * w;
     const T* next = y + w;
-    for (int64_t j = j0; j < j1; ++j) y[j] += a * (next[j] - y[j]);
+    const auto a = coef(i);
+    for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (next[j] - y[j]);
   }
+}
+
+// One coefficient for every element (the low-pass), indexable like a row of coefficients.
+template <typename T>
+struct Same {
+  T a;
+  T operator[](int64_t) const { return a; }
+};
+
+template <typename T>
+inline void lowpass_cols(T* p, int64_t h, int64_t w, int64_t j0, int64_t j1, T a) {
+  recursion_cols(p, h, w, j0, j1, [a](int64_t) { return Same<T>{a}; });
+}
+
+// fn(plane, j0, j1) over the kStrip-wide column strips of `planes` (h, w) planes, split over threads.
+template <typename F>
+inline void column_strips(int64_t planes, int64_t h, int64_t w, int64_t work_per_strip, const F& fn) {
+  const int64_t strips = (w + kStrip - 1) / kStrip;
+  parallel_work(0, planes * strips, work_per_strip, [&](int64_t b, int64_t e) {
+    for (int64_t t = b; t < e; ++t) {
+      const int64_t j0 = (t % strips) * kStrip;
+      fn(t / strips, j0, std::min(w, j0 + kStrip));
+    }
+  });
 }
 
 // Rows [r0, r1) of a plane, eight at a time with the running value kept in a register: eight
@@ -293,19 +327,17 @@ void lowpass_planes(T* data, int64_t planes, int64_t h, int64_t w, double sigma,
       }
     });
   }
-  if (h > 1) {
-    const int64_t strips = (w + kStrip - 1) / kStrip;
-    parallel_work(0, planes * strips, 2 * h * kStrip, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / strips, s = t % strips;
-        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
-        lowpass_cols(data + plane * h * w, h, w, j0, j1, a);
-      }
+  if (h > 1)
+    column_strips(planes, h, w, 2 * h * kStrip, [&](int64_t plane, int64_t j0, int64_t j1) {
+      lowpass_cols(data + plane * h * w, h, w, j0, j1, a);
     });
-  }
 }
 
 // ---- domain transform -----------------------------------------------------------------------
+
+// Rows handled together: two groups of eight, what recursion_rows<2> filters at once (and a block of
+// coefficient sums that stays in L1).
+constexpr int64_t kRowBlock = 16;
 
 // Coefficients steered by a manifold eta (d planes of (h, w)):
 //   ah[i*w + j] links (i, j) and (i, j+1); av[i*w + j] links (i, j) and (i+1, j);
@@ -317,10 +349,10 @@ void domain_transform_coefficients(const T* eta, int64_t d, int64_t h, int64_t w
   const T k = static_cast<T>((ss / sr) * (ss / sr));
   const T c = static_cast<T>(-std::sqrt(2.0) / ss);
   parallel_work(0, h, 4 * w * (d + 1), [&](int64_t b, int64_t e) {
-    // Blocks of 16 rows, channel by channel: one run of memory per channel, where a row at a time
+    // Blocks of kRowBlock rows, channel by channel: one run of memory per channel, where a row at a time
     // read d short runs (d rows a plane apart) and stalled on them; the sums stay in L1.
-    for (int64_t i0 = b; i0 < e; i0 += 16) {
-      const int64_t i1 = std::min(e, i0 + 16);
+    for (int64_t i0 = b; i0 < e; i0 += kRowBlock) {
+      const int64_t i1 = std::min(e, i0 + kRowBlock);
       const int64_t iv = std::min(i1, h - 1);  // rows with a row below
       std::fill(ah + i0 * w, ah + i1 * w, T(0));
       std::fill(av + i0 * w, av + i1 * w, T(0));
@@ -371,10 +403,10 @@ inline void domain_transform_rows(T* p, int64_t r0, int64_t r1, int64_t w, const
   int64_t r = r0;
 #if defined(__AVX2__) && defined(__FMA__)
   if constexpr (std::is_same<T, float>::value) {
-    for (; r + 16 <= r1; r += 16) {
-      float* y[16];
-      const float* a[16];
-      for (int k = 0; k < 16; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
+    for (; r + kRowBlock <= r1; r += kRowBlock) {
+      float* y[kRowBlock];
+      const float* a[kRowBlock];
+      for (int k = 0; k < kRowBlock; ++k) y[k] = p + (r + k) * w, a[k] = ah + (r + k) * w;
       RowCoefficients c[2] = {RowCoefficients(a), RowCoefficients(a + 8)};
       recursion_rows<2>(y, w, c);
     }
@@ -395,38 +427,20 @@ template <typename T>
 void domain_transform_planes(T* data, int64_t planes, int64_t h, int64_t w, const T* ah,
                              const T* av) {
   if (w > 1) {
-    // tasks of up to 16 rows of one plane, so the vector blocks see whole 16-row groups wherever
+    // tasks of up to kRowBlock rows of one plane, so the vector blocks see whole row groups wherever
     // the split falls
-    const int64_t groups = (h + 15) / 16;
+    const int64_t groups = (h + kRowBlock - 1) / kRowBlock;
     parallel_work(0, planes * groups, 48 * w, [&](int64_t b, int64_t e) {
       for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / groups, r0 = (t % groups) * 16, r1 = std::min(h, r0 + 16);
+        const int64_t plane = t / groups, r0 = (t % groups) * kRowBlock, r1 = std::min(h, r0 + kRowBlock);
         domain_transform_rows(data + plane * h * w, r0, r1, w, ah);
       }
     });
   }
-  if (h > 1) {
-    const int64_t strips = (w + kStrip - 1) / kStrip;
-    parallel_work(0, planes * strips, 3 * h * kStrip, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t plane = t / strips, s = t % strips;
-        const int64_t j0 = s * kStrip, j1 = std::min(w, j0 + kStrip);
-        T* p = data + plane * h * w;
-        for (int64_t i = 1; i < h; ++i) {
-          T* y = p + i * w;
-          const T* prev = y - w;
-          const T* a = av + (i - 1) * w;
-          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (prev[j] - y[j]);
-        }
-        for (int64_t i = h - 2; i >= 0; --i) {
-          T* y = p + i * w;
-          const T* next = y + w;
-          const T* a = av + i * w;
-          for (int64_t j = j0; j < j1; ++j) y[j] += a[j] * (next[j] - y[j]);
-        }
-      }
+  if (h > 1)
+    column_strips(planes, h, w, 3 * h * kStrip, [&](int64_t plane, int64_t j0, int64_t j1) {
+      recursion_cols(data + plane * h * w, h, w, j0, j1, [av, w](int64_t i) { return av + i * w; });
     });
-  }
 }
 
 }  // namespace cpu
