@@ -67,6 +67,47 @@ def _add_threads_arg(p: argparse.ArgumentParser) -> None:
                         "and idle cores)")
 
 
+def _chunk_size(v: str) -> int:
+    try:
+        n = int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer number of frames >= 1, got {v!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer number of frames >= 1, got {v!r}")
+    return n
+
+
+def _add_engine_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("cluster (docs/sharding.md)")
+    g.add_argument("--engine", choices=["local", "ray"], default="local",
+                   help="local: one process (%(default)s); ray: frame chunks on a Ray cluster")
+    g.add_argument("--address", default=None, help="Ray cluster HOST:PORT (default: a local cluster)")
+    g.add_argument("--chunk", type=_chunk_size, default=None, help="frames per Ray task (default: from the "
+                   "temporal window and the number of workers)")
+
+
+def _main_sharded(args) -> int:
+    """``--engine ray``: the frame-chunk path (:mod:`torchmanifold.pipeline.shards`); prints its JSON."""
+    from torchmanifold.pipeline import shards
+
+    common = dict(overwrite=args.overwrite, progress=not args.quiet, chunk=args.chunk, address=args.address,
+                  threads=args.threads)
+    try:
+        if args.command == "render":
+            res = shards.shard_render(args.out, scene=args.scene, frames=args.frames, iterations=args.iterations,
+                                      width=args.width, height=args.height, seed=args.seed,
+                                      reference_spp=args.reference_spp, settings=_settings(args, 2),
+                                      alpha=args.alpha, inbetween=args.inbetween, **common)
+        else:
+            res = shards.shard_denoise(args.frames, args.out, settings=_settings(args, 3), color_channels=args.color,
+                                       feature_channels=args.features, **common)
+    except (FileNotFoundError, FileExistsError, ValueError, TypeError, ImportError, ConnectionError) as exc:
+        print(f"torchmanifold {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({k: v for k, v in res.items() if k != "outputs"}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from torchmanifold.pipeline.job import RENDER_DEFAULTS
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
@@ -96,6 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_threads_arg(r)
     _add_filter_args(r, temporal_radius=1, mode="spacetime")
+    _add_engine_args(r)
 
     d = sub.add_parser("denoise", help="denoise EXR frames rendered elsewhere",
                        description="Denoise one multi-channel EXR per frame (colour R,G,B plus feature "
@@ -110,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_threads_arg(d)
     _add_filter_args(d, temporal_radius=1, mode="spacetime")
+    _add_engine_args(d)
     return p
 
 
@@ -119,6 +162,11 @@ def main(argv=None) -> int:
         print(f"torchmanifold {args.command}: error: --threads must be >= 1, got {args.threads}", file=sys.stderr)
         return 2
     torch.set_num_threads(args.threads)
+    if args.engine == "ray":
+        return _main_sharded(args)
+    if args.address is not None or args.chunk is not None:
+        print(f"torchmanifold {args.command}: error: --address and --chunk need --engine ray", file=sys.stderr)
+        return 2
     try:
         if args.command == "render":
             from torchmanifold.pipeline.job import render_job
