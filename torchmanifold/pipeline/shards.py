@@ -231,7 +231,24 @@ def _events_class():
             out, self.events = self.events, []
             return out
 
+        def reset(self) -> None:
+            self.events, self.done = [], {}
+
     return Events
+
+
+_EVENTS: dict[str, object] = {}  # Ray job id -> the events actor of this driver
+
+
+def _events_actor(ray):
+    """One events actor per driver, reset for each job: an actor takes a worker process of its own, and
+    a new one per job would take a warm worker from the pool and make the tasks start a cold one."""
+    job = ray.get_runtime_context().get_job_id()
+    if job not in _EVENTS:
+        _EVENTS.clear()
+        _EVENTS[job] = ray.remote(num_cpus=0)(_events_class()).remote()
+    ray.get(_EVENTS[job].reset.remote())
+    return _EVENTS[job]
 
 
 def _worker_id() -> str:
@@ -449,7 +466,7 @@ def _drive(kind: str, job: dict, chunks: list[Chunk], manifest: dict, progress_t
     from tqdm.auto import tqdm
 
     out = Path(job["out"])
-    events = ray.remote(num_cpus=0)(_events_class()).remote()
+    events = _events_actor(ray)
     task = ray.remote(_run_chunk).options(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)
     t0 = time.perf_counter()
     job_ref = ray.put(job)
