@@ -53,6 +53,8 @@ RAY_VERSION = "2.60.0"
 CONNECT_TIMEOUT_S = 5.0
 #: Ray retries of a chunk whose worker died (an application error is never retried: it would fail again)
 MAX_RETRIES = 3
+#: seconds the other chunks get to finish when one fails for good, before their workers are stopped
+GRACE_S = 10.0
 # spp per dispatch of the reference in render_job; the reference must be summed in the same batches
 _REFERENCE_BATCH = 32
 _KILL_ENV = "TORCHMANIFOLD_SHARDS_KILL_FILE"
@@ -459,18 +461,45 @@ def _finished(out: Path, m: dict) -> set[int]:
     return ok
 
 
+class _ChunkWorker:
+    """Ray actor body: one per worker core, alive across chunks and jobs of a driver, so the imports, the
+    GL context and the compiled tracer are paid once per process (Ray's task workers come and go)."""
+
+    def run(self, kind: str, job: dict, chunk: Chunk, events) -> dict:
+        return _run_chunk(kind, job, chunk, events)
+
+
+_POOLS: dict[str, list] = {}  # Ray job id -> the chunk workers of this driver
+
+
+def _pool(ray) -> list:
+    job = ray.get_runtime_context().get_job_id()
+    if job not in _POOLS:
+        _POOLS.clear()
+        n = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        # a worker that dies is restarted and its chunk run again (an application error is not retried)
+        cls = ray.remote(num_cpus=1, max_restarts=MAX_RETRIES, max_task_retries=MAX_RETRIES)(_ChunkWorker)
+        _POOLS[job] = [cls.remote() for _ in range(n)]
+    return _POOLS[job]
+
+
 def _drive(kind: str, job: dict, chunks: list[Chunk], manifest: dict, progress_total: int, progress: bool,
            desc: str) -> dict:
-    """Run the chunks on the cluster; keep the manifest and the bar up to date; return the summary."""
+    """Run the chunks on the cluster's workers (the next chunk goes to the first worker free); keep the
+    manifest and the bar up to date; return the summary."""
     import ray
     from tqdm.auto import tqdm
 
     out = Path(job["out"])
     events = _events_actor(ray)
-    task = ray.remote(_run_chunk).options(num_cpus=1, max_retries=MAX_RETRIES, retry_exceptions=False)
+    workers_ = _pool(ray)
     t0 = time.perf_counter()
     job_ref = ray.put(job)
-    pending = [task.remote(kind, job_ref, c, events) for c in chunks]
+    queue = list(chunks)
+    inflight: dict = {}
+    for w in workers_:
+        if queue:
+            inflight[w.run.remote(kind, job_ref, queue.pop(0), events)] = w
     bar = tqdm(total=progress_total, desc=desc, unit="frame" if kind == "denoise" else "frame-it",
                disable=not progress)
     starts: dict[int, int] = {}
@@ -489,23 +518,27 @@ def _drive(kind: str, job: dict, chunks: list[Chunk], manifest: dict, progress_t
         _save_manifest(out, manifest)
 
     try:
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1, timeout=0.25)
+        while inflight:
+            ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.25)
             for ref in ready:
+                w = inflight.pop(ref)
                 try:
                     results.append(ray.get(ref))
                 except ray.exceptions.RayError as exc:
-                    # stop the others; frames they finish meanwhile still reach the manifest
-                    for p in pending:
-                        ray.cancel(p)
-                    if pending:
-                        ray.wait(pending, num_returns=len(pending), timeout=30)
-                    pending = []
+                    # no new chunks; the running ones get a moment to finish (their frames reach the
+                    # manifest), then their workers are stopped
+                    if inflight:
+                        ray.wait(list(inflight), num_returns=len(inflight), timeout=GRACE_S)
                     pump()
+                    for a in workers_:
+                        ray.kill(a)
+                    _POOLS.clear()
                     cause = getattr(exc, "cause", None)
                     if isinstance(exc, ray.exceptions.RayTaskError) and isinstance(cause, Exception):
                         raise cause from None  # the worker's own error (e.g. the unreadable file, named)
                     raise RuntimeError(f"a chunk failed after {MAX_RETRIES} retries: {exc}") from None
+                if queue:
+                    inflight[w.run.remote(kind, job_ref, queue.pop(0), events)] = w
             pump()
     finally:
         bar.close()
