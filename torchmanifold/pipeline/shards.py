@@ -165,8 +165,8 @@ def _import_ray():
     try:
         import ray
     except ImportError:
-        raise ImportError(f"--engine ray needs the Python package 'ray', which is not installed; install "
-                          f"it with `pip install ray=={RAY_VERSION}` (or `pip install -r requirements.txt`)") from None
+        raise ImportError(f"--engine ray needs the Python package 'ray', which is not installed; install it "
+                          f"with `pip install ray=={RAY_VERSION}` (or `pip install -r requirements.txt`)") from None
     return ray
 
 
@@ -176,7 +176,8 @@ def _probe(address: str) -> None:
     hostport = address.split("://", 1)[-1]
     host, sep, port = hostport.rpartition(":")
     if not sep or not port.isdigit() or not host:
-        raise ValueError(f"--address must be HOST:PORT (e.g. 10.0.0.5:6379) or ray://HOST:PORT, got {address!r}")
+        raise ValueError(f"--address must be HOST:PORT (e.g. 10.0.0.5:6379) or ray://HOST:PORT, "
+                         f"got {address!r}")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S):
             pass
@@ -456,7 +457,8 @@ def _finished(out: Path, m: dict) -> set[int]:
     """Outputs the manifest lists whose files are all there with the recorded size."""
     ok = set()
     for key, rec in m["done"].items():
-        if all((out / f).is_file() and (out / f).stat().st_size == v["bytes"] for f, v in rec["files"].items()):
+        files = rec["files"].items()
+        if all((out / f).is_file() and (out / f).stat().st_size == v["bytes"] for f, v in files):
             ok.add(int(key))
     return ok
 
@@ -556,7 +558,8 @@ def _drive(kind: str, job: dict, chunks: list[Chunk], manifest: dict, progress_t
     written = sum(r["frames"] for r in results)
     summary = {"engine": "ray", "chunks": len(chunks), "written": written, "seconds": seconds,
                "frames_per_second": written / seconds if seconds > 0 else 0.0,
-               "retries": sum(max(0, s - 1) for s in starts.values()), "reports": reports[0], "workers": workers}
+               "retries": sum(max(0, s - 1) for s in starts.values()), "reports": reports[0],
+               "workers": workers}
     for k in ("frames_read", "frames_traced"):
         if any(k in r for r in results):
             summary[k] = sum(r.get(k, 0) for r in results)
@@ -583,7 +586,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         The keys of :func:`~torchmanifold.pipeline.job.denoise_files` (``frames``, ``size``,
         ``feature_channels``, non-finite counts, ``firefly_energy_removed``, ``seconds_per_frame``,
         ``outputs``) over all frames of the clip, and ``"shards"``: ``chunks``, ``written`` (this run),
-        ``reports`` (frame writes reported, retries included), ``skipped`` (finished before), ``seconds``, ``frames_per_second``, ``retries``, ``frames_read``
+        ``reports`` (frame writes reported, retries included), ``skipped`` (finished before),
+        ``seconds``, ``frames_per_second``, ``retries``, ``frames_read``
         (owned + halo), and per worker ``frames``, ``seconds``, ``frames_per_second``.
 
     Raises:
@@ -637,7 +641,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ff += x["firefly_energy_removed"]
     return {"frames": n, "size": list(first[0].shape[1:]), "feature_channels": first[2],
             "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
-            "firefly_energy_removed": ff / n, "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
+            "firefly_energy_removed": ff / n,
+            "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
 
 
@@ -691,7 +696,8 @@ def shard_render(out, scene=None, frames: int = 8, iterations: int = 16, width: 
     times, query = render_query_times(frames, inbetween)
     ray, started = connect(address)
     try:
-        key = {"kind": "render", "scene": hashlib.sha256(pickle.dumps(scene_obj)).hexdigest(), "frames": frames,
+        scene_sha = hashlib.sha256(pickle.dumps(scene_obj)).hexdigest()
+        key = {"kind": "render", "scene": scene_sha, "frames": frames,
                "iterations": iterations, "width": width, "height": height, "seed": seed,
                "reference_spp": reference_spp, "settings": _jsonable(settings), "alpha": alpha,
                "inbetween": inbetween}
