@@ -1,4 +1,4 @@
-"""Long clips on many machines: contiguous frame chunks with a halo, run as Ray tasks.
+"""Long clips on many machines: contiguous frame chunks with a halo, run by Ray workers.
 
 A chunk *owns* a contiguous run of output frames (it writes them) and *reads* a halo of neighbour
 frames around them that it never writes: the frames the filter needs to get the owned frames exactly
@@ -13,10 +13,12 @@ from the same inputs by the same code:
   *their* windows. So the frames that reach an owned frame after ``N`` iterations form a cone: ``N r``
   frames per side at iteration 1, one radius fewer each iteration (:func:`render_cone`).
 
-Each worker writes its own frames atomically (temporary name, then rename), so a retried chunk
-rewrites the same bytes and nobody ever sees half a frame. The driver keeps a manifest of finished
-frames (``shards-manifest.json`` in the output folder, rewritten atomically as frames finish); a
-re-run of the same job skips the frames listed there.
+One Ray actor per worker core runs chunks one after another (the next chunk goes to the first one
+free) and keeps its imports, GL context and compiled tracer across chunks. Each worker writes its own
+frames atomically (temporary name, then rename), so a retried chunk rewrites the same bytes and nobody
+ever sees half a frame. The driver keeps a manifest of finished frames (``shards-manifest.json`` in the
+output folder, rewritten atomically as frames finish); a re-run of the same job skips the frames listed
+there.
 
 Ray is imported only by the functions that run a job (``--engine ray``); planning needs nothing.
 
@@ -278,7 +280,7 @@ def _maybe_die(more_to_do: bool) -> None:
 
 
 def _run_chunk(kind: str, job: dict, chunk: Chunk, events) -> dict:
-    """Ray task: produce the owned frames of ``chunk`` not yet reported done, reporting each one."""
+    """On a worker: produce the owned frames of ``chunk`` not yet reported done, reporting each one."""
     import ray
 
     torch.set_num_threads(job["threads"])
