@@ -44,7 +44,7 @@ import torch
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
 from torchmanifold.timewindow import frame_at, window
 
-__all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "render_query_times", "connect",
+__all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "render_query_times", "traced_frames", "connect",
            "shard_denoise", "shard_render", "MANIFEST", "RAY_VERSION"]
 
 #: the name of the manifest of finished frames, in the output folder
