@@ -70,6 +70,48 @@ def _add_threads_arg(p: argparse.ArgumentParser) -> None:
                         "and idle cores)")
 
 
+def _chunk_size(v: str) -> int:
+    try:
+        n = int(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer number of frames >= 1, got {v!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer number of frames >= 1, got {v!r}")
+    return n
+
+
+def _add_engine_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("cluster (docs/sharding.md)")
+    g.add_argument("--engine", choices=["local", "ray"], default="local",
+                   help="local: one process (%(default)s); ray: frame chunks on a Ray cluster")
+    g.add_argument("--address", default=None, help="Ray cluster HOST:PORT (default: a local cluster)")
+    g.add_argument("--chunk", type=_chunk_size, default=None, help="frames per Ray task (default: from the "
+                   "temporal window and the number of workers)")
+
+
+def _main_sharded(args) -> int:
+    """``--engine ray``: the frame-chunk path (:mod:`torchmanifold.pipeline.shards`); prints its JSON."""
+    from torchmanifold.pipeline import shards
+
+    common = dict(overwrite=args.overwrite, progress=not args.quiet, chunk=args.chunk, address=args.address,
+                  threads=args.threads)
+    try:
+        if args.command == "render":
+            res = shards.shard_render(args.out, scene=args.scene, frames=args.frames, iterations=args.iterations,
+                                      width=args.width, height=args.height, seed=args.seed,
+                                      reference_spp=args.reference_spp, settings=_settings(args),
+                                      alpha=args.alpha, inbetween=args.inbetween, scheme=args.scheme, **common)
+        else:
+            res = shards.shard_denoise(args.frames, args.out, settings=_settings(args), color_channels=args.color,
+                                       feature_channels=args.features, layer=args.layer,
+                                       output_layout=args.output_layout, **common)
+    except (FileNotFoundError, FileExistsError, ValueError, TypeError, ImportError, ConnectionError) as exc:
+        print(f"torchmanifold {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({k: v for k, v in res.items() if k != "outputs"}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
     from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
@@ -105,6 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_threads_arg(r)
     # render filters the progressive estimate every iteration: the cheaper height
     _add_filter_args(r, temporal_radius=1, mode="spacetime", tree_height=2)
+    _add_engine_args(r)
 
     d = sub.add_parser("denoise", help="denoise EXR frames rendered elsewhere",
                        description="Denoise one multi-channel EXR per frame: colour R,G,B plus feature "
@@ -129,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     # denoise filters each frame once and can afford one more level: against the brute-force filter
     # H=3 gives 33-37 dB where H=2 gives 29-37 (docs/adaptive-manifolds.md, "Accuracy")
     _add_filter_args(d, temporal_radius=1, mode="spacetime", tree_height=3)
+    _add_engine_args(d)
     return p
 
 
@@ -139,6 +183,10 @@ def main(argv=None) -> int:
         check_int("--threads", args.threads, min=1)
         check_tree_height(args.tree_height, name="--tree-height")
         torch.set_num_threads(args.threads)
+        if args.engine == "ray":
+            return _main_sharded(args)
+        if args.address is not None or args.chunk is not None:
+            raise ValueError("--address and --chunk need --engine ray")
         if args.command == "render":
             from torchmanifold.pipeline.render_job import render_job
 

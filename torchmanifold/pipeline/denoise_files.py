@@ -14,7 +14,7 @@ from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
 
-__all__ = ["denoise_files", "OUTPUT_LAYOUTS"]
+__all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
@@ -44,6 +44,66 @@ def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
                        ("view layer", frame.layer, first.layer)):
         if a != b:
             raise ValueError(f"{frame.path}: {what} {a} differs from {first.path} ({b})")
+
+
+class ClipWindow:
+    """The frames of a clip, read as a moving time window needs them and released behind it.
+
+    Args:
+        inputs: the frame files, in order.
+        first: the first frame, already read (it fixes size, layout, layer and feature channels).
+        color_channels: as :func:`~torchmanifold.io.frames.read_render_frame`.
+    """
+
+    def __init__(self, inputs: Sequence[Path], first: RenderFrame, color_channels: Sequence[str] | None):
+        self.inputs, self.first, self.color_channels = list(inputs), first, color_channels
+        self.feature_names = first.feature_names
+        self.notes = list(first.notes)
+        self.reads = 0  # frames served (each is read once: windows only move on)
+        self._cache: dict[int, RenderFrame] = {0: first}
+        self._served: set[int] = set()
+
+    def __len__(self) -> int:
+        return len(self.inputs)
+
+    def frames(self, ids: Sequence[int]) -> list[RenderFrame]:
+        """The frames ``ids`` (increasing); frames before ``ids[0]`` are dropped."""
+        for k in ids:
+            if k not in self._cache:
+                fr = read_render_frame(self.inputs[k], self.color_channels, self.feature_names, self.first.layer)
+                _same_as_first(fr, self.first)
+                self.notes += [n for n in fr.notes if n not in self.notes]
+                self._cache[k] = fr
+            if k not in self._served:
+                self._served.add(k)
+                self.reads += 1
+        for k in [k for k in self._cache if k < ids[0]]:
+            del self._cache[k]
+        return [self._cache[k] for k in ids]
+
+
+def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[np.ndarray, dict, RenderFrame]:
+    """Output frame ``t`` of ``clip`` from the frames of its time window alone (so the one-process,
+    streaming and sharded runs give the same bytes).
+
+    Returns:
+        ``(3, H, W)`` float32 colour, the frame's stats (its own non-finite samples, the firefly
+        energy removed), and the frame as read (its layout is the output's).
+    """
+    r = settings.temporal_radius
+    ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
+    frames = clip.frames(ids)
+    fnames = clip.feature_names
+    color = torch.from_numpy(np.stack([f.color for f in frames]))
+    feats = torch.from_numpy(np.stack([f.stack(fnames) for f in frames]))
+    ems = [f.emission for f in frames]
+    emission = torch.from_numpy(np.stack(ems)) if all(e is not None for e in ems) else None
+    y, st = denoise_frames(color, feats, fnames, emission, settings=settings, frame_times=ids,
+                           query_times=[t], return_stats=True)
+    own = ids.index(t)  # count the frame's own samples once
+    return y[0].numpy(), {"nonfinite_color": int((~torch.isfinite(color[own])).sum()),
+                          "nonfinite_features": int((~torch.isfinite(feats[own])).sum()),
+                          "firefly_energy_removed": float(st.get("firefly_energy_removed", 0.0))}, frames[own]
 
 
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
@@ -91,37 +151,20 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     fnames = first.feature_names
     outp = prepare_out(outp, overwrite)
 
-    r = settings.temporal_radius
-    cache: dict[int, RenderFrame] = {0: first}
-    notes = list(first.notes)
+    clip = ClipWindow(inputs, first, color_channels)
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
     with staged_dir(outp) as stage:
         for t in tqdm(range(len(inputs)), desc="denoise", unit="frame", disable=not progress):
-            ids = list(range(max(0, t - r), min(len(inputs), t + r + 1)))
-            for k in ids:
-                if k not in cache:
-                    cache[k] = read_render_frame(inputs[k], color_channels, fnames, first.layer)
-                    _same_as_first(cache[k], first)
-                    notes += [n for n in cache[k].notes if n not in notes]
-            for k in [k for k in cache if k < ids[0]]:
-                del cache[k]
-            color = torch.from_numpy(np.stack([cache[k].color for k in ids]))
-            feats = torch.from_numpy(np.stack([cache[k].stack(fnames) for k in ids]))
-            ems = [cache[k].emission for k in ids]
-            emission = torch.from_numpy(np.stack(ems)) if all(e is not None for e in ems) else None
-            y, st = denoise_frames(color, feats, fnames, emission, settings=settings, frame_times=ids,
-                                   query_times=[t], return_stats=True)
-            own = ids.index(t)  # count the frame's own samples once
-            stats_sum["nonfinite_color"] += int((~torch.isfinite(color[own])).sum())
-            stats_sum["nonfinite_features"] += int((~torch.isfinite(feats[own])).sum())
-            stats_sum["firefly_energy_removed"] += st.get("firefly_energy_removed", 0.0)
-            write_color(stage / inputs[t].name, y[0].numpy(), cache[t], output_layout)
+            y, rec, frame = denoise_window(clip, t, settings)
+            for k in stats_sum:
+                stats_sum[k] += rec[k]
+            write_color(stage / inputs[t].name, y, frame, output_layout)
     outputs = [str(outp / p.name) for p in inputs]
     n = len(inputs)
     return {"frames": n, "size": list(first.size), "layout": first.layout, "layer": first.layer,
             "feature_channels": fnames, "sources": {k: first.sources[k] for k in ["R", "G", "B", *fnames]},
-            "notes": notes,
+            "notes": clip.notes,
             "nonfinite_samples": stats_sum["nonfinite_color"] + stats_sum["nonfinite_features"],
             "nonfinite_color": stats_sum["nonfinite_color"],
             "nonfinite_features": stats_sum["nonfinite_features"],

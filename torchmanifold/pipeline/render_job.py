@@ -75,23 +75,49 @@ def _resolve_scene(scene):
     return load_scene(scene), str(scene)
 
 
-def _render_reference(tracer, query: list[float], spp: int, seed: int, moving_ids: list[int], progress: bool):
-    """The converged reference ``(Q, 3, H, W)`` (float64 sum of chunks) and the moving-object mask."""
+def render_reference(tracer, query: Sequence[float], spp: int, seed: int, progress: bool = False):
+    """The converged reference ``(Q, 3, H, W)`` at the query times: ``spp`` samples drawn in chunks
+    of :data:`REFERENCE_CHUNK_SPP` with the job's seed + :data:`REFERENCE_SEED_OFFSET`, summed in
+    float64 in one order (any sharding of the query times gives the same bytes). Also returns the
+    object ids of the first chunk ``(Q, H, W)``."""
     from tqdm.auto import tqdm
 
-    acc = mask = None
+    acc = object_id = None
     bar = tqdm(total=spp, desc="reference", unit="spp", disable=not progress)
     done = 0
     while done < spp:
         n = min(REFERENCE_CHUNK_SPP, spp - done)
-        r = tracer.render(times=query, spp=n, seed=seed + REFERENCE_SEED_OFFSET, sample_offset=done)
+        r = tracer.render(times=list(query), spp=n, seed=seed + REFERENCE_SEED_OFFSET, sample_offset=done)
         acc = r.color.double() * n if acc is None else acc + r.color.double() * n
-        if mask is None:
-            mask = moving_mask(r.object_id, moving_ids)
+        if object_id is None:
+            object_id = r.object_id
         done += n
         bar.update(n)
     bar.close()
-    return (acc / spp).float(), mask
+    return (acc / spp).float(), object_id
+
+
+def write_frame(out: Path, q: int, ours, raw, gaussian, ref, features, feature_names) -> list[str]:
+    """One output frame: ``frames/frame_q.exr`` (ours as R,G,B, the baselines, the reference and the
+    last sample's features) and ``png/frame_q.png`` (ours); each ``(3, H, W)`` / ``(D, H, W)``.
+    Returns the two paths relative to ``out``."""
+    from torchmanifold import features as feature_table
+    from torchmanifold.io.exr import write_exr
+    from torchmanifold.io.png import write_png
+    from torchmanifold.io.video import to_uint8_srgb
+
+    ch = {}
+    for c, n in enumerate("RGB"):
+        ch[n] = ours[c].numpy()
+        ch[f"raw.{n}"] = raw[c].numpy()
+        ch[f"gaussian.{n}"] = gaussian[c].numpy()
+        if ref is not None:
+            ch[f"reference.{n}"] = ref[c].numpy()
+    feats = {feature_table.canonical_name(n): features[k].numpy() for k, n in enumerate(feature_names)}
+    exr, png = f"frames/frame_{q:04d}.exr", f"png/frame_{q:04d}.png"
+    write_exr(out / exr, {**ch, **feats}, half=[c for c in feats if feature_table.is_half(c)])
+    write_png(out / png, to_uint8_srgb(ours))
+    return [exr, png]
 
 
 def _iterate(pr: ProgressiveRenderer, iterations: int, ref, mask, flip_every: int, bar) -> tuple[list, list]:
@@ -125,29 +151,13 @@ def _iterate(pr: ProgressiveRenderer, iterations: int, ref, mask, flip_every: in
 
 def _write_frames(out: Path, tracer, final, ref, query: list[float], iterations: int, seed: int,
                   fps: float) -> None:
-    """Frames of the final iteration: EXR (ours, the baselines, the reference and the last sample's
-    features), PNG of ours, and the MP4s."""
-    from torchmanifold import features as feature_table
-    from torchmanifold.io.exr import write_exr
-    from torchmanifold.io.png import write_png
-    from torchmanifold.io.video import to_uint8_srgb, write_mp4
+    """Frames of the final iteration (:func:`write_frame`) and the MP4s."""
+    from torchmanifold.io.video import write_mp4
 
     last = tracer.render(times=query, spp=1, seed=seed, sample_offset=iterations - 1)
-    (out / "frames").mkdir(exist_ok=True)
-    (out / "png").mkdir(exist_ok=True)
     for q in range(len(query)):
-        ch = {}
-        for c, n in enumerate("RGB"):
-            ch[n] = final.ours[q, c].numpy()
-            ch[f"raw.{n}"] = final.raw[q, c].numpy()
-            ch[f"gaussian.{n}"] = final.gaussian[q, c].numpy()
-            if ref is not None:
-                ch[f"reference.{n}"] = ref[q, c].numpy()
-        feats = {feature_table.canonical_name(n): last.features[q, k].numpy()
-                 for k, n in enumerate(last.feature_names)}
-        write_exr(out / "frames" / f"frame_{q:04d}.exr", {**ch, **feats},
-                  half=[c for c in feats if feature_table.is_half(c)])
-        write_png(out / "png" / f"frame_{q:04d}.png", to_uint8_srgb(final.ours[q]))
+        write_frame(out, q, final.ours[q], final.raw[q], final.gaussian[q], None if ref is None else ref[q],
+                    last.features[q], last.feature_names)
     write_mp4(out / "clip.mp4", final.ours, fps=fps)
     panels = [final.raw, final.gaussian, final.ours] + ([ref] if ref is not None else [])
     write_mp4(out / "compare.mp4", torch.cat(panels, dim=3), fps=fps)
@@ -198,7 +208,8 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     t0 = time.perf_counter()
     ref = mask = None
     if reference_spp > 0:
-        ref, mask = _render_reference(tracer, query, reference_spp, seed, moving_ids, progress)
+        ref, object_id = render_reference(tracer, query, reference_spp, seed, progress)
+        mask = moving_mask(object_id, moving_ids)
     ref_seconds = time.perf_counter() - t0
 
     bar = tqdm(total=iterations * len(query), desc="iterations x frames", unit="frame", disable=not progress)
