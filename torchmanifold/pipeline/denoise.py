@@ -29,6 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from torchmanifold import features as feature_table
+from torchmanifold._checks import check_choice, check_int, check_nonnegative, check_positive, check_tree_height
 from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 
 __all__ = [
@@ -98,6 +99,8 @@ def _extent(x: Tensor, valid: Tensor) -> Tensor:
     return torch.tensor(out, dtype=torch.float64)
 
 
+#: ways of handling fireflies (see :class:`DenoiseSettings`)
+FIREFLY_MODES = ("clamp", "log", "none")
 #: guide-sigma key of the log-radiance channel the denoiser adds to the renderer's features
 RADIANCE_GUIDE = "log_radiance"
 #: the log-radiance guide's offset as a fraction of the frame's mean luminance (validation set: 0.1
@@ -186,27 +189,19 @@ class DenoiseSettings:
     dtype: torch.dtype = torch.float32
 
     def check(self) -> "DenoiseSettings":
-        def pos(name, v, allow_zero=False):
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or \
-                    (v < 0 if allow_zero else v <= 0):
-                raise ValueError(f"{name} must be a {'non-negative' if allow_zero else 'positive'} number, "
-                                 f"got {v!r}")
-        pos("sigma_s", self.sigma_s)
-        pos("firefly_k", self.firefly_k)
-        pos("albedo_blur", self.albedo_blur, allow_zero=True)
-        pos("albedo_eps", self.albedo_eps)
-        pos("radiance_sigma", self.radiance_sigma, allow_zero=True)
-        pos("sigma_t", self.sigma_t)
-        if self.firefly not in ("clamp", "log", "none"):
-            raise ValueError(f"firefly must be 'clamp', 'log' or 'none', got {self.firefly!r}")
-        if self.mode not in ("spacetime", "window"):
-            raise ValueError(f"mode must be 'spacetime' or 'window', got {self.mode!r}")
-        if not isinstance(self.temporal_radius, int) or self.temporal_radius < 0:
-            raise ValueError(f"temporal_radius must be an int >= 0, got {self.temporal_radius!r}")
-        if not isinstance(self.tree_height, int) or self.tree_height < 1:
-            raise ValueError(f"tree_height must be an int >= 1, got {self.tree_height!r}")
+        """Raise TypeError / ValueError (see :mod:`torchmanifold._checks`) on a bad setting; return self."""
+        from torchmanifold.ops.temporal import MODES
+
+        for name in ("sigma_s", "firefly_k", "albedo_eps", "sigma_t"):
+            check_positive(name, getattr(self, name))
+        for name in ("albedo_blur", "radiance_sigma"):
+            check_nonnegative(name, getattr(self, name))
+        check_choice("firefly", self.firefly, FIREFLY_MODES)
+        check_choice("mode", self.mode, MODES)
+        check_int("temporal_radius", self.temporal_radius, min=0)
+        check_tree_height(self.tree_height)
         for k, v in dict(self.guide_sigmas).items():
-            pos(f"guide_sigmas[{k!r}]", v)
+            check_positive(f"guide_sigmas[{k!r}]", v)
         return self
 
 
