@@ -227,3 +227,17 @@ def test_border_stays_clean():
     inner = rel[:, 8:-8, 8:-8]
     assert border.mean().abs() < 0.03 and border.abs().mean() < 2 * inner.abs().mean() + 0.02, \
         (border.mean(), border.abs().mean(), inner.abs().mean())
+
+
+def test_black_object_beside_dark_albedo_stays_black():
+    """A black (zero-albedo) object is not demodulated: its radiance must not mix with the irradiance of
+    a dark-albedo neighbour, which no guide channel tells apart (albedo 0 vs 0.07)."""
+    T, H, W = 1, 48, 48
+    f, names = _plane(T, H, W, albedo=0.07)
+    truth = torch.full((T, 3, H, W), 0.07 * 1.0)
+    f[:, 0:3, 16:32, 16:32] = 0.0
+    truth[:, :, 16:32, 16:32] = 0.0
+    out = denoise_frames(_noisy(truth, 5), f, names)
+    assert out[..., 18:30, 18:30].abs().max() < 0.01, out[..., 18:30, 18:30].max()
+    rel = float(out[..., 36:, :].mean() / truth[..., 36:, :].mean())
+    assert abs(rel - 1) < 0.05, rel

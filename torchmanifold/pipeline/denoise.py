@@ -272,6 +272,15 @@ class _Filter:
         out = torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
         return self._guard(out, values, mask)
 
+    def by_class(self, values: Tensor, mask: Tensor, flat: Tensor) -> Tensor:
+        """Filter demodulated pixels and flat (not demodulated) ones apart: one holds irradiance, the
+        other radiance, and no guide channel tells a black or delta surface from a dark albedo."""
+        if not bool(flat.any()):
+            return self(values, mask)
+        out = self(values, mask * (~flat).to(mask.dtype))
+        own = self(values, mask * flat.to(mask.dtype))
+        return torch.where(self.at_queries(flat.to(values.dtype)) > 0.5, own, out)
+
     def _guard(self, out: Tensor, values: Tensor, mask: Tensor) -> Tensor:
         """A normalised filter is a convex combination: keep the result inside the range of the valid
         samples near the pixel. In float32 a pixel far from every manifold (weights ~1e-38) can come back
@@ -376,7 +385,7 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
     alb_fp = _footprint_albedo(alb, flat, settings.albedo_blur)
 
     if settings.firefly == "none":
-        out = filt(e, mask)
+        out = filt.by_class(e, mask, flat)
         stats["firefly_energy_removed"] = 0.0
     else:
         if pilot is not None:
@@ -387,13 +396,13 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
             pe = pe.clamp_min(0.0) / alb_fp
         else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
             pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, sigma_s, range_scale)
-            pe = torch.expm1(pf(torch.log1p(e.clamp_min(0.0)), mask))
+            pe = torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0)), mask, flat))
         if settings.firefly == "log" and pilot is None:
             out = filt.at_queries(pe) if qt != ft else pe
             stats["firefly_energy_removed"] = 0.0
         else:
             ec = _clamp_fireflies(e, alb, pe, mask, k_ff, stats)
-            out = filt(ec, mask)
+            out = filt.by_class(ec, mask, flat)
     out = out * filt.at_queries(alb_fp)
     if em is not None:
         out = out + filt.at_queries(em)
