@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 import torch
@@ -63,11 +64,10 @@ def _settings(a):
 
 
 def _add_threads_arg(p: argparse.ArgumentParser) -> None:
-    # Measured on a 2-core machine: the pipeline's many small torch ops run 2-20x slower on 2 threads
-    # than on 1 (thread hand-offs, and llvmpipe's own threads competing for the cores).
-    p.add_argument("--threads", type=int, default=1,
-                   help="torch threads for filtering (%(default)s; more pays off only on large frames "
-                        "and idle cores)")
+    # Every core this process may run on. Two threads used to be 4-10x slower than one: OpenMP workers
+    # spun after each of the pipeline's many small ops; torchmanifold/__init__.py makes them sleep.
+    p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)),
+                   help="torch threads for filtering (default: every core, %(default)s here)")
 
 
 def _chunk_size(v: str) -> int:

@@ -1,4 +1,6 @@
-"""Python-side registrations for ``torchmanifold::adaptive_manifold`` (run once, only if the op loaded).
+"""Python-side registrations for ``torchmanifold::adaptive_manifold`` and
+``torchmanifold::spacetime_adaptive_manifold`` (run once, only if the ops loaded; the space-time op's
+are the same three, its reference is ``torchmanifold.ops.temporal.spacetime_torch``).
 
 - ``register_fake``: shapes/dtypes only, so ``torch.compile(fullgraph=True)`` and ``opcheck`` trace it.
 - ``register_autograd``: gradient w.r.t. ``values``. The filter is linear in values for a fixed guide,
@@ -111,3 +113,100 @@ def _register() -> None:
 
 
 _register()
+
+
+SPACETIME_NAME = "torchmanifold::spacetime_adaptive_manifold"
+SPACETIME_BACKWARD_NAME = "torchmanifold::_spacetime_adaptive_manifold_backward"
+
+
+def _check_spacetime_shapes(values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor) -> None:
+    torch._check(values.dim() == 5, lambda: f"values must be (B, T, C, H, W), got {tuple(values.shape)}")
+    torch._check(guide.dim() == 5, lambda: f"guide must be (B, T, D, H, W), got {tuple(guide.shape)}")
+    torch._check(weights.dim() == 2, lambda: f"weights must be (Q, T), got {tuple(weights.shape)}")
+    torch._check(query_guide.dim() == 5, lambda: f"query_guide must be (B, Q, D, H, W), got {tuple(query_guide.shape)}")
+    B, T, _, H, W = values.shape
+    torch._check(guide.shape[:2] == (B, T) and guide.shape[3:] == (H, W),
+                 lambda: f"values {tuple(values.shape)} and guide {tuple(guide.shape)} differ in B, T, H or W")
+    torch._check(weights.shape[1] == T, lambda: f"weights {tuple(weights.shape)} must have T={T} columns")
+    torch._check(query_guide.shape == (B, weights.shape[0], guide.shape[2], H, W),
+                 lambda: f"query_guide {tuple(query_guide.shape)} must be (B, Q, D, H, W)")
+    torch._check(values.dtype == guide.dtype == weights.dtype == query_guide.dtype,
+                 lambda: "values, guide, weights and query_guide must share a dtype")
+
+
+def _spacetime_vjp(grad: Tensor, values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor,
+                   sigma_s: float, sigma_r: float, tree_height: int, power_iterations: int,
+                   adjust_outliers: bool) -> Tensor:
+    # linear in values for fixed guides and weights, as the spatial op; the reference is imported
+    # here because torchmanifold.ops.temporal imports this module's importer
+    from torchmanifold.ops.temporal import spacetime_torch
+
+    guide, weights, query_guide = guide.detach(), weights.detach(), query_guide.detach()
+    _, vjp_fn = torch.func.vjp(
+        lambda x: spacetime_torch(x, guide, weights, query_guide, sigma_s, sigma_r, tree_height,
+                                  power_iterations, adjust_outliers), values.detach())
+    return vjp_fn(grad.contiguous())[0]
+
+
+def _register_spacetime() -> None:
+    if not hasattr(torch.ops.torchmanifold, "spacetime_adaptive_manifold"):  # pragma: no cover - broken build
+        return
+
+    @torch.library.register_fake(SPACETIME_NAME)
+    def _fake(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
+              adjust_outliers):
+        _check_spacetime_shapes(values, guide, weights, query_guide)
+        B, _, C, H, W = values.shape
+        return values.new_empty((B, weights.shape[0], C, H, W))
+
+    @torch.library.custom_op(SPACETIME_BACKWARD_NAME, mutates_args=())
+    def _spacetime_backward(grad: Tensor, values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor,
+                            sigma_s: float, sigma_r: float, tree_height: int, power_iterations: int,
+                            adjust_outliers: bool) -> Tensor:
+        """Adjoint w.r.t. values at ``values``: grad (B, Q, C, H, W) -> (B, T, C, H, W)."""
+        return _spacetime_vjp(grad, values, guide, weights, query_guide, sigma_s, sigma_r, tree_height,
+                              power_iterations, adjust_outliers)
+
+    @_spacetime_backward.register_fake
+    def _backward_fake(grad, values, guide, weights, query_guide, sigma_s, sigma_r, tree_height,
+                       power_iterations, adjust_outliers):
+        _check_spacetime_shapes(values, guide, weights, query_guide)
+        return torch.empty_like(values, memory_format=torch.contiguous_format)
+
+    def _setup_context(ctx, inputs, output):
+        values, guide, weights, query_guide, *params = inputs
+        ctx.save_for_backward(values, guide, weights, query_guide)
+        ctx.params = params
+
+    def _backward(ctx, grad):
+        values, guide, weights, query_guide = ctx.saved_tensors
+        grad_values = torch.ops.torchmanifold._spacetime_adaptive_manifold_backward(
+            grad, values, guide, weights, query_guide, *ctx.params)
+        return grad_values, None, None, None, None, None, None, None, None
+
+    torch.library.register_autograd(SPACETIME_NAME, _backward, setup_context=_setup_context)
+
+    # the adjoint of the adjoint is the forward op (the VJP is linear in grad)
+    def _setup_backward_context(ctx, inputs, output):
+        _, _, guide, weights, query_guide, *params = inputs
+        ctx.save_for_backward(guide, weights, query_guide)
+        ctx.params = params
+
+    def _backward_backward(ctx, gg):
+        guide, weights, query_guide = ctx.saved_tensors
+        gv = torch.ops.torchmanifold.spacetime_adaptive_manifold(gg.contiguous(), guide, weights, query_guide,
+                                                                 *ctx.params)
+        return gv, None, None, None, None, None, None, None, None, None
+
+    _spacetime_backward.register_autograd(_backward_backward, setup_context=_setup_backward_context)
+
+    @torch.library.register_kernel(SPACETIME_NAME, "cuda")
+    def _cuda(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
+              adjust_outliers):
+        from torchmanifold.ops.temporal import spacetime_torch
+
+        return spacetime_torch(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height,
+                               power_iterations, adjust_outliers)
+
+
+_register_spacetime()

@@ -17,7 +17,9 @@ by default):
   tau_t, the splats of all frames are summed (the time-weighted combination), blurred once and sliced
   into the query frame. A sample whose guide no longer matches the query frame's content at that
   place (an object that moved away, a disocclusion) lands on no nearby manifold and does not smear.
-  Use it when things move (camera or objects); it costs T splats per query and runs in pure PyTorch.
+  Use it when things move (camera or objects); it costs T splats per query. It runs as the C++ op
+  ``torchmanifold::spacetime_adaptive_manifold`` where that has a kernel for the device (CPU), else in
+  pure PyTorch (:func:`spacetime_torch`, the reference the kernel matches).
 
 With T = 1 and the query at the frame, ``"spacetime"`` is exactly the spatial filter.
 """
@@ -31,25 +33,30 @@ from torch import Tensor
 
 from torchmanifold._checks import check_choice, check_numbers, check_positive, check_same_dtype_device, check_tensor
 from torchmanifold.ops._reference import (
+    GRAM_BAND,
     _domain_transform,
     _dominant_direction,
     downsample,
     downsample_factor,
+    gram_band_stride,
     normalise,
     recursive_lowpass,
     root_manifold,
     upsample,
 )
 from torchmanifold.ops.adaptive_manifold import (
+    _DISPATCH_KEYS,
     _FilterSettings,
     _check_settings,
     _guide_scales,
+    _has_kernel_for,
     adaptive_manifold_filter,
     automatic_tree_height,
 )
 from torchmanifold.timewindow import interpolate, time_weights
 
-__all__ = ["temporal_adaptive_manifold_filter", "TemporalAdaptiveManifoldFilter", "spacetime_adaptive_manifold_torch"]
+__all__ = ["temporal_adaptive_manifold_filter", "TemporalAdaptiveManifoldFilter", "spacetime_adaptive_manifold_torch",
+           "spacetime_torch"]
 
 MODES = ("window", "spacetime")
 
@@ -104,10 +111,11 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         c = lo + (hi - lo) / 2
         c = torch.where(torch.isfinite(c), c, zero)[:, :, None, None]  # (B,C,1,1)
     fp = (f_s - c.unsqueeze(1)) * (ms > 0).to(wd).unsqueeze(2)
-    # fallback where nothing slices: the time-weighted average of the finite samples at the pixel
+    # fallback where nothing slices: the time-weighted average of the finite samples at the pixel,
+    # taken about c so that constant values come back exactly
     wv = fin_v.to(wd) * tau[None, :, None, None, None]
     wsum = wv.sum(1)
-    fb = torch.where(wsum > 0, (wv * f_s).sum(1) / torch.where(wsum > 0, wsum, 1.0), zero)
+    fb = torch.where(wsum > 0, c + (wv * (f_s - c.unsqueeze(1))).sum(1) / torch.where(wsum > 0, wsum, 1.0), zero)
     has_sample = (wsum > 0).all(1)  # (B,H,W)
 
     eta_low, eta_full, gs = root_manifold(q0, mq, sigma_s, df)
@@ -148,7 +156,10 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         r = resid.mul_(ohf.unsqueeze(2))
         scale = torch.linalg.vector_norm(r, ord=math.inf, dim=(2, 3, 4), keepdim=True)
         r = r.div_(torch.where(scale > 0, scale, 1.0)).flatten(3)
-        v = _dominant_direction(r @ r.transpose(-1, -2), power_iterations)
+        # M over every s-th band of rows, as the spatial filter's step 8
+        bands = torch.arange(H, device=dev) // GRAM_BAND % gram_band_stride(H, W) == 0
+        rows = r.unflatten(3, (H, W))[..., bands, :].flatten(3)
+        v = _dominant_direction(rows @ rows.transpose(-1, -2), power_iterations)
         positive = (v.unsqueeze(2) @ r).reshape(n, B, H, W) >= 0
         theta = (1.0 - w_raw) * ohf
         pos = positive.to(wd)
@@ -165,6 +176,36 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
     return normalise(S, S0, c, fb, min_d, has_sample, inv_r2, adjust_outliers).to(out_dtype)
 
 
+def spacetime_torch(values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor, sigma_s: float,
+                    sigma_r: float, tree_height: int, power_iterations: int, adjust_outliers: bool) -> Tensor:
+    """Pure-PyTorch implementation of the op ``torchmanifold::spacetime_adaptive_manifold``: every query.
+
+    Args:
+        values: (B, T, C, H, W) frames' values.
+        guide: (B, T, D, H, W) frames' guides (scaled).
+        weights: (Q, T) time weights of the frames for every query.
+        query_guide: (B, Q, D, H, W) every query frame's guide.
+        sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers: as the spatial filter.
+
+    Returns:
+        (B, Q, C, H, W), dtype of ``values``.
+    """
+    outs = [spacetime_adaptive_manifold_torch(values, guide, weights[q], query_guide[:, q], sigma_s, sigma_r,
+                                              tree_height, power_iterations, adjust_outliers)
+            for q in range(weights.shape[0])]
+    if not outs:
+        B, _, C, H, W = values.shape
+        return values.new_empty((B, 0, C, H, W))
+    return torch.stack(outs, 1)
+
+
+@torch.compiler.assume_constant_result
+def _has_spacetime_kernel_for(device_type: str) -> bool:
+    return (_has_kernel_for(device_type) and hasattr(torch.ops.torchmanifold, "spacetime_adaptive_manifold")
+            and torch._C._dispatch_has_kernel_for_dispatch_key("torchmanifold::spacetime_adaptive_manifold",
+                                                               _DISPATCH_KEYS[device_type]))
+
+
 def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times, query_times, sigma_s: float,
                                       sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
                                       tree_height: int | None = 2, *,
@@ -174,7 +215,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
     r"""Filter a window of frames at query times with Gaussian weights in time.
 
     See the module docstring for when to use ``"window"`` (static content, fast, the C++ op) or
-    ``"spacetime"`` (moving content: no ghosts; pure PyTorch, T splats per query).
+    ``"spacetime"`` (moving content: no ghosts; T splats per query).
 
     Args:
         values: (B, T, C, H, W) frames' values.
@@ -186,7 +227,9 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         mode: ``"window"`` or ``"spacetime"``.
         tree_height, guide_sigmas, adjust_outliers, power_iterations: as
             :func:`~torchmanifold.ops.adaptive_manifold_filter` (keyword-only after ``tree_height``).
-        backend: for ``"window"`` as the spatial filter; ``"spacetime"`` accepts ``"auto"`` or ``"torch"``.
+        backend: ``"auto"`` (the C++ op where it has a kernel for the device, else pure PyTorch),
+            ``"cpp"`` or ``"torch"``; for ``"window"`` it picks the spatial filter's backend, for
+            ``"spacetime"`` the space-time op's.
 
     Returns:
         (B, Q, C, H, W) filtered frames at the query times, dtype of ``values``.
@@ -212,8 +255,9 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         sigma_s, sigma_r, tree_height, power_iterations, backend)
     sigma_t = check_positive("sigma_t", sigma_t)
     mode = check_choice("mode", mode, MODES)
-    if mode == "spacetime" and backend == "cpp":
-        raise ValueError("backend must be 'auto' or 'torch' for mode='spacetime' (pure PyTorch), got 'cpp'")
+    if mode == "spacetime" and backend == "cpp" and not _has_spacetime_kernel_for(values.device.type):
+        raise ValueError(f"backend='cpp' needs a kernel of torchmanifold::spacetime_adaptive_manifold for "
+                         f"{values.device.type} tensors; none is registered (use backend='torch' or 'auto')")
     if tree_height is None:
         tree_height = automatic_tree_height(sigma_s, sigma_r)
 
@@ -239,12 +283,14 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
                                        backend=backend)
         out = out.reshape(B, -1, C, H, W)
     else:
-        outs = []
-        for qi, q in enumerate(qt.tolist()):
-            gq = interpolate(g, ft, q, dim=1)  # the query frame's guide: linear between its neighbours
-            outs.append(spacetime_adaptive_manifold_torch(v, g, tw[qi], gq, sigma_s, sigma_r, tree_height,
-                                                          power_iterations, adjust_outliers))
-        out = torch.stack(outs, 1)
+        # every query frame's guide: linear between the frames that bracket it
+        gq = torch.stack([interpolate(g, ft, q, dim=1) for q in qt.tolist()], 1)
+        args = (sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers)
+        if backend == "torch" or (backend == "auto" and not _has_spacetime_kernel_for(v.device.type)):
+            out = spacetime_torch(v, g, tw, gq, *args)
+        else:
+            out = torch.ops.torchmanifold.spacetime_adaptive_manifold(
+                v.contiguous(), g.detach().contiguous(), tw.contiguous(), gq.detach().contiguous(), *args)
     return out.to(values.dtype)
 
 

@@ -1,0 +1,134 @@
+"""Do more torch threads help the pipeline? 1 vs 2 (or N) threads on a ``render`` iteration and on the frame
+step, under several thread environments, every configuration in its own fresh process, ratios in one run.
+
+Run: ``.venv/bin/python benchmarks/bench_threads.py [--iterations 4] [--quick]``; writes
+``benchmarks/results/threads.json``. Each thread environment runs in its own fresh process (OpenMP reads
+its settings once); inside it the thread counts alternate iteration by iteration after one warm-up, so
+the ratios compare runs under the same machine load. Times are medians, never asserted.
+
+Measured:
+- ``render``: :meth:`ProgressiveRenderer.step` on the render job's defaults (8 frames of 128x96, space-time
+  +-1 frame), split into the tracer's part (llvmpipe) and the rest (filtering, torch).
+- ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
+  no GL context in the process.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def _child(kind: str, threads: list[int], iterations: int) -> dict:
+    if os.environ.get("_IMPORT_FIRST"):
+        import torchmanifold  # noqa: F401  (sets its OpenMP default before torch loads libgomp)
+    import torch
+
+    from torchmanifold.pipeline import DenoiseSettings, denoise_frames
+
+    if kind == "render":
+        from torchmanifold.pipeline.progressive import ProgressiveRenderer
+        from torchmanifold.render import PathTracer, default_scene
+
+        tracer = PathTracer(default_scene(), 128, 96)
+        pr = ProgressiveRenderer(tracer, [float(t) for t in range(8)],
+                                 settings=DenoiseSettings(temporal_radius=1, mode="spacetime"))
+
+        def once():
+            st = pr.step()
+            return st.seconds, st.render_seconds
+    else:
+        gen = torch.Generator().manual_seed(0)
+        color = torch.rand(3, 3, 256, 256, generator=gen)
+        names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+        feats = torch.rand(3, len(names), 256, 256, generator=gen)
+        feats[:, :3, :, 128:] += 0.5  # an edge in the guide
+        settings = DenoiseSettings(temporal_radius=1, mode="spacetime")
+
+        def once():
+            t0 = time.perf_counter()
+            denoise_frames(color, feats, names, None, settings)
+            return (time.perf_counter() - t0) / 3, 0.0
+
+    once()  # warm-up: shader compile, first allocations
+    # the thread counts alternate, so a change in the machine's load hits all of them alike
+    runs = {n: [] for n in threads}
+    for _ in range(iterations):
+        for n in threads:
+            torch.set_num_threads(n)
+            runs[n].append(once())
+    out = {}
+    for n, r in runs.items():
+        out[n] = {"seconds": statistics.median(t for t, _ in r)}
+        if kind == "render":
+            out[n]["render_seconds"] = statistics.median(x for _, x in r)
+            out[n]["filter_seconds"] = statistics.median(t - x for t, x in r)
+    return out
+
+
+ENVS = {
+    # libgomp's default with OMP_WAIT_POLICY unset: workers spin for a while after each parallel region
+    # (what the pipeline got before torchmanifold set a policy; torch is imported first here)
+    "spin (policy unset)": {},
+    # workers sleep at once; what torchmanifold/__init__.py sets unless the user set a policy
+    "OMP_WAIT_POLICY=PASSIVE": {"OMP_WAIT_POLICY": "PASSIVE"},
+    # as the CLI runs: nothing set, torchmanifold imported before torch (its default applies)
+    "cli (import torchmanifold first)": {"_IMPORT_FIRST": "1"},
+    # and llvmpipe with one thread instead of one per core
+    "PASSIVE + LP_NUM_THREADS=1": {"OMP_WAIT_POLICY": "PASSIVE", "LP_NUM_THREADS": "1"},
+}
+
+
+def _run(kind: str, threads: list[int], env: dict, iterations: int) -> dict:
+    e = dict(os.environ, PYTHONPATH=str(ROOT))
+    for k in ("LP_NUM_THREADS", "OMP_WAIT_POLICY", "KMP_BLOCKTIME", "GOMP_SPINCOUNT"):
+        e.pop(k, None)
+    e.update(env)
+    out = subprocess.run([sys.executable, __file__, "--child", kind, ",".join(map(str, threads)), str(iterations)],
+                         env=e, capture_output=True, text=True, timeout=3600)
+    if out.returncode != 0:
+        raise RuntimeError(f"{kind} env={env} failed:\n{out.stderr[-3000:]}")
+    return {int(k): v for k, v in json.loads(out.stdout.strip().splitlines()[-1]).items()}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--iterations", type=int, default=4)
+    p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
+    p.add_argument("--kinds", nargs="+", default=["frame_step", "render"], choices=["frame_step", "render"])
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--out", default=str(RESULTS / "threads.json"))
+    a = p.parse_args()
+    rows = []
+    for kind in a.kinds:
+        for name in a.envs:
+            res = _run(kind, a.threads, ENVS[name], a.iterations)
+            base = res[a.threads[0]]["seconds"]
+            for n in a.threads:
+                row = {"kind": kind, "env": name, "threads": n, **res[n], "speedup_vs_1": base / res[n]["seconds"],
+                       "load_average_1min_after": os.getloadavg()[0]}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    import torch
+
+    data = {"machine": {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
+                        "torch": torch.__version__, "parallel": torch.__config__.parallel_info().splitlines()[:6]},
+            "iterations": a.iterations, "rows": rows}
+    Path(a.out).parent.mkdir(exist_ok=True)
+    Path(a.out).write_text(json.dumps(data, indent=1))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "--child":
+        print(json.dumps(_child(sys.argv[2], [int(n) for n in sys.argv[3].split(",")], int(sys.argv[4]))))
+    else:
+        main()
