@@ -168,7 +168,9 @@ def test_bad_arguments(ctx):
 
 
 def test_baked_scene_equals_storage_buffer_scene(ctx):
-    """The scene pasted into the shader as constants and read from storage buffers: the same frames."""
+    """The scene pasted into the shader as constants and read from storage buffers: the same frames, up to
+    float rounding in colour and the features made from normals and directions (the compiler folds the
+    baked scene's constant maths, e.g. a quad's normalised normal, a few ulps away from the run-time result)."""
     from torchmanifold.render import default_scene
 
     scene = default_scene()
@@ -176,9 +178,12 @@ def test_baked_scene_equals_storage_buffer_scene(ctx):
     b = PathTracer(scene, 24, 16, ctx=ctx, bake_scene=False)
     assert a.baked and not b.baked
     ra, rb = a.render([0.0, 2.5], spp=2, seed=9), b.render([0.0, 2.5], spp=2, seed=9)
-    for x, y in ((ra.color, rb.color), (ra.features, rb.features), (ra.motion, rb.motion),
-                 (ra.object_id, rb.object_id), (ra.emission, rb.emission)):
+    for x, y in ((ra.motion, rb.motion), (ra.object_id, rb.object_id), (ra.emission, rb.emission)):
         assert torch.equal(x, y)
+    torch.testing.assert_close(ra.color, rb.color, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(ra.features, rb.features, rtol=1e-5, atol=1e-5)
+    exact = [ra.feature_names.index(n) for n in ("T", "Z", "Mr", "Mg", "Mb")]  # no folded maths on their way
+    assert torch.equal(ra.features[:, exact], rb.features[:, exact])
 
 
 def test_context_manager_releases(ctx):

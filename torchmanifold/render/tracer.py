@@ -22,6 +22,7 @@ from torchmanifold.render.scene import MATERIAL_TYPES, PRIM_KINDS, Scene, pack_s
 SHADER_PATH = Path(__file__).parent / "shaders" / "pathtracer.comp"
 GROUP = 8  # local_size_x/y declared in the shader
 MAX_BAKED_OBJECTS = 256  # scenes up to this size become shader constants
+MAX_UNROLLED_OBJECTS = 64  # baked scenes up to this size test every object in straight-line code
 
 #: storage-buffer binding points (``BIND_<NAME>`` in the shader): scene inputs, then outputs
 BINDINGS = {
@@ -65,6 +66,10 @@ def _scene_constants(packed: dict) -> str:
 
     return (
         f"#define N_PRIMS {len(rows)}\n#define N_LIGHTS {packed['n_lights']}\n#define N_CAMKEYS {len(cams)}\n"
+        + ("#define FOR_EACH_PRIM(X) " + " ".join(f"X({i})" for i in range(len(rows))) + "\n"
+           if len(rows) <= MAX_UNROLLED_OBJECTS else "")
+        + ("#define FOR_EACH_LIGHT(X) " + " ".join(f"X({i})" for i in range(packed["n_lights"])) + "\n"
+           if 0 < packed["n_lights"] <= MAX_UNROLLED_OBJECTS else "")
         + arr("Prim", "prims", rows, len(rows))
         + arr("Material", "mats", mats, len(mats))
         + arr("vec4", "keys", keys, len(keys))
@@ -111,7 +116,8 @@ class PathTracer:
         spp_per_dispatch: most samples one dispatch takes (bounds the length of one GPU job).
         bake_scene: paste the scene into the shader as constants (faster; a new tracer per scene
             anyway) instead of reading storage buffers; ``None`` = when it has at most
-            ``MAX_BAKED_OBJECTS`` objects. Both give identical images.
+            ``MAX_BAKED_OBJECTS`` objects. Both give the same images up to float rounding (the
+            compiler folds the baked scene's constant maths).
         max_buffer_bytes: cap on one output storage buffer (default: the driver's
             ``GL_MAX_SHADER_STORAGE_BLOCK_SIZE``); longer batches of frames are rendered in parts.
 
