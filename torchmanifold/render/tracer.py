@@ -78,9 +78,19 @@ def _scene_constants(packed: dict) -> str:
     )
 
 
-def _shader_source(packed: dict, has_mesh: bool, baked: bool) -> str:
+def _feature_slots(feature_names: Sequence[str]) -> list[int]:
+    """Output channel of every tracer feature in table order, -1 where not output."""
+    slots = [-1] * len(feature_table.tracer_names())
+    for j, name in enumerate(feature_names):
+        slots[feature_table.tracer_names().index(name)] = j
+    return slots
+
+
+def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str]) -> str:
     src = SHADER_PATH.read_text()
-    defines = f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n" + shader_defines()
+    slots = ", ".join(str(s) for s in _feature_slots(feature_names))
+    defines = (f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
+               f"#define OUTPUT_SLOTS {slots}\n" + shader_defines())
     src = src.replace("#version 430\n", defines, 1)
     return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
 
@@ -183,22 +193,18 @@ class PathTracer:
         if bake_scene is None:
             bake_scene = max(len(self.scene.objects), len(packed["keys"])) <= MAX_BAKED_OBJECTS
         self.baked = bool(bake_scene)
-        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked))
+        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked, self.feature_names))
         names = _SCENE_BUFFERS + (_MESH_BUFFERS if self.has_mesh else ())
         self._scene_bufs = {BINDINGS[n]: self.ctx.buffer(packed[n].tobytes()) for n in names}
 
     def _set_scene_uniforms(self) -> None:
         """Uniforms fixed for this tracer: image size, scene sizes, feature slots, render settings."""
         scene = self.scene
-        slots = [-1] * len(feature_table.tracer_names())
-        for j, name in enumerate(self.feature_names):
-            slots[feature_table.tracer_names().index(name)] = j
         self._set("u_size", (self.width, self.height))
         self._set("u_n_prims", len(scene.objects))
         self._set("u_n_lights", self.n_lights)
         self._set("u_n_camkeys", len(scene.camera.keys))
         self._set("u_n_feat", len(self.feature_names))
-        self._set("u_slot", slots)
         self._set("u_max_depth", scene.max_depth)
         self._set("u_rr_depth", scene.rr_depth)
         self._set("u_shutter", float(scene.shutter))

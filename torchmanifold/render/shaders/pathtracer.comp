@@ -26,6 +26,10 @@ struct Prim { vec4 a; vec4 b; vec4 c; ivec4 info; ivec4 info2; };
 // Material: colour.rgb + type (MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS), emission.rgb + index of refraction.
 struct Material { vec4 color_type; vec4 emission_ior; };
 
+// output channel of each feature, -1 = not written: constants from the host (OUTPUT_SLOTS), so features
+// this tracer does not output are never accumulated and the writes need no per-feature branch
+const int feat_slot[N_FEAT] = int[N_FEAT](OUTPUT_SLOTS);
+
 #if CONST_SCENE
 // the host pastes the scene here as constant arrays (prims, mats, keys, camkeys, lights) and defines
 // N_PRIMS, N_LIGHTS, N_CAMKEYS: llvmpipe then reads plain constants instead of bounds-checked buffers (~2x)
@@ -62,7 +66,6 @@ uniform uint u_sample_start;   // global index of the first sample of this dispa
 uniform uint u_seed;
 uniform int u_accumulate;      // 0: overwrite the sums, 1: add to them
 uniform int u_n_feat;          // D
-uniform int u_slot[N_FEAT];    // output channel of each feature, -1 = not written
 uniform int u_max_depth;
 uniform int u_rr_depth;
 uniform float u_shutter;
@@ -464,7 +467,7 @@ void main() {
     }
     int basef = f * u_n_feat * plane + pidx;
     for (int k = 0; k < N_FEAT; ++k) {
-        int sl = u_slot[k];
+        int sl = feat_slot[k];
         if (sl < 0) continue;
         int idx = basef + sl * plane;
         out_feat[idx] = (u_accumulate != 0 ? out_feat[idx] : 0.0) + feat[k];
