@@ -455,22 +455,22 @@ void main() {
         sum_c += L;
     }
 
-    int base3 = f * 3 * plane + pidx;
-    vec3 old_c = vec3(0.0), old_e = vec3(0.0);
+    // sums: the first chunk of samples stores, later ones add (a uniform branch, so the first reads nothing)
+    int base3 = f * 3 * plane + pidx, basef = f * u_n_feat * plane + pidx;
     if (u_accumulate != 0) {
-        old_c = vec3(out_color[base3], out_color[base3 + plane], out_color[base3 + 2 * plane]);
-        old_e = vec3(out_emission[base3], out_emission[base3 + plane], out_emission[base3 + 2 * plane]);
-    }
-    for (int c = 0; c < 3; ++c) {
-        out_color[base3 + c * plane] = old_c[c] + sum_c[c];
-        out_emission[base3 + c * plane] = old_e[c] + sum_e[c];
-    }
-    int basef = f * u_n_feat * plane + pidx;
-    for (int k = 0; k < N_FEAT; ++k) {
-        int sl = feat_slot[k];
-        if (sl < 0) continue;
-        int idx = basef + sl * plane;
-        out_feat[idx] = (u_accumulate != 0 ? out_feat[idx] : 0.0) + feat[k];
+        for (int c = 0; c < 3; ++c) {
+            out_color[base3 + c * plane] += sum_c[c];
+            out_emission[base3 + c * plane] += sum_e[c];
+        }
+        for (int k = 0; k < N_FEAT; ++k)
+            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] += feat[k];
+    } else {
+        for (int c = 0; c < 3; ++c) {
+            out_color[base3 + c * plane] = sum_c[c];
+            out_emission[base3 + c * plane] = sum_e[c];
+        }
+        for (int k = 0; k < N_FEAT; ++k)
+            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] = feat[k];
     }
 
     // object id and screen-space motion of the pixel-centre first hit at the frame time (sample-free)
