@@ -37,6 +37,7 @@ SIZE = 256
 ROUNDS = 7
 BUDGET_S = 4.0  # equal-time budget per renderer
 REF_SPP = 256  # per renderer; the shared reference averages both
+TRIAL_SPP = 8  # the timed trial that sets each renderer's spp for the equal-time budget
 
 
 # ------------------------------------------------------------------------------------------ Mitsuba side
@@ -189,14 +190,18 @@ def main(quick: bool = False, out_dir: Path | None = None) -> dict:
         ref_o = ours["colour_only"].render([0.0], spp=ref_spp, seed=10_000).color[0].double().numpy()
         ref = 0.5 * (ref_m + ref_o)
 
-        # equal time: spp from each one's 1-spp time, both scored against the shared reference
-        equal = {}
-        spp_m = max(1, int(budget / med["mitsuba"]))
-        mts.ask(cmd="render", spp=spp_m, seed=19_999)  # Dr.Jit compiles a kernel per sample count: not timed
+        # equal time: each one's spp from a timed trial at TRIAL_SPP (per-frame costs amortise over samples),
+        # both scored against the shared reference
+        trial = 2 if quick else TRIAL_SPP
+        mts.ask(cmd="render", spp=trial, seed=19_998)  # Dr.Jit compiles a kernel per sample count: not timed
+        spp_m = max(1, round(trial * budget / mts.ask(cmd="render", spp=trial, seed=19_999)["seconds"]))
+        mts.ask(cmd="render", spp=spp_m, seed=19_997)  # compile, not timed
         ans = mts.ask(cmd="render", spp=spp_m, seed=20_000, out=str(tmp / "eq_mitsuba.npy"))
-        equal["mitsuba"] = {"spp": spp_m, "seconds": ans["seconds"],
-                            "rel_mse": rel_mse(np.load(tmp / "eq_mitsuba.npy"), ref)}
-        spp_o = max(1, int(budget / med["full"]))
+        equal = {"mitsuba": {"spp": spp_m, "seconds": ans["seconds"],
+                             "rel_mse": rel_mse(np.load(tmp / "eq_mitsuba.npy"), ref)}}
+        t0 = time.perf_counter()
+        ours["full"].render([0.0], spp=trial, seed=19_999)
+        spp_o = max(1, round(trial * budget / (time.perf_counter() - t0)))
         t0 = time.perf_counter()
         res = ours["full"].render([0.0], spp=spp_o, seed=20_000)
         equal["ours_full"] = {"spp": spp_o, "seconds": time.perf_counter() - t0,
