@@ -26,6 +26,10 @@ struct Prim { vec4 a; vec4 b; vec4 c; ivec4 info; ivec4 info2; };
 // Material: colour.rgb + type (MAT_DIFFUSE, MAT_MIRROR, MAT_GLASS), emission.rgb + index of refraction.
 struct Material { vec4 color_type; vec4 emission_ior; };
 
+// output channel of each feature, -1 = not written: constants from the host (OUTPUT_SLOTS), so features
+// this tracer does not output are never accumulated and the writes need no per-feature branch
+const int feat_slot[N_FEAT] = int[N_FEAT](OUTPUT_SLOTS);
+
 #if CONST_SCENE
 // the host pastes the scene here as constant arrays (prims, mats, keys, camkeys, lights) and defines
 // N_PRIMS, N_LIGHTS, N_CAMKEYS: llvmpipe then reads plain constants instead of bounds-checked buffers (~2x)
@@ -62,7 +66,6 @@ uniform uint u_sample_start;   // global index of the first sample of this dispa
 uniform uint u_seed;
 uniform int u_accumulate;      // 0: overwrite the sums, 1: add to them
 uniform int u_n_feat;          // D
-uniform int u_slot[N_FEAT];    // output channel of each feature, -1 = not written
 uniform int u_max_depth;
 uniform int u_rr_depth;
 uniform float u_shutter;
@@ -146,7 +149,9 @@ vec2 camera_project(Camera c, vec3 p) {
 }
 
 // ---------------------------------------------------------------- intersection
-struct Hit { float t; int prim; vec3 n; };  // n: geometric normal, front side (outward / u x v)
+// n: geometric normal, front side (outward / u x v). The hit primitive's material and light flag are
+// copied in as it is found: with an unrolled scene these are selects of constants, not per-lane gathers.
+struct Hit { float t; int prim; vec3 n; Material m; bool light; };
 
 float hit_sphere(vec3 o, vec3 d, vec3 c, float r, float tmin) {
     vec3 oc = o - c;
@@ -251,25 +256,42 @@ float hit_prim(int i, vec3 o, vec3 d, float tmin, float tmax, float time, bool a
     return t;
 }
 
+void hit_set(inout Hit hit, float t, int i, vec3 n) {
+    hit.t = t; hit.prim = i; hit.n = n; hit.m = mats[prims[i].info.y]; hit.light = prims[i].info2.x != 0;
+}
+
 bool intersect(vec3 o, vec3 d, float tmin, float tmax, float time, out Hit hit) {
     hit.t = tmax;
     hit.prim = -1;
     hit.n = vec3(0.0);
+#ifdef FOR_EACH_PRIM
+    // unrolled by the host's FOR_EACH_PRIM: every index is a constant, so each test is specialised to
+    // its primitive's kind and numbers (about 3x faster on llvmpipe than the loop, which it does not unroll)
+#define INTERSECT_ONE(i) { vec3 n; float t = hit_prim(i, o, d, tmin, hit.t, time, false, n); \
+                           if (t < hit.t) { hit_set(hit, t, i, n); } }
+    FOR_EACH_PRIM(INTERSECT_ONE)
+#else
     for (int i = 0; i < N_PRIMS; ++i) {
         vec3 n;
         float t = hit_prim(i, o, d, tmin, hit.t, time, false, n);
-        if (t < hit.t) { hit.t = t; hit.prim = i; hit.n = n; }
+        if (t < hit.t) hit_set(hit, t, i, n);
     }
+#endif
     return hit.prim >= 0;
 }
 
 // shadow rays: any hit before tmax ends the search. `skip` is the light itself: a convex light cannot hide
 // its own sampled point, and testing it would let the ray-origin offset turn the light into its own blocker.
 bool occluded(vec3 o, vec3 d, float tmax, float time, int skip) {
+#ifdef FOR_EACH_PRIM
+#define OCCLUDES(i) { vec3 n; if (i != skip && hit_prim(i, o, d, 0.0, tmax, time, true, n) < tmax) return true; }
+    FOR_EACH_PRIM(OCCLUDES)
+#else
     for (int i = 0; i < N_PRIMS; ++i) {
         vec3 n;
         if (i != skip && hit_prim(i, o, d, 0.0, tmax, time, true, n) < tmax) return true;
     }
+#endif
     return false;
 }
 
@@ -287,18 +309,12 @@ vec3 cosine_dir(vec3 n, float u1, float u2) {
     onb(n, t, b);
     return normalize(r * cos(phi) * t + r * sin(phi) * b + sqrt(max(0.0, 1.0 - u1)) * n);
 }
-// emitted radiance of primitive i toward direction -d (spheres emit outward, quads from the front face)
-vec3 emitted(int i, vec3 n, vec3 d) {
-    vec3 e = mats[prims[i].info.y].emission_ior.rgb;
-    return dot(n, d) < 0.0 ? e : vec3(0.0);
-}
 float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
 
 // next-event estimation: one light chosen uniformly; a sphere light samples the cone of directions it
 // subtends, a quad a point uniform on its area. Returns the radiance contribution (already / pdf) and the
 // unit shadow-ray direction.
-vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
-    int li = lights[min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1)];
+vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     Prim lp = prims[li];
     vec3 off = lp.info.w > 0 ? prim_offset(li, time) : vec3(0.0);
     float u1 = rnd(), u2 = rnd();
@@ -337,6 +353,20 @@ vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
     return le * (albedo / PI) * cos_x * inv_pdf * float(N_LIGHTS);
 }
 
+vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
+    int j = min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1);
+#ifdef FOR_EACH_LIGHT
+    // one specialised copy per light (constant index), as for FOR_EACH_PRIM
+    vec3 r = vec3(0.0);
+    sdir = vec3(0.0);
+#define SAMPLE_ONE_LIGHT(k) if (j == k) r = sample_light_prim(lights[k], p, n, albedo, time, sdir);
+    FOR_EACH_LIGHT(SAMPLE_ONE_LIGHT)
+    return r;
+#else
+    return sample_light_prim(lights[j], p, n, albedo, time, sdir);
+#endif
+}
+
 // ---------------------------------------------------------------- main
 void main() {
     ivec2 local = ivec2(gl_GlobalInvocationID.xy);
@@ -365,12 +395,11 @@ void main() {
         for (int depth = 0; depth < u_max_depth; ++depth) {
             Hit h;
             if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
-            ivec4 pinfo = prims[h.prim].info;
-            Material m = mats[pinfo.y];
+            Material m = h.m;
             vec3 x = o + h.t * d;
             vec3 nf = dot(h.n, d) < 0.0 ? h.n : -h.n;   // facing the incoming ray
-            vec3 le = emitted(h.prim, h.n, d);
-            if (count_light || prims[h.prim].info2.x == 0) L += beta * le;
+            vec3 le = dot(h.n, d) < 0.0 ? m.emission_ior.rgb : vec3(0.0);  // emitters: outward / front face
+            if (count_light || !h.light) L += beta * le;
             int mtype = int(m.color_type.w);
             vec3 albedo = m.color_type.rgb;
             if (depth == 0) {
@@ -426,22 +455,22 @@ void main() {
         sum_c += L;
     }
 
-    int base3 = f * 3 * plane + pidx;
-    vec3 old_c = vec3(0.0), old_e = vec3(0.0);
+    // sums: the first chunk of samples stores, later ones add (a uniform branch, so the first reads nothing)
+    int base3 = f * 3 * plane + pidx, basef = f * u_n_feat * plane + pidx;
     if (u_accumulate != 0) {
-        old_c = vec3(out_color[base3], out_color[base3 + plane], out_color[base3 + 2 * plane]);
-        old_e = vec3(out_emission[base3], out_emission[base3 + plane], out_emission[base3 + 2 * plane]);
-    }
-    for (int c = 0; c < 3; ++c) {
-        out_color[base3 + c * plane] = old_c[c] + sum_c[c];
-        out_emission[base3 + c * plane] = old_e[c] + sum_e[c];
-    }
-    int basef = f * u_n_feat * plane + pidx;
-    for (int k = 0; k < N_FEAT; ++k) {
-        int sl = u_slot[k];
-        if (sl < 0) continue;
-        int idx = basef + sl * plane;
-        out_feat[idx] = (u_accumulate != 0 ? out_feat[idx] : 0.0) + feat[k];
+        for (int c = 0; c < 3; ++c) {
+            out_color[base3 + c * plane] += sum_c[c];
+            out_emission[base3 + c * plane] += sum_e[c];
+        }
+        for (int k = 0; k < N_FEAT; ++k)
+            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] += feat[k];
+    } else {
+        for (int c = 0; c < 3; ++c) {
+            out_color[base3 + c * plane] = sum_c[c];
+            out_emission[base3 + c * plane] = sum_e[c];
+        }
+        for (int k = 0; k < N_FEAT; ++k)
+            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] = feat[k];
     }
 
     // object id and screen-space motion of the pixel-centre first hit at the frame time (sample-free)
