@@ -281,8 +281,17 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--merge", action="store_true",
                     help="keep the other scenes of an existing scores.json (score clips as they are rendered)")
+    ap.add_argument("--combine", nargs="+", type=Path, default=None,
+                    help="score nothing: merge the scenes of these scores.json files (runs done in parallel) into --out")
     args = ap.parse_args(argv)
     split = json.loads(args.split.read_text())
+    if args.combine:
+        runs = [json.loads(p.read_text()) for p in args.combine]
+        scenes = {k: v for r in runs for k, v in r["scenes"].items()}
+        order = list(split["scenes"])
+        results = {**runs[0], "scenes": {k: scenes[k] for k in sorted(scenes, key=order.index)},
+                   "meta_runs": [r["meta"] for r in runs]}
+        return _write(results, split, args.out)
     names = args.scenes or list(split["scenes"])
     meths = methods()
     results = {"meta": harness.metadata(), "sigma_s": SIGMA_S, "sigma_r": SIGMA_R, "guide": list(GUIDE),
@@ -306,11 +315,15 @@ def main(argv=None):
         results["scenes"][name] = sc
     order = list(split["scenes"])
     results["scenes"] = {k: results["scenes"][k] for k in sorted(results["scenes"], key=order.index)}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "scores.json").write_text(json.dumps(results, indent=1))
-    (args.out / "scores.md").write_text(markdown(results, split))
-    chart(results, args.out / "psnr.png")
-    print((args.out / "scores.md").read_text())
+    _write(results, split, args.out)
+
+
+def _write(results: dict, split: dict, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scores.json").write_text(json.dumps(results, indent=1))
+    (out / "scores.md").write_text(markdown(results, split))
+    chart(results, out / "psnr.png")
+    print((out / "scores.md").read_text())
 
 
 if __name__ == "__main__":
