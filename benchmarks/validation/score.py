@@ -287,7 +287,10 @@ def main(argv=None):
     split = json.loads(args.split.read_text())
     if args.combine:
         runs = [json.loads(p.read_text()) for p in args.combine]
-        scenes = {k: v for r in runs for k, v in r["scenes"].items()}
+        scenes: dict = {}
+        for r in runs:  # a scene's spp levels may come from different runs
+            for k, v in r["scenes"].items():
+                scenes[k] = {**scenes.get(k, {}), **v}
         order = list(split["scenes"])
         results = {**runs[0], "scenes": {k: scenes[k] for k in sorted(scenes, key=order.index)},
                    "meta_runs": [r["meta"] for r in runs]}
@@ -299,14 +302,16 @@ def main(argv=None):
     old = args.out / "scores.json"
     if args.merge and old.exists():
         prev = json.loads(old.read_text())
-        results["scenes"] = {k: v for k, v in prev["scenes"].items() if k not in names}
+        # Keep every scene and spp of the earlier runs that this run does not redo.
+        results["scenes"] = prev["scenes"]
         results["meta_previous_runs"] = prev.get("meta_previous_runs", []) + [prev["meta"]]
     from tqdm import tqdm
 
     for name in tqdm(names, desc="scenes"):
         entry = split["scenes"][name]
         path = resolve(entry, args.data_root)
-        sc = {"split": entry["split"], "renderer": entry["renderer"], "path": str(path)}
+        sc = {**results["scenes"].get(name, {}), "split": entry["split"], "renderer": entry["renderer"],
+              "path": str(path)}
         for spp in args.spp:
             t0 = time.perf_counter()
             sc[str(spp)] = run_scene(path, spp, meths)
