@@ -192,6 +192,11 @@ def markdown(results: dict, split: dict) -> str:
              "Filters other than OIDN and ours see colour / albedo with an albedo + normal + depth guide "
              "(`benchmarks/harness.py`). `ref agree`: PSNR of a second independent reference against the reference "
              "(a ceiling on every score) where the clip has one.", ""]
+    if results.get("meta_runs"):
+        loads = ", ".join(f"{m['load_average'][0]:.1f}" for m in results["meta_runs"] if m.get("load_average"))
+        lines += [f"Scored in {len(results['meta_runs'])} runs, partly in parallel on the shared 2-core machine "
+                  f"(1-min load averages at their starts: {loads}): every method of a scene and spp ran in the same "
+                  "process one after another, so ms/frame compare methods within a row, not across scenes.", ""]
     for spp in ("1", "4"):
         lines += [f"## From {spp} spp", "", "| scene | split | " + " | ".join(FAMILIES) + " | ref agree |",
                   "|---" * (len(FAMILIES) + 3) + "|"]
