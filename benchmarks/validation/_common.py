@@ -1,0 +1,116 @@
+"""What both renderer scripts share: seeds, EXR writing, value-noise textures, manifests, the READY list.
+
+Runs inside the renderers' own virtual environments (numpy + OpenEXR only, no torch, no torchmanifold).
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+FRAMES = 8
+WIDTH = HEIGHT = 128
+
+# Passes of one clip, each with its own block of seeds (see ``seed``).
+PASSES = {"noisy1": 1, "noisy4": 2, "reference": 3, "ref_b": 4, "mask": 5}
+
+
+def seed(clip_id: int, pass_name: str, frame: int, chunk: int = 0) -> int:
+    """A new seed per clip, pass, frame and reference chunk; fits an int32 (Blender's ``cycles.seed``)."""
+    if not (0 <= chunk < 100 and 0 <= frame < 100):
+        raise ValueError(f"seed: frame {frame} and chunk {chunk} must be in [0, 100)")
+    return clip_id * 100_000 + PASSES[pass_name] * 10_000 + frame * 100 + chunk
+
+
+def write_exr(path: Path, channels: dict, half: tuple = (), header: dict | None = None) -> None:
+    """Write one-part scanline EXR, ZIP-compressed; channel names in ``half`` are stored as float16.
+
+    Args:
+        channels: name -> (H, W) array.
+        half: names stored as half floats (features); the rest float32.
+    """
+    out = {}
+    for name, a in channels.items():
+        a = np.ascontiguousarray(a, dtype=np.float16 if name in half else np.float32)
+        out[name] = a
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(header or {})}
+    path = Path(path)
+    tmp = path.with_name(path.stem + ".tmp.exr")
+    with OpenEXR.File(hdr, out) as f:
+        f.write(str(tmp))
+    tmp.replace(path)
+
+
+def read_rgb(path: Path, prefix: str = "") -> np.ndarray:
+    """(H, W, 3) float64 of channels ``<prefix>R/G/B`` from any part of an EXR (Blender writes one part a pass)."""
+    f = OpenEXR.File(str(path), separate_channels=True)
+    for part in f.parts:
+        ch = part.channels
+        if all(prefix + c in ch for c in "RGB"):
+            return np.stack([ch[prefix + c].pixels for c in "RGB"], -1).astype(np.float64)
+    raise KeyError(f"{path}: no channels {prefix}R/G/B in any part")
+
+
+def read_channel(path: Path, name: str) -> np.ndarray:
+    """(H, W) float64 of one channel from whichever part of an EXR holds it."""
+    for part in OpenEXR.File(str(path), separate_channels=True).parts:
+        if name in part.channels:
+            return part.channels[name].pixels.astype(np.float64)
+    raise KeyError(f"{path}: no channel {name!r} in any part")
+
+
+def value_noise(h: int, w: int, octaves: int, rng: np.random.Generator) -> np.ndarray:
+    """(h, w) fractal value noise in [0, 1]: a procedural texture made here, no downloaded asset."""
+    acc = np.zeros((h, w))
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        n = 4 * 2**o
+        grid = rng.random((n + 1, n + 1))
+        y = np.linspace(0, n, h, endpoint=False)
+        x = np.linspace(0, n, w, endpoint=False)
+        y0, x0 = y.astype(int), x.astype(int)
+        fy, fx = (y - y0)[:, None], (x - x0)[None, :]
+        fy, fx = fy * fy * (3 - 2 * fy), fx * fx * (3 - 2 * fx)  # smoothstep between lattice values
+        a = grid[y0][:, x0] * (1 - fx) + grid[y0][:, x0 + 1] * fx
+        b = grid[y0 + 1][:, x0] * (1 - fx) + grid[y0 + 1][:, x0 + 1] * fx
+        acc += amp * (a * (1 - fy) + b * fy)
+        total += amp
+        amp *= 0.5
+    return acc / total
+
+
+def host() -> dict:
+    return {"machine": platform.machine(), "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "nice": os.nice(0)}
+
+
+def write_manifest(out_dir: Path, manifest: dict) -> None:
+    (Path(out_dir) / "manifest.json").write_text(json.dumps(manifest, indent=1))
+
+
+def mark_ready(out_dir: Path) -> None:
+    """Append the finished clip's folder to ``<root>/READY`` (one line per clip)."""
+    out_dir = Path(out_dir)
+    with open(out_dir.parent / "READY", "a") as f:
+        f.write(f"{out_dir.name}\t{out_dir}\t{time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}\n")
+
+
+class Timer:
+    """Wall and CPU seconds (all threads of this process) per named pass, recorded in the manifest: on a shared
+    machine the wall time says more about the other users than about the renderer."""
+
+    def __init__(self):
+        self.secs: dict = {}
+        self.cpu: dict = {}
+        self._cpu0 = time.process_time()
+
+    def add(self, name: str, t0: float) -> None:
+        self.secs[name] = round(self.secs.get(name, 0.0) + time.perf_counter() - t0, 2)
+        now = time.process_time()
+        self.cpu[name] = round(self.cpu.get(name, 0.0) + now - self._cpu0, 2)
+        self._cpu0 = now

@@ -1,0 +1,442 @@
+"""Blender Cycles clips of the validation set, scenes built here in Python with ``bpy`` (no downloaded asset).
+
+    /work/venvs/bpy/bin/python benchmarks/validation/render_blender.py bl_glass_caustic --out /work/valdata
+
+Per clip and frame:
+
+* ``frame_XXXX.exr``: 1 spp, the multilayer EXR exactly as Blender writes it (Blender 5: one part per pass):
+  ``ViewLayer.Combined.R/G/B/A``, ``ViewLayer.Depth.Z``, ``ViewLayer.Normal.X/Y/Z`` (world space),
+  ``ViewLayer.Denoising Normal.X/Y/Z`` (camera space), ``ViewLayer.Denoising Albedo.R/G/B``,
+  ``ViewLayer.Denoising Depth.Z``; Blender's "Half" colour depth (it keeps normals and depths in float32 itself);
+* ``frame4spp_XXXX.exr``: the same at 4 spp, independent samples;
+* ``reference_XXXX.exr``: plain ``R,G,B`` float32, the float64 mean of Blender's Combined over independent chunks;
+* ``ref_b_XXXX.exr``: a second independent reference of one frame (how far two references agree caps any score);
+* ``mask_XXXX.exr`` (clips with moving objects): ``moving`` = 1 where Cycles' object-index pass of the first
+  reference chunk is a moving object (Cycles writes that pass unfiltered, from one sample).
+
+Fair noisy passes (shared/docs/foreign-renderers.md): no adaptive sampling, no denoising, no clamping, box pixel
+filter, a new ``cycles.seed`` per frame, pass and chunk (``_common.seed``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+import bpy  # noqa: E402
+from mathutils import Vector  # noqa: E402
+
+MAX_BOUNCES = 8
+THREADS = 2
+
+
+# ---------------------------------------------------------------------------------------------------- scene parts
+def reset() -> bpy.types.Scene:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return bpy.context.scene
+
+
+def _material(name: str) -> tuple:
+    m = bpy.data.materials.new(name)
+    m.use_nodes = True
+    nt = m.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    return m, nt, out
+
+
+def diffuse(name: str, rgb, texture=None) -> bpy.types.Material:
+    """Diffuse BSDF; ``texture`` = ("checker", c1, c2, scale) or ("noise", c1, c2, scale) for a procedural colour."""
+    m, nt, out = _material(name)
+    bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    bsdf.inputs["Color"].default_value = (*rgb, 1.0)
+    if texture is not None:
+        kind, c1, c2, scale = texture
+        if kind == "checker":
+            tex = nt.nodes.new("ShaderNodeTexChecker")
+            tex.inputs["Color1"].default_value = (*c1, 1.0)
+            tex.inputs["Color2"].default_value = (*c2, 1.0)
+            tex.inputs["Scale"].default_value = scale
+            nt.links.new(tex.outputs["Color"], bsdf.inputs["Color"])
+        elif kind == "noise":
+            tex = nt.nodes.new("ShaderNodeTexNoise")
+            tex.inputs["Scale"].default_value = scale
+            tex.inputs["Detail"].default_value = 6.0
+            ramp = nt.nodes.new("ShaderNodeValToRGB")
+            ramp.color_ramp.elements[0].color = (*c1, 1.0)
+            ramp.color_ramp.elements[1].color = (*c2, 1.0)
+            nt.links.new(tex.outputs["Fac"], ramp.inputs["Fac"])
+            nt.links.new(ramp.outputs["Color"], bsdf.inputs["Color"])
+        else:
+            raise ValueError(f"texture kind {kind!r}: expected 'checker' or 'noise'")
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return m
+
+
+def metal(name: str, rgb, roughness: float) -> bpy.types.Material:
+    m, nt, out = _material(name)
+    bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
+    bsdf.inputs["Metallic"].default_value = 1.0
+    bsdf.inputs["Roughness"].default_value = roughness
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return m
+
+
+def glass(name: str, ior: float = 1.5) -> bpy.types.Material:
+    m, nt, out = _material(name)
+    bsdf = nt.nodes.new("ShaderNodeBsdfGlass")
+    bsdf.inputs["Roughness"].default_value = 0.0
+    bsdf.inputs["IOR"].default_value = ior
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return m
+
+
+def add(kind: str, mat, location=(0, 0, 0), rotation=(0, 0, 0), scale=(1, 1, 1), smooth=False, **kw):
+    """A primitive mesh object with one material (``kind``: plane, cube, uv_sphere, cylinder, ico_sphere)."""
+    getattr(bpy.ops.mesh, f"primitive_{kind}_add")(location=location, rotation=[math.radians(a) for a in rotation],
+                                                   **kw)
+    ob = bpy.context.object
+    ob.scale = scale
+    ob.data.materials.append(mat)
+    if smooth:
+        for p in ob.data.polygons:
+            p.use_smooth = True
+    return ob
+
+
+def room(floor, back, left, right, ceiling) -> None:
+    """Box x, y in [-1, 1], z in [0, 2], open towards -y (the camera)."""
+    add("plane", floor, (0, 0, 0), size=2)
+    add("plane", ceiling, (0, 0, 2), (180, 0, 0), size=2)
+    add("plane", back, (0, 1, 1), (90, 0, 0), size=2)
+    add("plane", left, (-1, 0, 1), (0, 90, 0), size=2)
+    add("plane", right, (1, 0, 1), (0, -90, 0), size=2)
+
+
+def camera(scene, origin, target, fov: float):
+    cam = scene.camera
+    if cam is None:
+        cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+        scene.collection.objects.link(cam)
+        scene.camera = cam
+    cam.data.sensor_fit = "AUTO"
+    cam.data.angle = math.radians(fov)
+    cam.location = Vector(origin)
+    cam.rotation_euler = (Vector(target) - Vector(origin)).to_track_quat("-Z", "Y").to_euler()
+
+
+def light(kind: str, location, energy: float, rotation=(0, 0, 0), **props):
+    data = bpy.data.lights.new(f"{kind.lower()}_light", type=kind)
+    data.energy = energy
+    for k, v in props.items():
+        setattr(data, k, v)
+    ob = bpy.data.objects.new(data.name, data)
+    ob.location = location
+    ob.rotation_euler = [math.radians(a) for a in rotation]
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def sky_world(zenith, horizon, strength: float) -> None:
+    """World: a horizon-to-zenith gradient on the view direction's z (procedural, no HDRI file)."""
+    w = bpy.data.worlds.new("sky")
+    bpy.context.scene.world = w
+    w.use_nodes = True
+    nt = w.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    sep = nt.nodes.new("ShaderNodeSeparateXYZ")
+    ramp = nt.nodes.new("ShaderNodeValToRGB")
+    ramp.color_ramp.elements[0].color = (*horizon, 1.0)
+    ramp.color_ramp.elements[1].color = (*zenith, 1.0)
+    bg = nt.nodes.new("ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = strength
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    nt.links.new(coord.outputs["Generated"], sep.inputs["Vector"])
+    nt.links.new(sep.outputs["Z"], ramp.inputs["Fac"])
+    nt.links.new(ramp.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+
+
+def black_world() -> None:
+    w = bpy.data.worlds.new("black")
+    bpy.context.scene.world = w
+    w.use_nodes = True
+    w.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
+
+
+def lerp(a, b, t):
+    return [x + (y - x) * t for x, y in zip(a, b)]
+
+
+# ---------------------------------------------------------------------------------------------------- clips
+# Each builder makes the scene once and returns (animate(frame) -> per-frame info, description, moving objects).
+def clip_glass_caustic(scene, n: int):
+    room(diffuse("floor", (0.6, 0.6, 0.6), ("noise", (0.45, 0.3, 0.15), (0.75, 0.6, 0.4), 6.0)),
+         diffuse("back", (0.7, 0.7, 0.7), ("checker", (0.75, 0.75, 0.75), (0.1, 0.25, 0.5), 6.0)),
+         diffuse("left", (0.65, 0.25, 0.15)), diffuse("right", (0.7, 0.7, 0.7)), diffuse("ceil", (0.7, 0.7, 0.7)))
+    add("uv_sphere", glass("glass"), (-0.3, -0.1, 0.33), radius=0.33, segments=64, ring_count=32, smooth=True)
+    add("uv_sphere", metal("mirror", (0.95, 0.95, 0.95), 0.0), (0.45, 0.35, 0.25), radius=0.25, segments=64,
+        ring_count=32, smooth=True)
+    add("cube", glass("glass_block", 1.45), (0.35, -0.45, 0.2), (0, 0, 30), scale=(0.12, 0.12, 0.2))
+    light("POINT", (0.1, 0.0, 1.75), 40.0, shadow_soft_size=0.02)
+    black_world()
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        target = lerp([-0.3, 0, 0.6], [0.3, 0, 0.6], t)
+        camera(scene, (0, -3.6, 1.0), target, 38)
+        return {"camera": {"origin": [0, -3.6, 1.0], "target": target, "fov": 38}}
+
+    desc = ("Box room lit only by a small point light (radius 0.02, 40 W) near the ceiling. A smooth glass sphere "
+            "(ior 1.5) casts a caustic on a noise-textured floor; a mirror sphere (metallic, roughness 0); a glass "
+            "block (ior 1.45); checker back wall. The camera pans.")
+    return animate, desc, []
+
+
+def clip_moving_metal(scene, n: int):
+    room(diffuse("floor", (0.6, 0.6, 0.6), ("checker", (0.7, 0.7, 0.7), (0.08, 0.08, 0.08), 8.0)),
+         diffuse("back", (0.6, 0.6, 0.6), ("noise", (0.2, 0.25, 0.35), (0.7, 0.7, 0.65), 4.0)),
+         diffuse("left", (0.15, 0.3, 0.6)), diffuse("right", (0.6, 0.45, 0.15)), diffuse("ceil", (0.75, 0.75, 0.75)))
+    # An area light set into the ceiling (visible to the camera), and rough metals of three roughnesses.
+    light("AREA", (0, 0, 1.995), 40.0, size=0.5)
+    add("uv_sphere", metal("gold", (1.0, 0.77, 0.35), 0.3), (-0.5, 0.3, 0.3), radius=0.3, segments=48,
+        ring_count=24, smooth=True)
+    add("uv_sphere", metal("steel", (0.6, 0.62, 0.65), 0.5), (0.5, 0.45, 0.25), radius=0.25, segments=48,
+        ring_count=24, smooth=True)
+    add("cylinder", metal("brushed", (0.9, 0.6, 0.5), 0.2), (0.05, 0.6, 0.35), radius=0.12, depth=0.7,
+        vertices=48, smooth=True)
+    mover = add("cube", diffuse("mover", (0.8, 0.8, 0.75)), (0, 0, 0.15), scale=(0.15, 0.15, 0.15))
+    mover.pass_index = 1
+    black_world()
+    camera(scene, (0, -3.6, 1.0), (0, 0, 0.9), 40)
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        loc = (-0.6 + 1.1 * t, -0.35, 0.15)
+        mover.location = loc
+        mover.rotation_euler = (0, 0, math.radians(20 + 50 * t))
+        return {"mover": {"location": list(loc), "rotate_z_deg": 20 + 50 * t}}
+
+    desc = ("Box room lit by a 0.5x0.5 area light 5 mm below the ceiling (visible to the camera). Rough metals: "
+            "gold sphere (roughness 0.3), steel sphere (0.5), copper cylinder (0.2); checker floor, noise-textured "
+            "back wall; a white cube slides and turns over the floor (contact shadow). Static camera.")
+    return animate, desc, ["mover"]
+
+
+def clip_env_thin(scene, n: int):
+    sky_world((0.25, 0.45, 0.9), (0.85, 0.85, 0.8), 1.0)
+    light("SUN", (0, 0, 5), 3.0, rotation=(50, 0, 35), angle=math.radians(1.5))
+    add("plane", diffuse("ground", (0.4, 0.4, 0.3), ("noise", (0.15, 0.25, 0.08), (0.5, 0.45, 0.3), 3.0)),
+        (0, 0, 0), size=20)
+    post = diffuse("post", (0.85, 0.85, 0.8))
+    for i in range(13):
+        # Rods 0.005-0.013 in radius: under a pixel (about 0.02 wide at the fence) to a little over half a pixel.
+        add("cylinder", post, (-1.5 + 0.25 * i, 0.6, 0.55), radius=0.005 + 0.0007 * i, depth=1.1, vertices=8)
+    rail = diffuse("rail", (0.5, 0.35, 0.2))
+    for z in (0.4, 0.95):
+        add("cylinder", rail, (0, 0.6, z), (0, 90, 0), radius=0.008, depth=3.2, vertices=8)
+    # A wireframe ball: thin wires with holes between them.
+    cage = add("ico_sphere", metal("wire", (0.9, 0.9, 0.92), 0.3), (0.75, 0.1, 0.35), radius=0.35, subdivisions=2)
+    mod = cage.modifiers.new("wires", "WIREFRAME")
+    mod.thickness = 0.008
+    ball = add("uv_sphere", diffuse("ball", (0.7, 0.15, 0.1)), (0, 0, 0.22), radius=0.22, segments=48,
+               ring_count=24, smooth=True)
+    ball.pass_index = 1
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        ball.location = (-0.9 + 1.2 * t, -0.4, 0.22)
+        origin = lerp([-0.5, -3.4, 1.1], [0.5, -3.4, 1.1], t)
+        camera(scene, origin, (0, 0, 0.45), 40)
+        return {"ball": {"location": list(ball.location)}, "camera": {"origin": origin, "target": [0, 0, 0.45]}}
+
+    desc = ("Open scene: a procedural sky (horizon-to-zenith gradient world, strength 1) and a sun lamp (strength 3, "
+            "1.5 degrees) over a noise-textured ground. Thin geometry: a fence of 13 rods (radius 0.005-0.013) with "
+            "two rails and a wireframe ico-sphere (wires 8 mm). A red ball rolls over the ground (contact shadow); "
+            "the camera dollies sideways.")
+    return animate, desc, ["ball"]
+
+
+CLIPS = {
+    # name: (builder, clip id for seeds, hazards, reference spp, frame of the second reference). 256 spp at 128x128
+    # keeps a clip near 3 min of rendering on the 2 shared cores here (glass clip: 21 s per 128-spp frame under load).
+    # The closed metal room is the slowest (every path runs all 8 bounces): no second reference there.
+    "bl_glass_caustic": (clip_glass_caustic, 11, ["glass", "mirror", "small_bright_light", "caustics", "camera_pan",
+                                                  "textures"], 256, 4),
+    "bl_moving_metal": (clip_moving_metal, 12, ["rough_metal", "area_light_in_ceiling", "moving_object",
+                                                "contact_shadow", "textures"], 256, None),
+    "bl_env_thin": (clip_env_thin, 13, ["environment_lit_open_scene", "thin_geometry", "moving_object",
+                                        "contact_shadow", "camera_pan", "textures"], 256, 4),
+}
+
+
+# The closed metal room took 5 min of wall time per 128-spp chunk at 128x128 on the shared 2 cores (load average 15
+# when measured), too long for the session that made the set: rendered at 64x64 (49 CPU-s for the clip). Drop the
+# entry to render it at 128x128 (about 4x the CPU).
+SIZE = {"bl_moving_metal": (64, 64)}
+
+
+# ---------------------------------------------------------------------------------------------------- rendering
+def setup_render(scene, width: int, height: int) -> None:
+    r, c = scene.render, scene.cycles
+    r.engine = "CYCLES"
+    r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
+    r.threads_mode, r.threads = "FIXED", THREADS
+    r.film_transparent = False
+    r.use_persistent_data = True  # keep the BVH between the passes of a frame
+    c.device = "CPU"
+    c.use_adaptive_sampling = False
+    c.use_denoising = False
+    c.sample_clamp_direct = 0.0
+    c.sample_clamp_indirect = 0.0
+    c.pixel_filter_type = "BOX"
+    c.use_animated_seed = False
+    c.max_bounces = c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = MAX_BOUNCES
+    c.transparent_max_bounces = MAX_BOUNCES
+    img = r.image_settings
+    img.media_type = "MULTI_LAYER_IMAGE"
+    img.file_format = "OPEN_EXR_MULTILAYER"
+    img.exr_codec = "ZIP"
+
+
+def set_passes(scene, features: bool, object_index: bool = False, depth: str = "16") -> None:
+    vl = scene.view_layers[0]
+    vl.cycles.denoising_store_passes = features
+    vl.use_pass_normal = features
+    vl.use_pass_z = features
+    vl.use_pass_object_index = object_index
+    scene.render.image_settings.color_depth = depth
+
+
+def render_to(scene, path: Path, spp: int, seed: int) -> None:
+    scene.cycles.samples = spp
+    scene.cycles.seed = seed
+    scene.render.filepath = str(path)
+    bpy.ops.render.render(write_still=True)
+
+
+def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
+                ref_chunk: int = 128) -> Path:
+    builder, clip_id, hazards, default_ref, ref_b_frame = CLIPS[name]
+    ref_spp = ref_spp or default_ref
+    if ref_spp % ref_chunk:
+        raise ValueError(f"ref_spp {ref_spp} must be a multiple of ref_chunk {ref_chunk}")
+    out = Path(out_root) / name
+    out.mkdir(parents=True, exist_ok=True)
+    width, height = SIZE.get(name, (C.WIDTH, C.HEIGHT))
+    scene = reset()
+    setup_render(scene, width, height)
+    animate, desc, moving = builder(scene, frames)
+    version = bpy.app.version_string
+    timer = C.Timer()
+    per_frame, seeds = [], {p: [] for p in C.PASSES if p != "mask"}
+    with tempfile.TemporaryDirectory(prefix="valset_bl_") as tmp:
+        tmp = Path(tmp)
+        for f in tqdm(range(frames), desc=name, unit="frame"):
+            scene.frame_current = f + 1
+            per_frame.append(animate(f))
+            set_passes(scene, True)
+            for pass_name, spp, fname in (("noisy1", 1, "frame"), ("noisy4", 4, "frame4spp")):
+                s = C.seed(clip_id, pass_name, f)
+                seeds[pass_name].append(s)
+                t0 = time.perf_counter()
+                render_to(scene, out / f"{fname}_{f:04d}.exr", spp, s)
+                timer.add(pass_name, t0)
+            refs = [("reference", f"reference_{f:04d}.exr")]
+            if ref_b_frame is not None and f == ref_b_frame:
+                refs.append(("ref_b", f"ref_b_{f:04d}.exr"))
+            for pass_name, fname in refs:
+                acc = np.zeros((height, width, 3))
+                chunk_seeds = []
+                t0 = time.perf_counter()
+                for c in range(ref_spp // ref_chunk):
+                    want_mask = bool(moving) and pass_name == "reference" and c == 0
+                    set_passes(scene, False, object_index=want_mask, depth="32")
+                    s = C.seed(clip_id, pass_name, f, c)
+                    chunk_seeds.append(s)
+                    tmp_file = tmp / f"chunk_{c}.exr"
+                    render_to(scene, tmp_file, ref_chunk, s)
+                    acc += C.read_rgb(tmp_file, "ViewLayer.Combined.")
+                    if want_mask:
+                        idx = C.read_channel(tmp_file, "ViewLayer.Object Index.X")
+                        C.write_exr(out / f"mask_{f:04d}.exr", {"moving": (np.round(idx) == 1).astype(np.float32)},
+                                    ("moving",))
+                timer.add(pass_name, t0)
+                seeds[pass_name].append(chunk_seeds)
+                acc /= ref_spp // ref_chunk
+                C.write_exr(out / fname, {ch: acc[..., i] for i, ch in enumerate("RGB")}, (),
+                            {"renderer": f"Blender {version} Cycles", "spp": ref_spp})
+    manifest = {
+        "scene": name,
+        "renderer": f"Blender {version} (bpy), Cycles CPU",
+        "frames": frames, "width": width, "height": height,
+        "spp": {"noisy1": 1, "noisy4": 4, "reference": ref_spp, "ref_chunk_spp": ref_chunk},
+        "cycles": {"max_bounces": MAX_BOUNCES, "diffuse/glossy/transmission/transparent_bounces": MAX_BOUNCES,
+                   "use_adaptive_sampling": False, "use_denoising": False, "sample_clamp_direct": 0,
+                   "sample_clamp_indirect": 0, "pixel_filter_type": "BOX", "caustics": "Cycles defaults (on)",
+                   "threads": THREADS},
+        "layout": ("frame_/frame4spp_: Blender's multilayer EXR as written (one part per pass in Blender 5): "
+                   "ViewLayer.Combined.R/G/B/A (half), ViewLayer.Depth.Z, ViewLayer.Normal.X/Y/Z (world space), "
+                   "ViewLayer.Denoising Normal.X/Y/Z (camera space), ViewLayer.Denoising Albedo.R/G/B (half), "
+                   "ViewLayer.Denoising Depth.Z; Blender's 'Half' colour depth (normals and depths stay float32)"),
+        "description": desc,
+        "hazards": hazards,
+        "moving_objects": moving,
+        "seeds": seeds,
+        "seed_rule": "clip_id*100000 + pass*10000 + frame*100 + chunk (pass: noisy1 1, noisy4 2, reference 3, ref_b 4)",
+        "clip_id": clip_id,
+        "ref_b": None if ref_b_frame is None else {
+            "frame": ref_b_frame, "file": f"ref_b_{ref_b_frame:04d}.exr",
+            "note": "second reference of one frame with independent seeds: its PSNR against reference_ caps what any "
+                    "method can score"},
+        "render_seconds": timer.secs,
+        "render_cpu_seconds": timer.cpu,
+        "host": C.host(),
+        "files": {
+            "frame_XXXX.exr": "1 spp, Blender's multilayer EXR as written (see layout)",
+            "frame4spp_XXXX.exr": "the same at 4 spp (independent samples)",
+            "reference_XXXX.exr": f"R,G,B float32, {ref_spp} spp: float64 mean of {ref_spp // ref_chunk} chunks of "
+                                  "Blender's Combined",
+            **({"ref_b_XXXX.exr": "a second independent reference of that frame"} if ref_b_frame is not None else {}),
+            **({"mask_XXXX.exr": "moving: 1 where Cycles' object index (first sample of reference chunk 0) is a "
+                                 "moving object"} if moving else {}),
+        },
+        "per_frame_animation": per_frame,
+    }
+    C.write_manifest(out, manifest)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("clips", nargs="*", default=list(CLIPS), help=f"clips to render (default all: {list(CLIPS)})")
+    ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
+    ap.add_argument("--frames", type=int, default=C.FRAMES)
+    ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default per clip, see CLIPS)")
+    ap.add_argument("--no-ready", action="store_true", help="do not append to <out>/READY")
+    args = ap.parse_args(argv)
+    for name in args.clips:
+        if name not in CLIPS:
+            ap.error(f"unknown clip {name!r}; known: {list(CLIPS)}")
+    for name in args.clips:
+        out = render_clip(name, args.out, args.frames, args.ref_spp)
+        if not args.no_ready:
+            C.mark_ready(out)
+        print(f"{name}: {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,375 @@
+"""Mitsuba 3 clips of the validation set, scenes built here in Python (no downloaded asset).
+
+    DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 \
+        /work/venvs/mitsuba/bin/python benchmarks/validation/render_mitsuba.py mi_ceiling_light --out /work/valdata
+
+Per clip and frame, the same conventions as ``shared/data/mitsuba/cbox_glossy_tex``:
+
+* ``frame_XXXX.exr``: 1 spp, ``R,G,B`` (float32) and, from the same samples (``aov`` integrator), ``albedo.R/G/B``,
+  ``N.X/Y/Z`` (shading normal, world space), ``P.X/Y/Z`` (world position) as half, ``Z`` (hit distance) float32;
+* ``frame4spp_XXXX.exr``: the same at 4 spp, independent samples;
+* ``reference_XXXX.exr``: ``R,G,B`` float32, the float64 mean of ``ref_spp / ref_chunk`` independent chunks;
+* ``ref_b_XXXX.exr``: a second independent reference of one frame (how far two references agree caps any score);
+* ``mask_XXXX.exr`` (clips with moving objects): ``moving`` = fraction of the pixel's first hits on a moving object.
+
+``box`` reconstruction filter (each sample lands in one pixel), ``independent`` sampler, a new seed per frame,
+pass and chunk (``_common.seed``). ``manifest.json`` records every setting and the render time of each pass.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+import mitsuba as mi  # noqa: E402
+import drjit as dr  # noqa: E402
+
+MAX_DEPTH = 8
+AOVS = "albedo:albedo,N:sh_normal,Z:depth,P:position"
+FEATURE_CHANNELS = {"albedo": ("albedo.R", "albedo.G", "albedo.B"), "N": ("N.X", "N.Y", "N.Z"), "Z": ("Z",),
+                    "P": ("P.X", "P.Y", "P.Z")}
+HALF = ("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z")
+
+
+def pick_variant() -> str:
+    """``llvm_ad_rgb`` where Dr.Jit finds a libLLVM it works with (see shared/docs/foreign-renderers.md), else
+    ``scalar_rgb`` (same images up to sampling, slower)."""
+    want = os.environ.get("VALSET_MITSUBA_VARIANT")
+    if want:
+        mi.set_variant(want)
+        return want
+    if os.environ.get("DRJIT_LIBLLVM_PATH"):
+        try:
+            mi.set_variant("llvm_ad_rgb")
+            return "llvm_ad_rgb"
+        except Exception as exc:  # no usable LLVM: fall back, and the manifest says which variant ran
+            print(f"llvm_ad_rgb unavailable ({exc}); using scalar_rgb", file=sys.stderr)
+    mi.set_variant("scalar_rgb")
+    return "scalar_rgb"
+
+
+# ---------------------------------------------------------------------------------------------------- scene parts
+def T():
+    return mi.ScalarTransform4f()
+
+
+def diffuse(rgb) -> dict:
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(rgb)}}
+
+
+def bitmap_bsdf(img: np.ndarray, uv_scale: float = 1.0) -> dict:
+    """Diffuse BSDF with an (H, W, 3) linear texture made in numpy."""
+    return {"type": "diffuse", "reflectance": {
+        "type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)), "raw": True,
+        "filter_type": "bilinear", "to_uv": mi.ScalarTransform4f().scale([uv_scale, uv_scale, 1])}}
+
+
+def checker_bsdf(c0, c1, scale: float) -> dict:
+    return {"type": "diffuse", "reflectance": {
+        "type": "checkerboard", "color0": {"type": "rgb", "value": list(c0)},
+        "color1": {"type": "rgb", "value": list(c1)}, "to_uv": mi.ScalarTransform4f().scale([scale, scale, 1])}}
+
+
+def room(floor: dict, back: dict, left: dict, right: dict, ceiling: dict) -> dict:
+    """The five walls of the box [-1, 1]^3, open towards +z (the camera), normals inwards."""
+    return {
+        "floor": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90), "bsdf": floor},
+        "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, 0]).rotate([1, 0, 0], 90), "bsdf": ceiling},
+        "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]), "bsdf": back},
+        "left": {"type": "rectangle", "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90), "bsdf": left},
+        "right": {"type": "rectangle", "to_world": T().translate([1, 0, 0]).rotate([0, 1, 0], -90), "bsdf": right},
+    }
+
+
+def sensor(origin, target, fov: float, up=(0, 1, 0)) -> dict:
+    return {"type": "perspective", "fov": fov, "fov_axis": "smaller",
+            "to_world": T().look_at(origin=list(origin), target=list(target), up=list(up)),
+            "sampler": {"type": "independent", "sample_count": 1},
+            "film": {"type": "hdrfilm", "width": C.WIDTH, "height": C.HEIGHT, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb", "component_format": "float32"}}
+
+
+def lerp(a, b, t):
+    return [x + (y - x) * t for x, y in zip(a, b)]
+
+
+# ---------------------------------------------------------------------------------------------------- clips
+def clip_ceiling_light(f: int, n: int) -> tuple[dict, dict]:
+    """Room lit only by a rectangle light flush with the ceiling; a small box slides over a checker floor."""
+    rng = np.random.default_rng(11)
+    noise = C.value_noise(128, 128, 4, rng)
+    back = np.stack([0.25 + 0.5 * noise, 0.25 + 0.45 * noise, 0.2 + 0.3 * noise], -1)
+    ceiling_bsdf = diffuse([0.75, 0.75, 0.75])
+    t = f / max(1, n - 1)
+    mover_x = -0.6 + 1.1 * t
+    scene = {
+        "type": "scene",
+        **room(checker_bsdf([0.75, 0.72, 0.65], [0.1, 0.1, 0.12], 8), bitmap_bsdf(back), diffuse([0.6, 0.08, 0.06]),
+               diffuse([0.12, 0.45, 0.15]), ceiling_bsdf),
+        # Flush with the ceiling (1 mm below it) and given the ceiling's BSDF: no AOV tells it from the ceiling.
+        "light": {"type": "rectangle", "to_world": T().translate([0, 0.999, 0]).rotate([1, 0, 0], 90).scale(
+            [0.28, 0.28, 1]), "bsdf": ceiling_bsdf, "emitter": {"type": "area", "radiance": {
+                "type": "rgb", "value": [17.0, 15.0, 12.0]}}},
+        "tall_box": {"type": "cube", "to_world": T().translate([-0.38, -0.45, -0.35]).rotate([0, 1, 0], 20).scale(
+            [0.25, 0.55, 0.25]), "bsdf": diffuse([0.7, 0.7, 0.7])},
+        "mover": {"type": "cube", "to_world": T().translate([mover_x, -0.82, 0.3]).rotate([0, 1, 0], 30 + 40 * t)
+                  .scale([0.18, 0.18, 0.18]), "bsdf": diffuse([0.65, 0.55, 0.2])},
+        "sensor": sensor([0, 0, 3.6], [0, 0, 0], 40),
+    }
+    info = {"description": ("Box room [-1,1]^3 open towards the camera, lit only by a 0.56x0.56 rectangle light "
+                            "1 mm below the ceiling with the ceiling's diffuse BSDF (Mitsuba has no emission AOV: "
+                            "albedo, normal and position of the light equal the ceiling's). Checkerboard floor "
+                            "(scale 8), value-noise textured back wall, red/green side walls, a tall static box and a "
+                            "small yellow box sliding over the floor (contact shadow)."),
+            "moving": {"mover": {"x": mover_x, "rotate_y_deg": 30 + 40 * t}}, "camera": "static"}
+    return scene, info
+
+
+def clip_glass_mirror(f: int, n: int) -> tuple[dict, dict]:
+    """Glass sphere, mirror panel and rough copper under a small bright sphere light; the camera pans."""
+    rng = np.random.default_rng(12)
+    wood = C.value_noise(128, 128, 5, rng)
+    floor = np.stack([0.35 + 0.3 * wood, 0.22 + 0.2 * wood, 0.1 + 0.1 * wood], -1)
+    t = f / max(1, n - 1)
+    target = lerp([-0.3, -0.25, 0], [0.3, -0.25, 0], t)
+    scene = {
+        "type": "scene",
+        **room(bitmap_bsdf(floor, 2.0), checker_bsdf([0.7, 0.7, 0.75], [0.15, 0.2, 0.45], 6), diffuse([0.7] * 3),
+               diffuse([0.55, 0.5, 0.4]), diffuse([0.75] * 3)),
+        "small_light": {"type": "sphere", "center": [0.25, 0.72, 0.25], "radius": 0.04,
+                        "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [700.0, 640.0, 560.0]}}},
+        "glass": {"type": "sphere", "center": [-0.3, -0.68, 0.15], "radius": 0.32,
+                  "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}},
+        # A silver mirror panel standing near the left wall, turned 35 degrees towards the camera.
+        "mirror": {"type": "rectangle", "to_world": T().translate([-0.72, -0.4, -0.6]).rotate([0, 1, 0], 35).scale(
+            [0.3, 0.55, 1]), "bsdf": {"type": "conductor", "material": "Ag"}},
+        "rough_metal": {"type": "sphere", "center": [0.45, -0.74, -0.35], "radius": 0.26,
+                        "bsdf": {"type": "roughconductor", "material": "Cu", "distribution": "ggx", "alpha": 0.25}},
+        "thin_glass_slab": {"type": "cube", "to_world": T().translate([0.35, -0.6, 0.45]).rotate([0, 1, 0], -25).scale(
+            [0.2, 0.4, 0.03]), "bsdf": {"type": "thindielectric", "int_ior": 1.5}},
+        "sensor": sensor([0, 0, 3.6], target, 38),
+    }
+    info = {"description": ("Box room lit only by a small bright sphere light (radius 0.04). A glass sphere "
+                            "(dielectric, ior 1.5) on a value-noise wood floor casts a caustic; a silver mirror "
+                            "panel (smooth conductor) against the left wall; a rough copper sphere (GGX alpha 0.25); "
+                            "a thin glass slab (thindielectric); checkerboard back wall. The camera pans."),
+            "camera": {"origin": [0, 0, 3.6], "target": target, "fov": 38}}
+    return scene, info
+
+
+def sky(h: int = 128, w: int = 256, sun_elev: float = 35.0, sun_azim: float = 60.0) -> np.ndarray:
+    """(h, w, 3) lat-long sky made here: zenith-to-horizon gradient, dim ground, a sun disc of 2.5 degrees."""
+    v = (np.arange(h) + 0.5) / h
+    u = (np.arange(w) + 0.5) / w
+    elev = (90.0 - 180.0 * v)[:, None] * np.ones((1, w))
+    azim = (360.0 * u)[None, :] * np.ones((h, 1))
+    s = np.clip(elev / 90.0, 0, 1)[..., None]
+    zen, hor = np.array([0.25, 0.45, 1.0]) * 0.6, np.array([1.0, 0.95, 0.9]) * 0.8
+    img = np.where((elev >= 0)[..., None], hor + (zen - hor) * s ** 0.5, np.array([0.25, 0.22, 0.2]) * 0.4)
+    e, a, se, sa = map(np.radians, (elev, azim, sun_elev, sun_azim))
+    cosang = np.sin(e) * np.sin(se) + np.cos(e) * np.cos(se) * np.cos(a - sa)
+    sun = np.degrees(np.arccos(np.clip(cosang, -1, 1))) < 2.5
+    img[sun] = np.array([1.0, 0.92, 0.8]) * 600.0
+    return img.astype(np.float32)
+
+
+def clip_env_thin(f: int, n: int) -> tuple[dict, dict]:
+    """Open ground under a sky with a sun; a fence of thin rods and a wire grid; a ball rolls; the camera dollies."""
+    rng = np.random.default_rng(13)
+    g = C.value_noise(256, 256, 6, rng)
+    ground = np.stack([0.2 + 0.25 * g, 0.3 + 0.3 * g, 0.12 + 0.1 * g], -1)
+    t = f / max(1, n - 1)
+    ball_x = 0.9 - 1.5 * t
+    scene = {
+        "type": "scene",
+        "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky())},
+        "ground": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90).scale([8, 8, 1]),
+                   "bsdf": bitmap_bsdf(ground, 6.0)},
+        "ball": {"type": "sphere", "center": [ball_x, -0.75, 0.45], "radius": 0.25,
+                 "bsdf": {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.15, 0.1]}}},
+        "sensor": sensor(lerp([-0.5, 0.1, 3.4], [0.5, 0.1, 3.4], t), [0, -0.45, 0], 40),
+    }
+    # Fence: vertical rods 0.005-0.012 in radius (a pixel is about 0.02 wide at the fence) and two rails.
+    for i in range(13):
+        x = -1.5 + 0.25 * i
+        scene[f"rod{i}"] = {"type": "cylinder", "p0": [x, -1.0, -0.6], "p1": [x, 0.1, -0.6],
+                            "radius": 0.005 + 0.0007 * i, "bsdf": diffuse([0.85, 0.85, 0.8])}
+    for j, y in enumerate((-0.6, -0.05)):
+        scene[f"rail{j}"] = {"type": "cylinder", "p0": [-1.6, y, -0.6], "p1": [1.6, y, -0.6], "radius": 0.008,
+                             "bsdf": diffuse([0.5, 0.35, 0.2])}
+    # A wire grid leaning on the right: 1.5 mm wires, finer than a pixel.
+    for k in range(9):
+        z = -0.2 + 0.08 * k
+        scene[f"wire{k}"] = {"type": "cylinder", "p0": [0.9, -1.0, z], "p1": [1.1, -0.2, z], "radius": 0.003,
+                             "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.3}}
+    info = {"description": ("Open scene lit by a lat-long sky made in numpy (gradient, dim ground, a 2.5-degree sun "
+                            "disc of radiance 600) on a value-noise textured ground. Thin geometry: a fence of 13 "
+                            "rods (radius 0.005-0.013) with two rails, and a grid of 9 aluminium wires (radius "
+                            "0.003, under a pixel). A red plastic ball rolls over the ground (contact shadow); the "
+                            "camera dollies sideways."),
+            "moving": {"ball": {"x": ball_x}},
+            "camera": {"origin": lerp([-0.5, 0.1, 3.4], [0.5, 0.1, 3.4], t), "target": [0, -0.45, 0], "fov": 40}}
+    return scene, info
+
+
+CLIPS = {
+    # name: (builder, clip id for seeds, hazards, moving shape keys, reference spp, frame of the second reference).
+    # 512 spp at 128x128 keeps a clip near 3 min of rendering on the 2 shared cores here (0.4 Mpaths/s measured
+    # under load); the caustic clip gets a second reference to show how far 512 spp is from converged.
+    "mi_ceiling_light": (clip_ceiling_light, 1, ["area_light_in_ceiling_no_emission_aov", "moving_object",
+                                                 "contact_shadow", "textures"], ["mover"], 512, None),
+    "mi_glass_mirror": (clip_glass_mirror, 2, ["glass", "mirror", "small_bright_light", "rough_metal",
+                                               "caustics", "camera_pan", "textures"], [], 512, 4),
+    "mi_env_thin": (clip_env_thin, 3, ["environment_lit_open_scene", "thin_geometry", "moving_object",
+                                       "contact_shadow", "camera_pan", "textures"], ["ball"], 512, None),
+}
+
+
+# ---------------------------------------------------------------------------------------------------- rendering
+def _mask_scene(scene: dict, moving: list) -> dict:
+    """The same geometry with every BSDF black except the moving shapes (white), no lights: an ``albedo`` AOV of it
+    is the fraction of each pixel's first hits on a moving object."""
+    out = {}
+    for k, v in scene.items():
+        if isinstance(v, dict) and v.get("type") in ("rectangle", "cube", "sphere", "cylinder"):
+            v = {kk: vv for kk, vv in v.items() if kk not in ("emitter", "bsdf")}
+            v["bsdf"] = diffuse([1.0, 1.0, 1.0] if k in moving else [0.0, 0.0, 0.0])
+        elif isinstance(v, dict) and v.get("type") == "envmap":
+            continue
+        out[k] = v
+    return out
+
+
+def _channels(scene) -> dict:
+    """name -> (H, W) of the last render of ``scene``'s film (aov integrator), in this project's channel names."""
+    parts = dict(scene.sensors()[0].film().bitmap().split())
+    rgb = np.array(parts["integrator"])[..., :3]
+    out = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2]}
+    for key, names in FEATURE_CHANNELS.items():
+        a = np.array(parts[key])
+        a = a.reshape(*a.shape[:2], -1)
+        for i, name in enumerate(names):
+            out[name] = a[..., i]
+    return out
+
+
+def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
+                ref_chunk: int = 128) -> Path:
+    builder, clip_id, hazards, moving, default_ref, ref_b_frame = CLIPS[name]
+    ref_spp = ref_spp or default_ref
+    if ref_spp % ref_chunk:
+        raise ValueError(f"ref_spp {ref_spp} must be a multiple of ref_chunk {ref_chunk}")
+    variant = pick_variant()
+    out = Path(out_root) / name
+    out.mkdir(parents=True, exist_ok=True)
+    noisy = mi.load_dict({"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}})
+    path = mi.load_dict({"type": "path", "max_depth": MAX_DEPTH})
+    albedo_only = mi.load_dict({"type": "aov", "aovs": "albedo:albedo"})
+    timer = C.Timer()
+    per_frame, seeds = [], {p: [] for p in C.PASSES}
+    hdr = {"renderer": f"Mitsuba {mi.__version__} (drjit {dr.__version__}), variant {variant}"}
+    for f in tqdm(range(frames), desc=name, unit="frame"):
+        scene_dict, info = builder(f, frames)
+        per_frame.append({k: v for k, v in info.items() if k != "description"})
+        scene = mi.load_dict(copy.copy(scene_dict))
+        for pass_name, spp, fname in (("noisy1", 1, "frame"), ("noisy4", 4, "frame4spp")):
+            s = C.seed(clip_id, pass_name, f)
+            seeds[pass_name].append(s)
+            t0 = time.perf_counter()
+            mi.render(scene, integrator=noisy, seed=s, spp=spp)
+            ch = _channels(scene)
+            timer.add(pass_name, t0)
+            C.write_exr(out / f"{fname}_{f:04d}.exr", ch, HALF, {**hdr, "spp": spp})
+        refs = [("reference", f"reference_{f:04d}.exr", ref_spp)]
+        if ref_b_frame is not None and f == ref_b_frame:
+            refs.append(("ref_b", f"ref_b_{f:04d}.exr", ref_spp))
+        for pass_name, fname, spp in refs:
+            acc = np.zeros((C.HEIGHT, C.WIDTH, 3))
+            t0 = time.perf_counter()
+            chunk_seeds = []
+            for c in range(spp // ref_chunk):
+                s = C.seed(clip_id, pass_name, f, c)
+                chunk_seeds.append(s)
+                acc += np.array(mi.render(scene, integrator=path, seed=s, spp=ref_chunk), dtype=np.float64)[..., :3]
+            timer.add(pass_name, t0)
+            seeds[pass_name].append(chunk_seeds)
+            acc /= spp // ref_chunk
+            C.write_exr(out / fname, {c: acc[..., i] for i, c in enumerate("RGB")}, (), {**hdr, "spp": spp})
+        if moving:
+            s = C.seed(clip_id, "mask", f)
+            seeds["mask"].append(s)
+            t0 = time.perf_counter()
+            mscene = mi.load_dict(_mask_scene(scene_dict, moving))
+            mi.render(mscene, integrator=albedo_only, seed=s, spp=16)
+            img = np.array(dict(mscene.sensors()[0].film().bitmap().split())["albedo"])
+            timer.add("mask", t0)
+            C.write_exr(out / f"mask_{f:04d}.exr", {"moving": img.mean(-1)}, ("moving",))
+    _, info0 = builder(0, frames)
+    manifest = {
+        "scene": name,
+        "renderer": hdr["renderer"],
+        "frames": frames, "width": C.WIDTH, "height": C.HEIGHT,
+        "spp": {"noisy1": 1, "noisy4": 4, "reference": ref_spp, "ref_chunk_spp": ref_chunk, "mask": 16 if moving else 0},
+        "integrator_noisy": {"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}},
+        "integrator_ref": {"type": "path", "max_depth": MAX_DEPTH},
+        "film": f"hdrfilm {C.WIDTH}x{C.HEIGHT} rgb float32, rfilter box; sampler independent",
+        "description": info0["description"],
+        "hazards": hazards,
+        "moving_objects": moving,
+        "seeds": seeds,
+        "seed_rule": "clip_id*100000 + pass*10000 + frame*100 + chunk (pass: noisy1 1, noisy4 2, reference 3, "
+                     "ref_b 4, mask 5)",
+        "clip_id": clip_id,
+        "ref_b": None if ref_b_frame is None else {
+            "frame": ref_b_frame, "file": f"ref_b_{ref_b_frame:04d}.exr",
+            "note": "second reference of one frame with independent seeds: its PSNR against reference_ caps what any "
+                    "method can score"},
+        "render_seconds": timer.secs,
+        "render_cpu_seconds": timer.cpu,
+        "host": {**C.host(), "threads": dr.thread_count() if hasattr(dr, "thread_count") else None},
+        "files": {
+            "frame_XXXX.exr": "1 sample per pixel: R,G,B (float32, linear HDR) and features of the same samples: "
+                              "albedo.R/G/B, N.X/Y/Z (shading normal, world space), P.X/Y/Z (world position) half; "
+                              "Z (distance along the camera ray, 0 on a miss) float32",
+            "frame4spp_XXXX.exr": "the same at 4 samples per pixel (independent samples)",
+            "reference_XXXX.exr": f"R,G,B float32, {ref_spp} spp: float64 mean of {ref_spp // ref_chunk} chunks",
+            **({"ref_b_XXXX.exr": "a second independent reference of that frame"} if ref_b_frame is not None else {}),
+            **({"mask_XXXX.exr": "moving: fraction of the pixel's first hits (16 spp) on a moving object"}
+               if moving else {}),
+        },
+        "per_frame_animation": per_frame,
+    }
+    C.write_manifest(out, manifest)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("clips", nargs="*", default=list(CLIPS), help=f"clips to render (default all: {list(CLIPS)})")
+    ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
+    ap.add_argument("--frames", type=int, default=C.FRAMES)
+    ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default per clip, see CLIPS)")
+    ap.add_argument("--no-ready", action="store_true", help="do not append to <out>/READY")
+    args = ap.parse_args(argv)
+    for name in args.clips:
+        if name not in CLIPS:
+            ap.error(f"unknown clip {name!r}; known: {list(CLIPS)}")
+    for name in args.clips:
+        out = render_clip(name, args.out, args.frames, args.ref_spp)
+        if not args.no_ready:
+            C.mark_ready(out)
+        print(f"{name}: {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,340 @@
+"""Score every denoiser on every scene of the validation set, per scene, from 1 spp and from 4 spp.
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/validation/score.py [--data-root /work/valdata] [--scenes a b]
+
+Scenes come from ``benchmarks/validation/split.json`` (the shared Mitsuba clip included, by path). Methods are
+those of ``benchmarks/baselines.py`` run through ``benchmarks/harness.py`` exactly as ``bench_methods.py`` runs
+them: raw input; Gaussian blur (best of sigma 1/2/4/8 per scene); kornia joint bilateral and OpenCV ``amFilter``
+guided by albedo + normal + depth (demodulated colour, the harness' preprocessing); Intel OIDN (``pyoidn``,
+albedo + normal, ``hdr=True``); ours (``torchmanifold.pipeline.denoise_frames``, default settings). Scores:
+PSNR (clamped sRGB, mean over frames), relMSE (linear, ``mean((x-r)^2/(r^2+0.01))``), FLIP (LDR sRGB), and
+ms/frame (median, this machine, this run). Where a clip has a mask of moving objects, PSNR inside and outside it;
+where it has a second reference, the PSNR of one reference against the other (a ceiling for every method).
+
+Writes ``benchmarks/results/validation/scores.json``, ``scores.md`` and ``psnr.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+import baselines  # noqa: E402
+import harness  # noqa: E402
+
+ROOT = HERE.parents[1]
+OUT = ROOT / "benchmarks" / "results" / "validation"
+SIGMA_S, SIGMA_R = 4.0, 1.0  # bench_methods.py's settings: the harness guide is pre-scaled per feature group
+GUIDE = ("depth", "normal", "albedo")
+FAMILIES = ("raw", "gaussian", "joint-bilateral", "opencv-am", "oidn", "ours")
+
+
+# ---------------------------------------------------------------------------------------------------- reading
+# Blender pass -> this project's tracer names (what harness.Dataset and denoise_frames understand). Depth: Cycles'
+# "Denoising Depth" (0 on a miss, like Mitsuba's) before the plain "Depth" pass (1e10 on a miss).
+_BLENDER = {
+    "Combined": {"R": "R", "G": "G", "B": "B"},
+    "Denoising Albedo": {"R": "Mr", "G": "Mg", "B": "Mb"},
+    "Denoising Normal": {"X": "Nx", "Y": "Ny", "Z": "Nz"},
+    "Denoising Depth": {"Z": "Z"},
+    "Depth": {"Z": "Z"},
+}
+_MITSUBA = {"R": "R", "G": "G", "B": "B", "albedo.R": "Mr", "albedo.G": "Mg", "albedo.B": "Mb", "N.X": "Nx",
+            "N.Y": "Ny", "N.Z": "Nz", "Z": "Z", "P.X": "Px", "P.Y": "Py", "P.Z": "Pz"}
+
+
+def read_frame(path: Path) -> dict:
+    """name -> (H, W) float32 of one frame, in tracer names (``R,G,B,Mr,Mg,Mb,Nx,Ny,Nz,Z`` and ``Px,Py,Pz``).
+
+    The one place that knows both layouts, to be replaced by ``torchmanifold.io`` once it reads multi-part files:
+    Mitsuba's single part (``R,G,B``, ``albedo.*``, ``N.*``, ``Z``, ``P.*``) and Blender's multilayer EXR, one part
+    per pass in Blender 5 or one part with every channel in older versions (``<ViewLayer>.<pass>.<channel>``).
+    """
+    import OpenEXR
+
+    f = OpenEXR.File(str(path), separate_channels=True)
+    raw = {}
+    for part in f.parts:
+        for name, ch in part.channels.items():
+            raw[name] = ch.pixels
+    out = {}
+    if not any(".Combined." in n for n in raw):  # Mitsuba's (and this project's) plain names
+        for n, t in _MITSUBA.items():
+            if n in raw:
+                out[t] = raw[n]
+    else:
+        for name, a in raw.items():
+            parts = name.split(".")
+            if len(parts) < 3:
+                continue
+            pas, ch = ".".join(parts[1:-1]), parts[-1]
+            t = _BLENDER.get(pas, {}).get(ch)
+            if t is not None and not (t == "Z" and pas == "Depth" and "Z" in out):
+                out[t] = a
+    missing = [c for c in "RGB" if c not in out]
+    if missing:
+        raise ValueError(f"{path}: no colour channels {missing} (expected R,G,B or <ViewLayer>.Combined.R/G/B)")
+    return {k: np.asarray(v, dtype=np.float32) for k, v in out.items()}
+
+
+def _stack(frames: list, names) -> torch.Tensor:
+    return torch.from_numpy(np.stack([np.stack([fr[n] for n in names]) for fr in frames]))
+
+
+def load_scene(path: Path, spp: int) -> tuple[harness.Dataset, dict]:
+    """The clip at ``path`` as the harness' Dataset for its ``spp``-sample frames, and extras (mask, ref_b)."""
+    prefix = "frame" if spp == 1 else f"frame{spp}spp"
+    files = sorted(path.glob(f"{prefix}_*.exr"))
+    if not files:
+        raise FileNotFoundError(f"{path}: no {prefix}_XXXX.exr")
+    frames = [read_frame(p) for p in files]
+    idx = [int(p.stem.split("_")[-1]) for p in files]
+    feat_names = [n for n in ("Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Z", "Px", "Py", "Pz") if n in frames[0]]
+    color = _stack(frames, "RGB")
+    feats = _stack(frames, feat_names)
+    ref = _stack([read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
+    ds = harness.Dataset(path.name, color, feats, feat_names, ref, torch.tensor(idx, dtype=torch.float32),
+                         {spp: (color, None)})
+    extra = {}
+    masks = [path / f"mask_{i:04d}.exr" for i in idx]
+    if all(m.exists() for m in masks):
+        import OpenEXR
+        extra["mask"] = torch.from_numpy(np.stack([
+            OpenEXR.File(str(m), separate_channels=True).channels()["moving"].pixels.astype(np.float32)
+            for m in masks]))[:, None]
+    ref_b = sorted(path.glob("ref_b_*.exr"))
+    if ref_b:
+        i = int(ref_b[0].stem.split("_")[-1])
+        if i in idx:
+            extra["ref_b"] = (idx.index(i), _stack([read_frame(ref_b[0])], "RGB"))
+    return ds, extra
+
+
+# ---------------------------------------------------------------------------------------------------- scoring
+def methods() -> list:
+    keep = ("gaussian", "joint-bilateral", "opencv-am", "oidn")
+    out = [m for m in baselines.benchmark_methods(sigma_s=SIGMA_S, sigma_r=SIGMA_R) if m.family in keep]
+    out += [m for m in baselines.benchmark_methods() if m.name == "ours-pipeline"]
+    missing = [f"{m.name}: {m.why}" for m in out if not m.available]
+    if missing:
+        raise RuntimeError("methods not installed: " + "; ".join(missing))
+    return out
+
+
+def score(out: torch.Tensor, ds: harness.Dataset, extra: dict) -> dict:
+    from torchmanifold import metrics
+
+    res = harness.scores(out, ds.reference)
+    if "mask" in extra:
+        m = extra["mask"]
+        frames = [q for q in range(m.shape[0]) if float(m[q].sum()) >= 1.0]
+        if frames:
+            res["psnr_moving"] = float(np.mean([metrics.psnr(out[q], ds.reference[q], m[q]) for q in frames]))
+            res["psnr_static"] = float(np.mean([metrics.psnr(out[q], ds.reference[q], 1 - m[q]) for q in frames]))
+    return res
+
+
+def run_scene(path: Path, spp: int, meths: list) -> dict:
+    ds, extra = load_scene(path, spp)
+    clip, alb = harness.clip_for(ds, use=GUIDE)
+    res = {"size": list(ds.color.shape[-2:]), "frames": ds.color.shape[0], "features": list(ds.names), "methods": {}}
+    res["methods"]["raw"] = {"family": "raw", **score(ds.color, ds, extra), "ms_median": 0.0}
+    if "ref_b" in extra:
+        q, rb = extra["ref_b"]
+        res["reference_agreement_psnr"] = harness.scores(rb, ds.reference[q : q + 1], with_flip=False)["psnr"]
+    for m in meths:
+        out, secs = harness.run_method(m, ds, clip, alb, list(range(ds.color.shape[0])), SIGMA_S, SIGMA_R)
+        finite = torch.isfinite(out)
+        r = {"family": m.family, "params": m.params, **harness.timing_summary(secs),
+             "nonfinite_fraction": float((~finite).float().mean())}
+        out = torch.where(finite, out, ds.color)
+        r.update(score(out, ds, extra))
+        res["methods"][m.name] = r
+    # Per family, the member with the best PSNR on this scene (Gaussian: best sigma; bilateral: best sigma_r).
+    best = {}
+    for name, r in res["methods"].items():
+        f = r["family"]
+        if f not in best or r["psnr"] > res["methods"][best[f]]["psnr"]:
+            best[f] = name
+    res["best_of_family"] = best
+    return res
+
+
+def resolve(entry: dict, data_root: Path | None) -> Path:
+    if entry.get("shared"):
+        return harness.DATA if harness.DATA.is_dir() else Path("/work/shared/data") / entry["shared"]
+    p = ROOT / entry["path"]
+    if data_root is not None and (data_root / p.name).is_dir():
+        return data_root / p.name
+    return p
+
+
+# ---------------------------------------------------------------------------------------------------- reports
+def family_row(scene: dict) -> dict:
+    return {f: scene["methods"][scene["best_of_family"][f]] for f in FAMILIES if f in scene["best_of_family"]}
+
+
+def markdown(results: dict, split: dict) -> str:
+    lines = ["# Validation set: per-scene scores", "",
+             f"Run {results['meta']['date_utc']}, commit {results['meta']['git_commit'][:10]}, "
+             f"{results['meta']['cpu_count']} cores ({results['meta']['cpu']}), load {results['meta']['load_average']}, "
+             f"torch threads {results['meta']['torch_threads']}. Produced by `benchmarks/validation/score.py`.", "",
+             "PSNR: clamped sRGB, mean over frames (dB, higher is better). relMSE: linear. FLIP: LDR sRGB (lower is "
+             "better). Gaussian and joint bilateral: the best of their settings on each scene (an oracle choice). "
+             "Filters other than OIDN and ours see colour / albedo with an albedo + normal + depth guide "
+             "(`benchmarks/harness.py`). `ref agree`: PSNR of a second independent reference against the reference "
+             "(a ceiling on every score) where the clip has one.", ""]
+    if results.get("meta_runs"):
+        loads = ", ".join(f"{m['load_average'][0]:.1f}" for m in results["meta_runs"] if m.get("load_average"))
+        lines += [f"Scored in {len(results['meta_runs'])} runs, partly in parallel on the shared 2-core machine "
+                  f"(1-min load averages at their starts: {loads}): every method of a scene and spp ran in the same "
+                  "process one after another, so ms/frame compare methods within a row, not across scenes.", ""]
+    for spp in ("1", "4"):
+        lines += [f"## From {spp} spp", "", "| scene | split | " + " | ".join(FAMILIES) + " | ref agree |",
+                  "|---" * (len(FAMILIES) + 3) + "|"]
+        means = {f: [] for f in FAMILIES}
+        for name, sc in results["scenes"].items():
+            s = sc.get(spp)
+            if s is None:
+                continue
+            row = family_row(s)
+            cells = []
+            for f in FAMILIES:
+                r = row.get(f)
+                if r is None:
+                    cells.append("-")
+                    continue
+                means[f].append(r["psnr"])
+                cells.append(f"{r['psnr']:.2f} / {r['relmse']:.4f} / {r.get('flip', float('nan')):.3f}")
+            agree = s.get("reference_agreement_psnr")
+            lines.append(f"| {name} | {sc['split']} | " + " | ".join(cells) + f" | {agree:.2f} |" if agree else
+                         f"| {name} | {sc['split']} | " + " | ".join(cells) + " | - |")
+        lines.append("| **mean PSNR** | | " + " | ".join(f"**{np.mean(v):.2f}**" if v else "-" for v in means.values())
+                     + " | |")
+        lines += ["", "Cells: PSNR / relMSE / FLIP.", ""]
+    lines += ["## ms per frame (median over frames, from 1 spp)", "", "| scene | size | " + " | ".join(FAMILIES[1:])
+              + " |", "|---" * (len(FAMILIES) + 1) + "|"]
+    for name, sc in results["scenes"].items():
+        s = sc.get("1")
+        if s is None:
+            continue
+        row = family_row(s)
+        lines.append(f"| {name} | {s['size'][1]}x{s['size'][0]} | "
+                     + " | ".join(f"{row[f]['ms_median']:.1f}" if f in row else "-" for f in FAMILIES[1:]) + " |")
+    lines += ["", "## Moving objects (PSNR inside / outside the mask of moving objects, from 1 spp)", "",
+              "| scene | " + " | ".join(FAMILIES) + " |", "|---" * (len(FAMILIES) + 1) + "|"]
+    for name, sc in results["scenes"].items():
+        s = sc.get("1")
+        if s is None or "psnr_moving" not in s["methods"]["raw"]:
+            continue
+        row = family_row(s)
+        lines.append(f"| {name} | " + " | ".join(
+            f"{row[f]['psnr_moving']:.2f} / {row[f]['psnr_static']:.2f}" if f in row else "-" for f in FAMILIES) + " |")
+    lines += ["", "## Best setting per scene", "", "| scene | spp | gaussian | joint bilateral |", "|---|---|---|---|"]
+    for name, sc in results["scenes"].items():
+        for spp in ("1", "4"):
+            if spp in sc:
+                b = sc[spp]["best_of_family"]
+                lines.append(f"| {name} | {spp} | {b.get('gaussian')} | {b.get('joint-bilateral')} |")
+    lines += ["", f"Split: tune {split['tune']}, test {split['test']}.", ""]
+    return "\n".join(lines)
+
+
+def chart(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"raw": "#555555", "gaussian": "#1f77b4", "joint-bilateral": "#2ca02c", "opencv-am": "#ff7f0e",
+               "oidn": "#9467bd", "ours": "#d62728"}
+    scenes = list(results["scenes"])
+    fig, axes = plt.subplots(2, 1, figsize=(max(8, 1.4 * len(scenes) + 2), 8), sharex=True)
+    for ax, spp in zip(axes, ("1", "4")):
+        w = 0.8 / len(FAMILIES)
+        for k, f in enumerate(FAMILIES):
+            vals = [family_row(results["scenes"][s][spp]).get(f, {}).get("psnr", np.nan)
+                    if spp in results["scenes"][s] else np.nan for s in scenes]
+            ax.bar(np.arange(len(scenes)) + (k - (len(FAMILIES) - 1) / 2) * w, vals, w, label=f, color=colours[f])
+        ax.set_ylabel(f"PSNR dB (from {spp} spp)")
+        ax.set_ylim(bottom=15)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(ncol=len(FAMILIES), fontsize=8, loc="upper left")
+    axes[1].set_xticks(np.arange(len(scenes)))
+    axes[1].set_xticklabels([f"{s}\n({results['scenes'][s]['split']})" for s in scenes], fontsize=8)
+    fig.suptitle("Validation set: PSNR per scene (clamped sRGB, mean over frames)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--split", type=Path, default=HERE / "split.json")
+    ap.add_argument("--data-root", type=Path, default=None,
+                    help="folder with rendered clips (e.g. /work/valdata) used instead of the committed copies")
+    ap.add_argument("--scenes", nargs="+", default=None)
+    ap.add_argument("--spp", nargs="+", type=int, default=[1, 4])
+    ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the other scenes of an existing scores.json (score clips as they are rendered)")
+    ap.add_argument("--combine", nargs="+", type=Path, default=None,
+                    help="score nothing: merge the scenes of these scores.json files (runs done in parallel) into --out")
+    args = ap.parse_args(argv)
+    split = json.loads(args.split.read_text())
+    if args.combine:
+        runs = [json.loads(p.read_text()) for p in args.combine]
+        scenes: dict = {}
+        for r in runs:  # a scene's spp levels may come from different runs
+            for k, v in r["scenes"].items():
+                scenes[k] = {**scenes.get(k, {}), **v}
+        order = list(split["scenes"])
+        results = {**runs[0], "scenes": {k: scenes[k] for k in sorted(scenes, key=order.index)},
+                   "meta_runs": [r["meta"] for r in runs]}
+        return _write(results, split, args.out)
+    names = args.scenes or list(split["scenes"])
+    meths = methods()
+    results = {"meta": harness.metadata(), "sigma_s": SIGMA_S, "sigma_r": SIGMA_R, "guide": list(GUIDE),
+               "scenes": {}}
+    old = args.out / "scores.json"
+    if args.merge and old.exists():
+        prev = json.loads(old.read_text())
+        # Keep every scene and spp of the earlier runs that this run does not redo.
+        results["scenes"] = prev["scenes"]
+        results["meta_previous_runs"] = prev.get("meta_previous_runs", []) + [prev["meta"]]
+    from tqdm import tqdm
+
+    for name in tqdm(names, desc="scenes"):
+        entry = split["scenes"][name]
+        path = resolve(entry, args.data_root)
+        sc = {**results["scenes"].get(name, {}), "split": entry["split"], "renderer": entry["renderer"],
+              "path": str(path)}
+        for spp in args.spp:
+            t0 = time.perf_counter()
+            sc[str(spp)] = run_scene(path, spp, meths)
+            tqdm.write(f"{name} {spp} spp: {time.perf_counter() - t0:.0f} s; " + ", ".join(
+                f"{f} {r['psnr']:.2f}" for f, r in family_row(sc[str(spp)]).items()))
+        results["scenes"][name] = sc
+    order = list(split["scenes"])
+    results["scenes"] = {k: results["scenes"][k] for k in sorted(results["scenes"], key=order.index)}
+    _write(results, split, args.out)
+
+
+def _write(results: dict, split: dict, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scores.json").write_text(json.dumps(results, indent=1))
+    (out / "scores.md").write_text(markdown(results, split))
+    chart(results, out / "psnr.png")
+    print((out / "scores.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
