@@ -207,9 +207,10 @@ def _pipeline(clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings
 
     if clip.features is None:
         raise ValueError("the pipeline needs the clip's raw features (Clip.features)")
-    out = denoise_frames(clip.values, clip.features, clip.feature_names, clip.emission,
-                         settings=DenoiseSettings(**settings))
-    return out[query]
+    q = slice(query, query + 1)  # one frame: its statistics are its own, the others' cost nothing
+    out = denoise_frames(clip.values[q], clip.features[q], clip.feature_names,
+                         None if clip.emission is None else clip.emission[q], settings=DenoiseSettings(**settings))
+    return out[0]
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,

@@ -38,50 +38,27 @@ FAMILIES = ("raw", "gaussian", "joint-bilateral", "opencv-am", "oidn", "ours")
 
 
 # ---------------------------------------------------------------------------------------------------- reading
-# Blender pass -> this project's tracer names (what harness.Dataset and denoise_frames understand). Depth: Cycles'
-# "Denoising Depth" (0 on a miss, like Mitsuba's) before the plain "Depth" pass (1e10 on a miss).
-_BLENDER = {
-    "Combined": {"R": "R", "G": "G", "B": "B"},
-    "Denoising Albedo": {"R": "Mr", "G": "Mg", "B": "Mb"},
-    "Denoising Normal": {"X": "Nx", "Y": "Ny", "Z": "Nz"},
-    "Denoising Depth": {"Z": "Z"},
-    "Depth": {"Z": "Z"},
-}
-_MITSUBA = {"R": "R", "G": "G", "B": "B", "albedo.R": "Mr", "albedo.G": "Mg", "albedo.B": "Mb", "N.X": "Nx",
-            "N.Y": "Ny", "N.Z": "Nz", "Z": "Z", "P.X": "Px", "P.Y": "Py", "P.Z": "Pz"}
-
-
 def read_frame(path: Path) -> dict:
-    """name -> (H, W) float32 of one frame, in tracer names (``R,G,B,Mr,Mg,Mb,Nx,Ny,Nz,Z`` and ``Px,Py,Pz``).
+    """name -> (H, W) float32 of one frame, in tracer names (``R,G,B,Mr,Mg,Mb,Nx,Ny,Nz,Z``) and ``P.X/Y/Z``.
 
-    The one place that knows both layouts, to be replaced by ``torchmanifold.io`` once it reads multi-part files:
-    Mitsuba's single part (``R,G,B``, ``albedo.*``, ``N.*``, ``Z``, ``P.*``) and Blender's multilayer EXR, one part
-    per pass in Blender 5 or one part with every channel in older versions (``<ViewLayer>.<pass>.<channel>``).
+    Read by :func:`torchmanifold.io.frames.read_render_frame` (Mitsuba's flat layout, Blender's multilayer
+    one, single- or multi-part); Blender's camera-space denoising normal stands in for ``N`` and its planar
+    depth for ``Z`` where the file has no other.
     """
-    import OpenEXR
+    from torchmanifold import features as feature_table
+    from torchmanifold.io.frames import read_render_frame
 
-    f = OpenEXR.File(str(path), separate_channels=True)
-    raw = {}
-    for part in f.parts:
-        for name, ch in part.channels.items():
-            raw[name] = ch.pixels
-    out = {}
-    if not any(".Combined." in n for n in raw):  # Mitsuba's (and this project's) plain names
-        for n, t in _MITSUBA.items():
-            if n in raw:
-                out[t] = raw[n]
-    else:
-        for name, a in raw.items():
-            parts = name.split(".")
-            if len(parts) < 3:
-                continue
-            pas, ch = ".".join(parts[1:-1]), parts[-1]
-            t = _BLENDER.get(pas, {}).get(ch)
-            if t is not None and not (t == "Z" and pas == "Depth" and "Z" in out):
-                out[t] = a
-    missing = [c for c in "RGB" if c not in out]
-    if missing:
-        raise ValueError(f"{path}: no colour channels {missing} (expected R,G,B or <ViewLayer>.Combined.R/G/B)")
+    fr = read_render_frame(path)
+    out = {c: fr.color[k] for k, c in enumerate("RGB")}
+    stand_in = {"Ncam": "N", "Zplane": "Z"}
+    for group in ("albedo", "N", "Z", "P", "Ncam", "Zplane"):
+        chans = [n for n in fr.features if feature_table.group_of(n) == group]
+        target = stand_in.get(group, group)
+        tracer = feature_table.tracer_channels(target) or tuple(chans)  # P: our tracer has none, keep its own
+        if not chans or tracer[0] in out:
+            continue
+        for name, t in zip(chans, tracer):
+            out[t] = fr.features[name]
     return {k: np.asarray(v, dtype=np.float32) for k, v in out.items()}
 
 
@@ -97,7 +74,7 @@ def load_scene(path: Path, spp: int) -> tuple[harness.Dataset, dict]:
         raise FileNotFoundError(f"{path}: no {prefix}_XXXX.exr")
     frames = [read_frame(p) for p in files]
     idx = [int(p.stem.split("_")[-1]) for p in files]
-    feat_names = [n for n in ("Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Z", "Px", "Py", "Pz") if n in frames[0]]
+    feat_names = [n for n in ("Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Z", "P.X", "P.Y", "P.Z") if n in frames[0]]
     color = _stack(frames, "RGB")
     feats = _stack(frames, feat_names)
     ref = _stack([read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
