@@ -103,6 +103,7 @@ def live_app():
     app = create_app(SMALL + ["--headless", "--reference-spp", "8", "--width", "32", "--height", "32"])
     step_frame(app)
     yield app
+    app.on_close()
     app.wnd.destroy()
 
 

@@ -39,7 +39,7 @@ def test_session_shows_the_engine_run_built_by_hand(tracer):
     with literal settings; the feature view is the mean of the very samples it rendered."""
     session = DemoSession(tracer, [0.0, 1.0], seed=5)
     by_hand = ProgressiveRenderer(tracer, [0.0, 1.0], seed=5, alpha=DEFAULT_ALPHA, settings=DenoiseSettings(
-        sigma_s=3.0, temporal_radius=1, sigma_t=0.5, mode="window", tree_height=2,
+        sigma_s=3.0, temporal_radius=0, sigma_t=0.5, mode="window", tree_height=2,
         guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=3.0))
     for _ in range(2):
         session.step()
