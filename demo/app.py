@@ -3,7 +3,7 @@
 Panels of the same frame side by side: the raw progressive average, a Gaussian-filtered average,
 ours, and an error heat map against a reference rendered at start; below them a live plot of PSNR
 against iteration, iterations per second and milliseconds per stage. The tracer renders in its own
-thread and GL context, one iteration ahead (:mod:`demo.tracing`); the filter runs in torch; the
+process and GL context, one iteration ahead (:mod:`demo.tracing`); the filter runs in torch; the
 display uploads the engine's estimates once per iteration and draws everything else in shaders.
 
 Run ``python -m demo`` (``--help`` for options, ``H`` in the window for keys).
@@ -45,7 +45,7 @@ from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterPar
 from demo.overlay import Canvas, OverlayRenderer, draw_overlay  # noqa: E402
 from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
 from demo.session import DemoSession, torch_threads  # noqa: E402
-from demo.tracing import TracerThread  # noqa: E402
+from demo.tracing import TracerProcess, TracerSpec  # noqa: E402
 from torchmanifold.timewindow import bracket, frame_at  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
@@ -116,7 +116,7 @@ class DemoApp(WindowConfig):
     """
 
     title = "torchmanifold demo: adaptive manifolds, progressive"
-    gl_version = (3, 3)  # the window only draws; the tracer has its own 4.3 context in its thread
+    gl_version = (3, 3)  # the window only draws; the tracer has its own 4.3 context in its process
     aspect_ratio = None
     resizable = False
     vsync = False
@@ -134,11 +134,9 @@ class DemoApp(WindowConfig):
         self.layout = Layout(args.width, args.height, scale=args.scale)
         self.frame_times = [float(i) for i in range(args.clip)]
         self.max_iterations = args.max_iterations
-        from torchmanifold.render import PathTracer
-
         scene = resolve_scene(args.scene)
-        self.tracer = TracerThread(lambda ctx: PathTracer(scene, width=args.width, height=args.height, ctx=ctx),
-                                   self.frame_times, prefetch=args.overlap)
+        self.tracer = TracerProcess(TracerSpec(scene, args.width, args.height), self.frame_times,
+                                    prefetch=args.overlap)
         reference = None
         if args.reference_spp > 0:
             reference = render_reference(self.tracer, self.frame_times, args.reference_spp, seed=args.seed + 7919)
@@ -370,7 +368,7 @@ class DemoApp(WindowConfig):
         return path
 
     def on_close(self) -> None:
-        """Free the GL objects and stop the tracer thread (once; closing the window and :func:`run` both
+        """Free the GL objects and stop the tracer process (once; closing the window and :func:`run` both
         call it)."""
         if getattr(self, "_closed", False):
             return

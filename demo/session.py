@@ -64,7 +64,7 @@ def engine_settings(p: FilterParams, feature_names) -> dict:
 class StepTiming:
     """Milliseconds of one iteration.
 
-    trace_ms: rendering one sample of every clip frame (in the tracer thread when it runs ahead).
+    trace_ms: rendering one sample of every clip frame (in the tracer process when it runs ahead).
     trace_wait_ms: how long the iteration waited for the tracer (all of ``trace_ms`` without look-ahead).
     filter_ms: the engine's filtering and accumulation plus the error curves: the iteration's wall time
         without the wait.
@@ -172,8 +172,8 @@ class DemoSession:
                 for kind in ESTIMATES:
                     self.history[kind].append((self.iteration, psnr(getattr(state, kind)[rows], self.reference)))
         wall = time.perf_counter() - t0
-        # a TracerThread renders in its own thread: its trace time is its own, the step only waits on it
-        trace = getattr(self.tracer, "trace_seconds", state.render_seconds)
+        # a TracerProcess renders ahead in its own process: its trace time is its own, the step only waits
+        trace = self.tracer.trace_seconds if getattr(self.tracer, "prefetch", False) else state.render_seconds
         self.timing = StepTiming(trace * 1e3, state.render_seconds * 1e3, (wall - state.render_seconds) * 1e3)
         return self.timing
 

@@ -1,43 +1,91 @@
-"""The tracer on its own thread: the next iteration of the whole clip renders while this one filters.
+"""The tracer in its own process: the next iteration of the whole clip renders while this one filters.
 
-A GL context is current in one thread at a time, so :class:`TracerThread` makes its own headless
-context and :class:`~torchmanifold.render.PathTracer` in a worker thread and runs every render there.
 The progressive engine keeps calling ``render(times=[t], spp=1, seed, sample_offset=i)`` one frame at a
 time; the first such call of iteration ``i`` renders all clip frames of sample ``i`` in one dispatch and
-queues sample ``i + 1``, so the worker traces iteration ``i + 1`` while the caller filters iteration ``i``
-(torch and the GL driver release the GIL). The tracer's RNG is keyed on (pixel, sample index, frame
-time, seed), so a frame cut out of the clip's render is the frame rendered alone: the images are the
-same as without the thread, bit for bit.
+queues sample ``i + 1``, so the tracer renders iteration ``i + 1`` while the caller filters iteration ``i``.
+The tracer's RNG is keyed on (pixel, sample index, frame time, seed), so a frame cut out of the clip's
+render is the frame rendered alone: the images are the same as without the look-ahead, bit for bit.
+
+Why a process and not a thread: moderngl keeps the GIL through every call, and llvmpipe runs a compute
+dispatch to the end inside ``glDispatchCompute`` (a 128x128x3 dispatch held the GIL for 600-700 ms,
+measured on the 2-core VM), so a tracer thread stops the filter's Python between torch ops; measured, a
+thread made the iteration slower, not faster. The child process has its own GIL and its own GL context;
+a frame set comes back through a pipe (about 5 MB at 128x128x3, a few ms). A thread in this process only
+waits on that pipe (waiting releases the GIL) and keeps the order of the jobs.
 """
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
 import queue
 import threading
 import time
 from concurrent.futures import Future
-from typing import Callable, Sequence
+from typing import Sequence
 
+import numpy as np
 import torch
 
 
-class TracerThread:
-    """A ``PathTracer`` living in a worker thread, with one iteration of look-ahead over a clip.
+@dataclasses.dataclass(frozen=True)
+class TracerSpec:
+    """What the tracer process builds: ``PathTracer(scene, width, height)`` (picklable)."""
+
+    scene: object
+    width: int
+    height: int
+
+    def __call__(self, ctx):
+        from torchmanifold.render import PathTracer
+
+        return PathTracer(self.scene, width=self.width, height=self.height, ctx=ctx)
+
+
+def _serve(conn, make_tracer) -> None:
+    """The tracer process: build the tracer, then answer render requests until told to stop."""
+    torch.set_num_threads(1)  # it only wraps the read-back arrays
+    try:
+        from torchmanifold.render import create_context
+
+        tracer = make_tracer(create_context())
+    except BaseException as exc:  # noqa: BLE001  (re-raised in the parent)
+        conn.send(("error", exc))
+        return
+    conn.send(("ready", (tracer.width, tracer.height, list(tracer.feature_names))))
+    while True:
+        kwargs = conn.recv()
+        if kwargs is None:
+            break
+        try:
+            t0 = time.perf_counter()
+            res = tracer.render(**kwargs)
+            fields = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
+            fields = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in fields.items()}
+            conn.send(("ok", (fields, time.perf_counter() - t0)))
+        except BaseException as exc:  # noqa: BLE001
+            conn.send(("error", exc))
+    tracer.release()
+    conn.close()
+
+
+class TracerProcess:
+    """A ``PathTracer`` living in a child process, with one iteration of look-ahead over a clip.
 
     Args:
-        make_tracer: ``callable(ctx) -> PathTracer``, called in the worker with the worker's own GL
-            context (``torchmanifold.render.create_context(new=True)``).
+        make_tracer: picklable ``callable(ctx) -> PathTracer`` (e.g. :class:`TracerSpec`), called in the
+            child with its GL context (``torchmanifold.render.create_context()``).
         clip_times: the frame times the engine renders every iteration; a ``spp=1`` render of one of
             them is served from (and triggers) the look-ahead.
         prefetch: render the next iteration ahead (False: every call renders on demand, in the worker).
 
     Attributes:
         width, height, feature_names: those of the tracer.
-        trace_seconds: wall time the worker spent in the last whole-clip render (the trace stage).
+        trace_seconds: wall time the tracer spent in the last whole-clip render (the trace stage; 0 without
+            look-ahead, where the engine's wait is the whole trace).
         wait_seconds: time callers spent blocked on renders since :meth:`take_wait` last reset it.
     """
 
-    def __init__(self, make_tracer: Callable, clip_times: Sequence[float], prefetch: bool = True):
+    def __init__(self, make_tracer, clip_times: Sequence[float], prefetch: bool = True):
         self.clip_times = [float(t) for t in clip_times]
         if not self.clip_times:
             raise ValueError("clip_times: expected at least one frame time")
@@ -48,24 +96,24 @@ class TracerThread:
         self.trace_seconds = 0.0
         self.wait_seconds = 0.0
         ready: Future = Future()
-        self._thread = threading.Thread(target=self._work, args=(make_tracer, ready), name="demo-tracer",
-                                        daemon=True)
+        # spawn, not fork: the parent holds GL contexts and thread pools a fork would copy half of
+        mp = multiprocessing.get_context("spawn")
+        self._conn, child = mp.Pipe()
+        self._process = mp.Process(target=_serve, args=(child, make_tracer), name="demo-tracer", daemon=True)
+        self._process.start()
+        child.close()
+        kind, payload = self._conn.recv()
+        if kind == "error":
+            self._process.join()
+            raise payload  # the child's error (no GL driver, bad scene, ...)
+        self.width, self.height, self.feature_names = payload
+        self._thread = threading.Thread(target=self._work, name="demo-tracer-jobs", daemon=True)
         self._thread.start()
-        tracer = ready.result()  # re-raises the worker's error (no GL driver, bad scene, ...)
-        self.width, self.height = tracer.width, tracer.height
-        self.feature_names = list(tracer.feature_names)
 
     # ------------------------------------------------------------------------------- worker side
-    def _work(self, make_tracer, ready: Future) -> None:
-        from torchmanifold.render import create_context
+    def _work(self) -> None:
+        from torchmanifold.render.frames import RenderResult
 
-        try:
-            tracer = make_tracer(create_context(new=True))
-        except BaseException as exc:  # noqa: BLE001  (handed to the constructor's thread)
-            ready.set_exception(exc)
-            return
-        ready.set_result(tracer)
-        torch.set_num_threads(1)  # the worker only reads back and wraps arrays
         while True:
             job = self._jobs.get()
             if job is None:
@@ -73,16 +121,16 @@ class TracerThread:
             fut, kwargs, clip = job
             if not fut.set_running_or_notify_cancel():
                 continue
-            try:
-                t0 = time.perf_counter()
-                res = tracer.render(**kwargs)
-                if clip:
-                    self.trace_seconds = time.perf_counter() - t0
-                fut.set_result(res)
-            except BaseException as exc:  # noqa: BLE001
-                fut.set_exception(exc)
-        tracer.release()
-        tracer.ctx.release()  # the context was made here and dies here
+            self._conn.send(kwargs)
+            kind, payload = self._conn.recv()  # waiting here releases the GIL: the filter runs meanwhile
+            if kind == "error":
+                fut.set_exception(payload)
+                continue
+            fields, seconds = payload
+            if clip:
+                self.trace_seconds = seconds
+            fut.set_result(RenderResult(**{k: (torch.from_numpy(v) if isinstance(v, np.ndarray) else v)
+                                           for k, v in fields.items()}))
 
     def _submit(self, clip: bool = False, **kwargs) -> Future:
         fut: Future = Future()
@@ -130,11 +178,14 @@ class TracerThread:
             self._clip.clear()
 
     def close(self) -> None:
-        """Stop the worker (its tracer and GL context are released in its own thread)."""
+        """Stop the job thread and the tracer process (which releases its tracer)."""
         if self._thread.is_alive():
             self.drop_lookahead()
             self._jobs.put(None)
             self._thread.join()
+            self._conn.send(None)
+            self._process.join(timeout=60)
+            self._conn.close()
 
 
 def _frame(res, k: int):

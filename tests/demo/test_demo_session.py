@@ -107,37 +107,37 @@ def test_bad_params_name_the_field(kwargs, name):
 
 
 @pytest.fixture(scope="module")
-def tracer_thread():
-    from demo.tracing import TracerThread
-    from torchmanifold.render import PathTracer, default_scene
+def tracer_proc():
+    from demo.tracing import TracerProcess, TracerSpec
+    from torchmanifold.render import default_scene
 
-    thread = TracerThread(lambda ctx: PathTracer(default_scene(), width=32, height=32, ctx=ctx), [0.0, 1.0, 2.0])
+    thread = TracerProcess(TracerSpec(default_scene(), 32, 32), [0.0, 1.0, 2.0])
     yield thread
     thread.close()
 
 
-def test_tracer_thread_renders_what_the_tracer_renders(tracer, tracer_thread):
+def test_tracer_process_renders_what_the_tracer_renders(tracer, tracer_proc):
     """A frame cut out of the worker's whole-clip render is the frame rendered alone, bit for bit; the
     first frame of sample i queues sample i + 1 of the clip."""
-    tracer_thread.drop_lookahead()
+    tracer_proc.drop_lookahead()
     for offset in (0, 1):
         for t in (2.0, 0.0):
-            got = tracer_thread.render(times=[t], spp=1, seed=9, sample_offset=offset)
+            got = tracer_proc.render(times=[t], spp=1, seed=9, sample_offset=offset)
             want = tracer.render(times=[t], spp=1, seed=9, sample_offset=offset)
             for name in ("color", "features", "emission"):
                 assert torch.equal(getattr(got, name), getattr(want, name)), (offset, t, name)
-        assert set(tracer_thread._clip) == {(9, offset), (9, offset + 1)}  # the next sample is on its way
+        assert set(tracer_proc._clip) == {(9, offset), (9, offset + 1)}  # the next sample is on its way
     # other calls (the reference: many samples) run in the worker as they are
-    ref = tracer_thread.render(times=[0.5, 1.0], spp=3, seed=2)
+    ref = tracer_proc.render(times=[0.5, 1.0], spp=3, seed=2)
     assert torch.equal(ref.color, tracer.render(times=[0.5, 1.0], spp=3, seed=2).color)
-    tracer_thread.drop_lookahead()
-    assert not tracer_thread._clip
+    tracer_proc.drop_lookahead()
+    assert not tracer_proc._clip
 
 
-def test_session_through_the_tracer_thread_is_the_same_progression(tracer, tracer_thread):
+def test_session_through_the_tracer_process_is_the_same_progression(tracer, tracer_proc):
     times = [0.0, 1.0, 2.0]
     direct = DemoSession(tracer, times, seed=4)
-    ahead = DemoSession(tracer_thread, times, seed=4)
+    ahead = DemoSession(tracer_proc, times, seed=4)
     for _ in range(2):
         direct.step()
         timing = ahead.step()
@@ -147,20 +147,18 @@ def test_session_through_the_tracer_thread_is_the_same_progression(tracer, trace
         assert torch.equal(direct.raw(t), ahead.raw(t))
     assert torch.equal(ahead.planes()[:, 2], ahead.state.ours)  # the upload: raw, gaussian, ours per row
     ahead.restart()  # the look-ahead of the old progression is dropped, the new one starts at sample 0
-    assert not tracer_thread._clip
+    assert not tracer_proc._clip
     ahead.step()
     direct.restart()
     direct.step()
     assert torch.equal(direct.ours(1.0), ahead.ours(1.0))
 
 
-def test_tracer_thread_reports_a_bad_tracer():
-    from demo.tracing import TracerThread
+def test_tracer_process_reports_a_bad_tracer():
+    """The child's error comes back to the caller, named."""
+    from demo.tracing import TracerProcess, TracerSpec
 
-    def broken(ctx):
-        raise ValueError("scene: no camera")
-
-    with pytest.raises(ValueError, match="no camera"):
-        TracerThread(broken, [0.0])
+    with pytest.raises(TypeError, match="scene must be"):
+        TracerProcess(TracerSpec(None, 32, 32), [0.0])
     with pytest.raises(ValueError, match="clip_times"):
-        TracerThread(broken, [])
+        TracerProcess(TracerSpec(None, 32, 32), [])
