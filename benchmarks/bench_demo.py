@@ -12,7 +12,10 @@ Variants:
   iteration is their sum (its stages run one after the other).
 * ``window r1, in turn``: this demo with the same filter (+-1 frame window) and the tracer not running ahead.
 * ``window r1, ahead``: the same with the tracer one iteration ahead (the overlap alone).
-* ``per frame, ahead``: this demo's defaults (each frame filtered alone, tracer ahead).
+* ``per frame, in turn`` / ``per frame, ahead``: this demo's filter default (each frame filtered alone), the
+  tracer in turn / ahead (the default).
+
+This demo's ``display_ms`` includes the window clear; the demo before cleared outside its display time.
 """
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ VARIANTS = {
     "before": ["--time-window", "1"],
     "window r1, in turn": ["--time-window", "1", "--no-overlap"],
     "window r1, ahead": ["--time-window", "1"],
+    "per frame, in turn": ["--no-overlap"],
     "per frame, ahead": [],
 }
 

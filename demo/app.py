@@ -309,6 +309,8 @@ class DemoApp(WindowConfig):
         panels.append((MODE_HEAT, self.heat_slot))
         self.ctx.disable(moderngl.DEPTH_TEST)
         self.panels.draw_panels(panels, rows, blend, ref_frame, self.exposure)
+        self.wnd.fbo.use()
+        self.wnd.fbo.clear(*self.clear_color)  # here, not in the loop: the clear is display time too
         buffer_size = self.wnd.buffer_size
         viewports = [layout.gl_viewport(layout.panel_rect(i), buffer_size) for i in range(layout.n_panels)]
         self.panels.draw_magnified(self.wnd.fbo, viewports)
@@ -495,8 +497,7 @@ def run(argv: list[str]) -> DemoApp:
     try:
         while not window.is_closing:
             current, delta = timer.next_frame()
-            window.clear(*app.clear_color)
-            window.use()
+            window.use()  # the app clears the window itself, inside its display time
             window.render(current, delta)
             if args.frames and app.frames_drawn >= args.frames:
                 if args.screenshot:
