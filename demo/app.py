@@ -478,7 +478,9 @@ def create_app(argv: list[str]) -> DemoApp:
     validate_args(args)
     extra = []
     window_flag = any(a in ("-wnd", "--window") or a.startswith("--window=") for a in argv)
-    if not args.headless and not window_flag and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    asks_help = any(a in ("-h", "--help") for a in argv)  # moderngl-window prints the help and exits
+    if not (args.headless or window_flag or asks_help) and not (os.environ.get("DISPLAY") or
+                                                               os.environ.get("WAYLAND_DISPLAY")):
         raise ValueError("no display (DISPLAY is not set): use --headless, or run under xvfb-run")
     if args.headless:
         extra += ["--window", "headless", "--backend", "egl"]
