@@ -11,10 +11,11 @@ def main(argv=None) -> int:
     except ValueError as exc:  # bad option values: one clear line, no traceback
         print(f"demo: error: {exc}", file=sys.stderr)
         return 2
-    stages = app.stage_summary()
-    if stages:
-        print("median ms per frame: " + "  ".join(f"{k[:-3]} {v:.1f}" for k, v in stages.items())
-              + f"  ({app.frames_drawn} frames, {app.tracer.width}x{app.tracer.height}, clip {len(app.frame_times)})")
+    st = app.stage_summary()
+    if st:
+        print(f"{st['iterations_per_second']:.2f} iterations/s; median ms: trace {st['trace_ms']:.1f} (waited "
+              f"{st['trace_wait_ms']:.1f})  filter {st['filter_ms']:.1f}  display {st['display_ms']:.1f}  "
+              f"({app.frames_drawn} frames, {app.tracer.width}x{app.tracer.height}, clip {len(app.frame_times)})")
     if app.argv.screenshot:
         print(f"saved {app.argv.screenshot}")
     return 0

@@ -2,15 +2,17 @@
 
 Panels of the same frame side by side: the raw progressive average, a Gaussian-filtered average,
 ours, and an error heat map against a reference rendered at start; below them a live plot of PSNR
-against iteration and the iteration count, spp and milliseconds per stage. The tracer renders in the
-window's own GL context; the filter runs in torch, so each frame costs one read-back (the tracer's)
-and one upload of the packed panels.
+against iteration, iterations per second and milliseconds per stage. The tracer renders in its own
+process and GL context, one iteration ahead (:mod:`demo.tracing`); the filter runs in torch; the
+display uploads the engine's estimates once per iteration and draws everything else in shaders.
 
 Run ``python -m demo`` (``--help`` for options, ``H`` in the window for keys).
 """
 from __future__ import annotations
 
+import argparse
 import importlib.util
+import json
 import logging
 import os
 import time
@@ -39,13 +41,40 @@ from PIL import Image  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from demo import controls  # noqa: E402
-from demo.overlay import render_overlay  # noqa: E402
-from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
 from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams  # noqa: E402
+from demo.overlay import Canvas, OverlayRenderer, draw_overlay  # noqa: E402
+from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
 from demo.session import DemoSession, torch_threads  # noqa: E402
+from demo.tracing import TracerProcess, TracerSpec  # noqa: E402
 from torchmanifold.timewindow import bracket, frame_at  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}
+
+#: Fields of the ``--stats`` file (medians over the iterations after the first, which warms up).
+STATS_FIELDS = ("iterations_per_second", "ms_per_iteration", "trace_ms", "trace_wait_ms", "filter_ms",
+                "display_ms")
+
+#: Iterations the on-screen numbers summarise (the most recent ones).
+SCREEN_WINDOW = 16
+
+
+def summarize(log: list[tuple[float, float, float, float, float]]) -> dict[str, float]:
+    """Stage numbers of iteration records ``(end time s, trace ms, trace wait ms, filter ms, display ms)``.
+
+    Iterations per second come from the end times (the real pace, overlap included); the stages are
+    medians. The file and the window both show this, the window over its last iterations.
+    """
+    if not log:
+        return {}
+    arr = np.asarray(log, np.float64)
+    if len(arr) >= 2:
+        ips = (len(arr) - 1) / max(arr[-1, 0] - arr[0, 0], 1e-9)
+    else:
+        ips = float("nan")
+    med = np.median(arr[:, 1:], axis=0)
+    return {"iterations_per_second": float(ips), "ms_per_iteration": float(1e3 / ips),
+            "trace_ms": float(med[0]), "trace_wait_ms": float(med[1]), "filter_ms": float(med[2]),
+            "display_ms": float(med[3])}
 
 
 def render_reference(tracer, times, spp: int, seed: int, chunk: int = 8) -> torch.Tensor:
@@ -87,7 +116,7 @@ class DemoApp(WindowConfig):
     """
 
     title = "torchmanifold demo: adaptive manifolds, progressive"
-    gl_version = (4, 3)  # compute shaders for the tracer in the same context
+    gl_version = (3, 3)  # the window only draws; the tracer has its own 4.3 context in its process
     aspect_ratio = None
     resizable = False
     vsync = False
@@ -105,10 +134,9 @@ class DemoApp(WindowConfig):
         self.layout = Layout(args.width, args.height, scale=args.scale)
         self.frame_times = [float(i) for i in range(args.clip)]
         self.max_iterations = args.max_iterations
-        from torchmanifold.render import PathTracer
-
         scene = resolve_scene(args.scene)
-        self.tracer = PathTracer(scene, width=args.width, height=args.height, ctx=self.ctx)
+        self.tracer = TracerProcess(TracerSpec(scene, args.width, args.height), self.frame_times,
+                                    prefetch=args.overlap)
         reference = None
         if args.reference_spp > 0:
             reference = render_reference(self.tracer, self.frame_times, args.reference_spp, seed=args.seed + 7919)
@@ -119,10 +147,9 @@ class DemoApp(WindowConfig):
         )
         self.progression = DemoSession(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
                                        threads=args.threads or None)
-        self.make_current()
-        self.panels = PanelRenderer(self.ctx, args.width, args.height)
-        if reference is not None:
-            self.panels.upload_reference(reference[0].permute(1, 2, 0).numpy())
+        self.panels = PanelRenderer(self.ctx, args.width, args.height, n_panels=self.layout.n_panels)
+        self.panels.upload_reference(reference)
+        self.overlay = OverlayRenderer(self.ctx)
         self.show_time = self.frame_times[0]
         self.playing = not args.paused
         self.progressing = True
@@ -134,24 +161,15 @@ class DemoApp(WindowConfig):
         self.show_help = False
         self.display_ms = 0.0
         self.frames_drawn = 0
-        self.stage_log: list[tuple[float, float, float]] = []
-        self._shown_timing = None
-        self._overlay_key = None
-        self._images_key = None
+        #: one record per iteration: (end time s, trace ms, trace wait ms, filter ms, display ms)
+        self.stage_log: list[tuple[float, float, float, float, float]] = []
+        self._uploaded = None  # (session version, rows) of the estimates on the GPU
+        self._view_key = None
         self._key_actions = {}
         for key_name, action, _ in controls.BINDINGS:
             key = getattr(self.wnd.keys, key_name, None)
             if key not in (None, "undefined"):
                 self._key_actions[key] = action
-
-    def make_current(self) -> None:
-        """Make the window's context current again after the tracer ran in it.
-
-        A ``with ctx:`` block (the tracer may use one) leaves no context current when it exits; the
-        window's clear/swap and our draws need it current. Re-entering an already current context is
-        a no-op.
-        """
-        self.ctx.__enter__()
 
     # ------------------------------------------------------------------------------- controls
     def on_key_event(self, key, action, modifiers) -> None:
@@ -228,81 +246,79 @@ class DemoApp(WindowConfig):
     def on_render(self, time_s: float, frame_time: float) -> None:
         prog = self.progression
         # the whole frame with the demo's torch thread count: tiny tensor ops on a shared CPU are
-        # 100x slower with idle OpenMP threads to wake (24 ms vs 0.1 ms for the panel packing)
+        # 100x slower with idle OpenMP threads to wake
         with torch_threads(prog.threads):
-            if self.progressing and prog.iteration < self.max_iterations:
+            stepped = self.progressing and prog.iteration < self.max_iterations
+            if stepped:
                 prog.step()
-                self.make_current()
             self._advance_playback()
             t0 = time.perf_counter()
             self.draw()
-            self.ctx.finish()
+            self.ctx.finish()  # the display's GPU work belongs to the display's time
             self.display_ms = (time.perf_counter() - t0) * 1e3
         self.frames_drawn += 1
-        timing = prog.timing
-        self.stage_log.append((timing.trace_ms, timing.filter_ms, self.display_ms))
+        if stepped:
+            timing = prog.timing
+            self.stage_log.append((time.perf_counter(), timing.trace_ms, timing.trace_wait_ms, timing.filter_ms,
+                                   self.display_ms))
 
-    def stage_summary(self) -> dict[str, float]:
-        """Median ms per stage over the frames drawn so far (the first frame, with its warm-up, left out)."""
-        log = self.stage_log[1:] or self.stage_log
-        if not log:
-            return {}
-        med = np.median(np.asarray(log), axis=0)
-        return {"trace_ms": float(med[0]), "filter_ms": float(med[1]), "display_ms": float(med[2])}
+    def stage_summary(self, last: int | None = None) -> dict[str, float]:
+        """:func:`summarize` of the iterations so far (the first, with its warm-up, left out), or of the
+        ``last`` ones."""
+        log = self.stage_log[1:] if len(self.stage_log) > 2 else self.stage_log
+        return summarize(log[-last:] if last else log)
 
-    def panel_images(self) -> np.ndarray:
-        """The packed ``(H, 3W, 3)`` float32 upload of the shown time: raw (or a feature), gaussian, ours."""
-        prog, t = self.progression, self.show_time
-        images = {"raw": prog.raw(t), "gaussian": prog.gaussian(t), "ours": prog.ours(t)}
-        if self.feature_view is not None:
-            view = prog.feature_view(t, self.feature_view)
-            if view is not None:
-                images["raw"] = view
-        packed = torch.cat([images[s] for s in SLOTS], dim=2)  # (3, H, 3W)
-        return packed.permute(1, 2, 0).contiguous().numpy().astype(np.float32, copy=False)
+    def write_stats(self, path) -> Path:
+        """The ``--stats`` JSON: :data:`STATS_FIELDS` and what was measured."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        p = self.progression.params
+        stats = dict(self.stage_summary())
+        stats.update(iterations=self.progression.iteration, frames=self.frames_drawn,
+                     width=self.tracer.width, height=self.tracer.height, clip=len(self.frame_times),
+                     overlap=self.tracer.prefetch, temporal_radius=p.time_window, temporal_mode=p.temporal_mode,
+                     threads=self.progression.threads, load_average=os.getloadavg()[0])
+        path.write_text(json.dumps(stats, indent=1) + "\n")
+        return path
 
-    def _reference_image(self) -> np.ndarray | None:
-        prog = self.progression
-        k = frame_at(prog.frame_times, self.show_time)
-        if prog.reference is None or k is None:
-            return None  # in-between times have no reference frame: the heat map hides
-        return prog.reference[k].permute(1, 2, 0).contiguous().numpy()
+    def shown_rows(self) -> tuple[tuple[int, int], float]:
+        """The two uploaded rows around the shown time and the weight of the second (the engine's
+        :func:`~torchmanifold.timewindow.interpolate` between clip frames for a time not filtered yet)."""
+        rows = self.progression.row_times
+        j = frame_at(rows, self.show_time)
+        if j is not None:
+            return (j, j), 0.0
+        i0, i1, w = bracket(self.frame_times, self.show_time)
+        return (rows.index(self.frame_times[i0]), rows.index(self.frame_times[i1])), float(w)
 
     def draw(self) -> None:
         layout, prog = self.layout, self.progression
-        key = (prog.version, self.show_time, self.feature_view)
-        reference = self._reference_image()
-        if key != self._images_key:  # one upload per new result, none while nothing changes
-            self._images_key = key
-            self.panels.upload_images(self.panel_images())
-            self.panels.upload_reference(reference)
-        buffer_size = self.wnd.buffer_size
+        if prog.state is not None and self._uploaded != prog.version:
+            self._uploaded = prog.version  # one upload per iteration, none while nothing changes
+            self.panels.upload_estimates(prog.planes())
+        view = None
+        if self.feature_view is not None:
+            key = (prog.version, self.show_time, self.feature_view)
+            view = prog.feature_view(self.show_time, self.feature_view) if prog.state is not None else None
+            if view is not None and key != self._view_key:
+                self._view_key = key
+                self.panels.upload_view(view)
+        ref_frame = frame_at(prog.frame_times, self.show_time) if prog.reference is not None else None
+        rows, blend = self.shown_rows() if prog.state is not None else ((0, 0), 0.0)
+        panels = [(MODE_DISPLAY if (i == 0 and view is not None) else MODE_IMAGE, i) for i in range(len(SLOTS))]
+        panels.append((MODE_HEAT, self.heat_slot))
         self.ctx.disable(moderngl.DEPTH_TEST)
-        for i, slot in enumerate(SLOTS):
-            mode = MODE_DISPLAY if (i == 0 and self.feature_view is not None) else MODE_IMAGE
-            self.panels.draw_panel(layout.gl_viewport(layout.panel_rect(i), buffer_size), i, mode, self.exposure)
-        if reference is not None:
-            self.panels.draw_panel(layout.gl_viewport(layout.panel_rect(3), buffer_size), self.heat_slot,
-                                   MODE_HEAT, self.exposure)
-        overlay = self._overlay(reference is not None)
-        if overlay is not None:
-            self.panels.upload_overlay(overlay)
-        if self.show_help:
-            regions = [(0, 0, *layout.window_size)]
-        else:  # only where there is something: the label strip and the bottom strip (half the fragments)
-            w, h = layout.window_size
-            top = layout.label_height + layout.panel_size[1]
-            regions = [(0, 0, w, layout.label_height), (0, top, w, h - top)]
-        for rect in regions:
-            self.panels.draw_overlay(layout.gl_viewport(rect, buffer_size), layout.uv_rect(rect))
+        self.panels.draw_panels(panels, rows, blend, ref_frame, self.exposure)
+        self.wnd.fbo.use()
+        self.wnd.fbo.clear(*self.clear_color)  # here, not in the loop: the clear is display time too
+        buffer_size = self.wnd.buffer_size
+        viewports = [layout.gl_viewport(layout.panel_rect(i), buffer_size) for i in range(layout.n_panels)]
+        self.panels.draw_magnified(self.wnd.fbo, viewports)
+        self.overlay.draw(self.canvas(ref_frame is not None), layout.window_size, (0, 0, *buffer_size))
 
-    def _overlay(self, has_heat: bool) -> np.ndarray | None:
-        """The overlay image, or None when nothing on it changed since the last upload."""
+    def canvas(self, has_heat: bool) -> Canvas:
+        """Everything drawn over the panels this frame (built from cached glyph quads: no rasterising)."""
         layout, prog = self.layout, self.progression
-        now = time.perf_counter()
-        if self._shown_timing is None or now - self._shown_timing[0] > 0.5:
-            # stage times refresh twice a second: readable, and the overlay is not redrawn every frame
-            self._shown_timing = (now, prog.timing.trace_ms, prog.timing.filter_ms, self.display_ms)
         labels = []
         for i, slot in enumerate(SLOTS):
             title = PANEL_TITLES[slot]
@@ -312,38 +328,31 @@ class DemoApp(WindowConfig):
                 # only "ours" is filtered at the in-between time; the others interpolate rendered frames
                 title += " (lerp)"
             labels.append((layout.panel_rect(i)[:2], title))
-        if has_heat:
-            labels.append((layout.panel_rect(3)[:2], f"|error| {SLOTS[self.heat_slot]}"))
-        else:
-            x, y = layout.panel_rect(3)[:2]
-            labels.append(((x, y), "(no reference)"))
+        labels.append((layout.panel_rect(3)[:2], f"|error| {SLOTS[self.heat_slot]}" if has_heat else "(no reference)"))
         # Labels sit in the strip above the panels, cut to the panel width.
         labels = [((x, 0), text, layout.panel_size[0]) for (x, _), text in labels]
         p = prog.params
         sigma_s, sigma_r = prog.bandwidth()
         guide = ",".join(prog.guide_channels()) or "default"
-        _, trace_ms, filter_ms, display_ms = self._shown_timing
+        st = self.stage_summary(SCREEN_WINDOW) or dict.fromkeys(STATS_FIELDS, float("nan"))
         lines = [
             f"iteration {prog.iteration}   spp {prog.spp}   t = {self.show_time:.2f}"
             f"{'' if self.playing else '  (paused)'}{'' if self.progressing else '  [iterations paused]'}",
-            f"trace {trace_ms:7.1f} ms   filter {filter_ms:7.1f} ms   display {display_ms:6.1f} ms",
+            f"{st['iterations_per_second']:5.1f} it/s   trace {st['trace_ms']:6.1f} ms"
+            f" (waited {st['trace_wait_ms']:5.1f})   filter {st['filter_ms']:6.1f}   display {st['display_ms']:5.1f}",
             f"sigma_s {p.sigma_s:.2f} -> {sigma_s:.2f}   sigma_r {p.sigma_r:.3f} -> {sigma_r:.3f}   a {p.a:.2f}",
             f"time window +-{p.time_window} ({p.temporal_mode})   tree height {p.tree_height}   clamp "
             + (f"{p.clamp:g}" if p.clamp else "off"),
             f"feature set {p.feature_set}: {guide}",
             f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure "
-            f"{self.exposure:.2f}",
+            f"{self.exposure:.2f}   trace {'ahead' if self.tracer.prefetch else 'in turn'}",
             "",
             "H: help   SPACE: play/pause   arrows: scrub   R: restart",
         ]
-        key = (tuple(labels), tuple(lines), tuple(tuple(h[-1:]) + (len(h),) for h in prog.history.values()),
-               self.show_help)
-        if key == self._overlay_key:
-            return None
-        self._overlay_key = key
-        return render_overlay(
-            layout.window_size, labels, layout.plot_rect(), prog.history, layout.text_rect(), lines,
-            controls.help_lines() if self.show_help else None, (prog.frame_times, self.show_time, layout.timeline_span()),
+        return draw_overlay(
+            Canvas(self.overlay.atlas), layout.window_size, labels, layout.plot_rect(), prog.history,
+            layout.text_rect(), lines, controls.help_lines() if self.show_help else None,
+            (prog.frame_times, self.show_time, layout.timeline_span()),
         )
 
     # ------------------------------------------------------------------------------ capture
@@ -361,11 +370,21 @@ class DemoApp(WindowConfig):
         return path
 
     def on_close(self) -> None:
+        """Free the GL objects and stop the tracer process (once; closing the window and :func:`run` both
+        call it)."""
+        if getattr(self, "_closed", False):
+            return
+        self._closed = True
         self.panels.release()
+        self.overlay.release()
+        self.tracer.close()
 
 
 def add_demo_arguments(parser) -> None:
-    """The demo's own command-line options (moderngl-window adds its window options beside them)."""
+    """The demo's own command-line options (moderngl-window adds its window options beside them).
+
+    ``--size WxH`` is taken by :func:`image_size_argv` before parsing (moderngl-window's ``--size`` is
+    the window's, which follows from the image size and ``--scale``)."""
     d = FilterParams()
     g = parser.add_argument_group("demo")
     g.add_argument("--width", type=int, default=64, help="image width in pixels (default 64)")
@@ -400,6 +419,12 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--headless", action="store_true", help="EGL headless window (no display needed)")
     g.add_argument("--frames", type=int, default=0, help="stop after N frames (0 = run until closed)")
     g.add_argument("--screenshot", default=None, help="save the final window image to this PNG")
+    g.add_argument("--stats", default=None,
+                   help="write iterations per second and median ms per stage (trace, filter, display) to this "
+                        "JSON file at the end")
+    g.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=True,
+                   help="trace the next iteration while this one is filtered (default on; --no-overlap traces "
+                        "in turn, for comparison)")
 
 
 def validate_args(args) -> None:
@@ -426,28 +451,47 @@ def validate_args(args) -> None:
                  temporal_mode=args.temporal_mode)
 
 
+def image_size_argv(argv: list[str]) -> list[str]:
+    """``--size WxH`` (or ``--size=WxH``) -> ``--width W --height H``; the rest of ``argv`` unchanged."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a == "--size" or a.startswith("--size="):
+            value = a.split("=", 1)[1] if "=" in a else (argv[i + 1] if i + 1 < len(argv) else "")
+            i += 1 if "=" in a else 2
+            w, _, h = value.lower().partition("x")
+            if not (w.isdigit() and h.isdigit()):
+                raise ValueError(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 128x128, got {value!r}")
+            out += ["--width", w, "--height", h]
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def create_app(argv: list[str]) -> DemoApp:
     """Parse ``argv`` (demo + moderngl-window options), open the window (headless if asked), build the app."""
-    import argparse
-
+    argv = image_size_argv(list(argv))
     pre = argparse.ArgumentParser(add_help=False)
     add_demo_arguments(pre)
     args, _ = pre.parse_known_args(argv)
     validate_args(args)
     extra = []
     window_flag = any(a in ("-wnd", "--window") or a.startswith("--window=") for a in argv)
-    if not args.headless and not window_flag and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    asks_help = any(a in ("-h", "--help") for a in argv)  # moderngl-window prints the help and exits
+    if not (args.headless or window_flag or asks_help) and not (os.environ.get("DISPLAY") or
+                                                               os.environ.get("WAYLAND_DISPLAY")):
         raise ValueError("no display (DISPLAY is not set): use --headless, or run under xvfb-run")
     if args.headless:
         extra += ["--window", "headless", "--backend", "egl"]
-    if "--size" not in argv:
-        w, h = Layout(args.width, args.height, scale=args.scale).window_size
-        extra += ["--size", f"{w}x{h}"]
+    w, h = Layout(args.width, args.height, scale=args.scale).window_size
+    extra += ["--size", f"{w}x{h}"]
     return moderngl_window.create_window_config_instance(DemoApp, args=list(argv) + extra)
 
 
 def run(argv: list[str]) -> DemoApp:
-    """Run the demo until the window closes or ``--frames`` frames were drawn; save ``--screenshot``."""
+    """Run the demo until the window closes or ``--frames`` frames were drawn; save ``--screenshot`` and
+    ``--stats``."""
     app = create_app(argv)
     args = app.argv
     window, timer = app.wnd, app.timer
@@ -455,8 +499,7 @@ def run(argv: list[str]) -> DemoApp:
     try:
         while not window.is_closing:
             current, delta = timer.next_frame()
-            window.clear(*app.clear_color)
-            window.use()
+            window.use()  # the app clears the window itself, inside its display time
             window.render(current, delta)
             if args.frames and app.frames_drawn >= args.frames:
                 if args.screenshot:
@@ -464,7 +507,10 @@ def run(argv: list[str]) -> DemoApp:
                 break
             if not window.is_closing:
                 window.swap_buffers()
+        if args.stats:
+            app.write_stats(args.stats)
     finally:
         timer.stop()
+        app.on_close()
         window.destroy()
     return app

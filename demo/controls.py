@@ -46,7 +46,9 @@ class FilterParams:
     sigma_s: spatial sigma in pixels. sigma_r: range scale; at ``SIGMA_R_UNSCALED`` every feature group
     has the engine's own range sigma (albedo 0.1, normals 0.3, depth 15% of the scene, ...).
     a: bandwidth reduction in (0, 1). time_window: radius in frames of the temporal Gaussian window
-    (0 = each frame alone; sigma_t = radius / 2). tree_height: manifold tree height.
+    (0 = each frame filtered alone, the engine's cheapest step and the demo's default: at 128x128 it
+    filters in about 0.6x the time of radius 1 and 0.3x of the space-time mode, measured on the
+    2-core VM; sigma_t = radius / 2). tree_height: manifold tree height.
     clamp: firefly clamp: 1-spp samples brighter than ``clamp`` times the running estimate are clamped
     (0 = off); the multiple grows as sqrt(iteration), so its bias fades and the result stays consistent.
     temporal_mode: "window" (average the window, then filter: the paper's accumulation) or "spacetime"
@@ -56,7 +58,7 @@ class FilterParams:
     sigma_s: float = 3.0
     sigma_r: float = SIGMA_R_UNSCALED
     a: float = DEFAULT_ALPHA  # the pipeline's measured default
-    time_window: int = 1
+    time_window: int = 0
     tree_height: int = 2
     feature_set: str = "albedo+normal+depth"
     clamp: float = DenoiseSettings.firefly_k  # the engine's default threshold

@@ -1,12 +1,15 @@
-"""The 2D layer of the demo: panel labels, stats, the error-vs-iteration plot and the help screen.
+"""The 2D layer of the demo, drawn on the GPU: panel labels, stats, the PSNR plot, the clip bar, help.
 
-Drawn with PIL into one RGBA image the size of the window (no imgui needed, works headless), then
-uploaded as a texture and blended over the panels.
+Glyphs of PIL's default font are rendered once into an atlas texture; a frame's text, boxes and lines
+are then a few small arrays of quads and line segments (a string's quads are cached, so a line that
+did not change costs a lookup), drawn with two draw calls. Nothing is rasterised on the CPU per frame,
+so the numbers can change every iteration at no cost.
 """
 from __future__ import annotations
 
 from functools import lru_cache
 
+import moderngl
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
@@ -14,84 +17,317 @@ from PIL import Image, ImageDraw, ImageFont
 CURVE_COLOURS = {"raw": (170, 170, 170), "gaussian": (90, 160, 255), "ours": (255, 150, 40)}
 TEXT = (235, 235, 235, 255)
 DIM = (150, 150, 150, 255)
+BOX = (20, 20, 24, 255)
+AXIS = (120, 120, 130, 255)
+SIZES = (11, 12, 13)
+FIRST, LAST = 32, 127  # printable ASCII; other characters draw as "?"
 
 
 @lru_cache(maxsize=8)
-def font(size: int = 13) -> ImageFont.ImageFont:
+def font(size: int = 13) -> ImageFont.FreeTypeFont:
     return ImageFont.load_default(size=size)
 
 
-@lru_cache(maxsize=1024)
-def _text_patch(text: str, size: int, fill: tuple, max_width: int | None) -> Image.Image:
-    """``text`` rendered once into its own RGBA patch, cut to ``max_width`` (rendering text with
-    FreeType costs ~1 ms a string on a slow CPU; most strings repeat from frame to frame)."""
-    f = font(size)
-    while max_width is not None and len(text) > 1 and f.getbbox(text)[2] > max_width:
-        text = text[:-1]
-    left, top, right, bottom = f.getbbox(text or " ")
-    patch = Image.new("RGBA", (max(1, right), max(1, bottom)), (0, 0, 0, 0))
-    ImageDraw.Draw(patch).text((0, 0), text, font=f, fill=fill)
-    return patch
+class GlyphAtlas:
+    """Every printable ASCII glyph of :data:`SIZES` in one alpha image, plus an opaque cell for boxes.
+
+    Attributes:
+        image: ``(H, W)`` uint8 alpha.
+        cells: ``cells[size]`` is ``(96, 4)`` float32 ``(u0, v0, u1, v1)`` in pixels per character.
+        advance: ``advance[size]`` is ``(96,)`` pen advance in pixels (PIL's ``getlength``).
+        cell_size: ``cell_size[size]`` = (w, h) of every cell of that size.
+        solid: (u0, v0, u1, v1) of an opaque patch.
+    """
+
+    def __init__(self):
+        chars = [chr(c) for c in range(FIRST, LAST)]
+        self.cells, self.advance, self.cell_size = {}, {}, {}
+        rows, y = [], 4  # the first 4 pixel rows hold the solid patch
+        for size in SIZES:
+            f = font(size)
+            cw = max(max(f.getbbox(c)[2] for c in chars), 1) + 1
+            ch = max(f.getbbox(c)[3] for c in chars) + 1
+            self.cell_size[size] = (cw, ch)
+            self.advance[size] = np.array([f.getlength(c) for c in chars], np.float32)
+            per_row = 32
+            img = Image.new("L", (cw * per_row, ch * -(-len(chars) // per_row)), 0)
+            draw = ImageDraw.Draw(img)
+            cells = np.zeros((len(chars), 4), np.float32)
+            for i, c in enumerate(chars):
+                cx, cy = (i % per_row) * cw, (i // per_row) * ch
+                draw.text((cx, cy), c, font=f, fill=255)
+                cells[i] = (cx, y + cy, cx + cw, y + cy + ch)
+            self.cells[size] = cells
+            rows.append(np.asarray(img))
+            y += img.height
+        width = max(r.shape[1] for r in rows)
+        self.image = np.zeros((y, width), np.uint8)
+        self.image[:4, :4] = 255
+        yy = 4
+        for r in rows:
+            self.image[yy:yy + r.shape[0], :r.shape[1]] = r
+            yy += r.shape[0]
+        self.solid = (1.0, 1.0, 3.0, 3.0)
+
+    def layout(self, text: str, size: int, max_width: float | None = None) -> tuple[np.ndarray, float]:
+        """Quads ``(n, 8)`` = (x, y, w, h, u0, v0, u1, v1) of ``text`` with its origin at (0, 0), and its
+        width; characters that would end beyond ``max_width`` are cut."""
+        return _layout(self, text, size, max_width)
 
 
-def put_text(img: Image.Image, xy, text: str, size: int = 12, fill=TEXT, max_width: int | None = None) -> int:
-    """Blend cached ``text`` into ``img`` at ``xy``; returns the text's width in pixels."""
-    patch = _text_patch(text, size, tuple(fill), max_width)
-    x, y = int(round(xy[0])), int(round(xy[1]))
-    if 0 <= x < img.width and 0 <= y < img.height:
-        img.alpha_composite(patch.crop((0, 0, min(patch.width, img.width - x), min(patch.height, img.height - y))),
-                            dest=(x, y))
-    return patch.width
+@lru_cache(maxsize=4096)
+def _layout(atlas: GlyphAtlas, text: str, size: int, max_width: float | None) -> tuple[np.ndarray, float]:
+    idx = np.array([ord(c) - FIRST if FIRST <= ord(c) < LAST else ord("?") - FIRST for c in text], np.int64)
+    adv = atlas.advance[size][idx]
+    pen = np.concatenate([[0.0], np.cumsum(adv)]).astype(np.float32)
+    keep = len(text) if max_width is None else int(np.searchsorted(pen[1:], max_width, side="right"))
+    idx, x = idx[:keep], np.round(pen[:keep])
+    cw, ch = atlas.cell_size[size]
+    quads = np.zeros((keep, 8), np.float32)
+    quads[:, 0] = x
+    quads[:, 2], quads[:, 3] = cw, ch
+    quads[:, 4:] = atlas.cells[size][idx]
+    quads = quads[idx != 0]  # spaces draw nothing
+    quads.setflags(write=False)
+    return quads, float(pen[keep])
 
 
-def draw_plot(
-    img: Image.Image,
-    rect: tuple[int, int, int, int],
-    curves: dict[str, list[tuple[int, float]]],
-    title: str = "PSNR (dB, clamped sRGB) vs iteration",
-) -> None:
-    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h)."""
+@lru_cache(maxsize=4096)
+def _placed_text(atlas: GlyphAtlas, x: int, y: int, text: str, size: int, fill: tuple,
+                 max_width: float | None) -> tuple[np.ndarray, float]:
+    """(quads ``(n, 12)`` of ``text`` at (x, y) in ``fill``, width): most strings repeat every frame."""
+    quads, width = atlas.layout(text, size, max_width)
+    out = np.empty((len(quads), 12), np.float32)
+    out[:, :8] = quads
+    out[:, 0] += x
+    out[:, 1] += y
+    out[:, 8:] = np.asarray(fill, np.float32) / 255.0
+    out.setflags(write=False)
+    return out, width
+
+
+class Canvas:
+    """A frame's 2D layer as arrays: coloured quads (text and boxes) and coloured line segments.
+
+    Coordinates are window pixels, top-left origin. Nothing is drawn until :meth:`OverlayRenderer.draw`.
+    """
+
+    def __init__(self, atlas: GlyphAtlas):
+        self.atlas = atlas
+        self._quads: list[np.ndarray] = []
+        self._lines: list[np.ndarray] = []
+        #: opaque rectangles ``(x, y, w, h, (r, g, b, a))``, drawn first as scissored clears (the cheapest
+        #: way to fill pixels on a software rasteriser)
+        self.fills: list[tuple] = []
+
+    def text(self, xy, text: str, size: int = 12, fill=TEXT, max_width: float | None = None) -> float:
+        """Draw ``text`` with its top-left at ``xy``; returns its width in pixels."""
+        quads, width = _placed_text(self.atlas, round(xy[0]), round(xy[1]), text, size, tuple(fill), max_width)
+        if len(quads):
+            self._quads.append(quads)
+        return width
+
+    def extend(self, other: "Canvas") -> None:
+        """Add everything drawn on ``other`` (e.g. a cached part)."""
+        self._quads += other._quads
+        self._lines += other._lines
+        self.fills += other.fills
+
+    def rect(self, x, y, w, h, fill) -> None:
+        self._quads.append(np.array([[x, y, w, h, *self.atlas.solid, *(np.asarray(fill, np.float32) / 255.0)]],
+                                    np.float32))
+
+    def box(self, x, y, w, h, fill=BOX, outline=(80, 80, 90, 255)) -> None:
+        """A filled box with an outline; the fill is opaque (a clear), so boxes go under everything."""
+        self.fills.append((int(x), int(y), int(w), int(h), fill))
+        self.polyline([(x, y), (x + w, y), (x + w, y + h), (x, y + h), (x, y)], outline)
+
+    def polyline(self, points, colour) -> None:
+        """Segments between consecutive ``points`` ((n, 2) pixels)."""
+        p = np.asarray(points, np.float32).reshape(-1, 2)
+        if len(p) < 2:
+            return
+        seg = np.empty((len(p) - 1, 2, 6), np.float32)
+        seg[:, 0, :2], seg[:, 1, :2] = p[:-1], p[1:]
+        seg[:, :, 2:] = np.asarray(colour, np.float32) / 255.0
+        self._lines.append(seg.reshape(-1, 6))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(quads ``(n, 12)``, line vertices ``(m, 6)``) float32."""
+        q = np.concatenate(self._quads) if self._quads else np.zeros((0, 12), np.float32)
+        ln = np.concatenate(self._lines) if self._lines else np.zeros((0, 6), np.float32)
+        return q, ln
+
+
+_QUAD_VS = """#version 330
+uniform vec2 u_window;
+uniform vec2 u_atlas;
+in vec2 in_corner;
+in vec4 in_rect;    // x, y, w, h (window pixels, top-left origin)
+in vec4 in_uv;      // atlas pixels
+in vec4 in_colour;
+out vec2 uv;
+out vec4 colour;
+void main() {
+    vec2 p = in_rect.xy + in_corner * in_rect.zw;
+    uv = mix(in_uv.xy, in_uv.zw, in_corner) / u_atlas;
+    colour = in_colour;
+    gl_Position = vec4(p.x / u_window.x * 2.0 - 1.0, 1.0 - p.y / u_window.y * 2.0, 0.0, 1.0);
+}
+"""
+_QUAD_FS = """#version 330
+uniform sampler2D u_glyphs;
+in vec2 uv;
+in vec4 colour;
+out vec4 frag;
+void main() { frag = vec4(colour.rgb, colour.a * texture(u_glyphs, uv).r); }
+"""
+_LINE_VS = """#version 330
+uniform vec2 u_window;
+in vec2 in_pos;
+in vec4 in_colour;
+out vec4 colour;
+void main() {
+    colour = in_colour;
+    vec2 p = in_pos + 0.5;  // pixel centres: integer coordinates name pixels
+    gl_Position = vec4(p.x / u_window.x * 2.0 - 1.0, 1.0 - p.y / u_window.y * 2.0, 0.0, 1.0);
+}
+"""
+_LINE_FS = """#version 330
+in vec4 colour;
+out vec4 frag;
+void main() { frag = colour; }
+"""
+
+
+class OverlayRenderer:
+    """Draws a :class:`Canvas` over the window: one instanced quad call, one line call (alpha blended)."""
+
+    def __init__(self, ctx: moderngl.Context, atlas: GlyphAtlas | None = None):
+        self.ctx = ctx
+        self.atlas = atlas or GlyphAtlas()
+        h, w = self.atlas.image.shape
+        self.glyphs = ctx.texture((w, h), 1, self.atlas.image.tobytes())
+        self.glyphs.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        self.quad_prog = ctx.program(vertex_shader=_QUAD_VS, fragment_shader=_QUAD_FS)
+        self.line_prog = ctx.program(vertex_shader=_LINE_VS, fragment_shader=_LINE_FS)
+        self.quad_prog["u_atlas"] = (float(w), float(h))
+        self.quad_prog["u_glyphs"] = 4
+        self.corners = ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], "f4").tobytes())
+        self.quads = ctx.buffer(reserve=12 * 4 * 1024, dynamic=True)
+        self.lines = ctx.buffer(reserve=6 * 4 * 4096, dynamic=True)
+        self._vaos()
+
+    def _vaos(self) -> None:
+        self.quad_vao = self.ctx.vertex_array(self.quad_prog, [
+            (self.corners, "2f", "in_corner"),
+            (self.quads, "4f 4f 4f/i", "in_rect", "in_uv", "in_colour"),
+        ])
+        self.line_vao = self.ctx.vertex_array(self.line_prog, [(self.lines, "2f 4f", "in_pos", "in_colour")])
+
+    def _fit(self, buf: moderngl.Buffer, data: np.ndarray) -> bool:
+        if data.nbytes <= buf.size:
+            return False
+        buf.orphan(max(data.nbytes, 2 * buf.size))
+        return True
+
+    def draw(self, canvas: Canvas, window_size: tuple[int, int], viewport) -> None:
+        quads, lines = canvas.arrays()
+        grown = self._fit(self.quads, quads) | self._fit(self.lines, lines)
+        if grown:
+            self._vaos()
+        self.ctx.viewport = viewport
+        x0, y0, vw, vh = viewport
+        sx, sy = vw / window_size[0], vh / window_size[1]
+        for x, y, w, h, fill in canvas.fills:
+            rect = (x0 + round(x * sx), y0 + round((window_size[1] - y - h) * sy), round(w * sx), round(h * sy))
+            self.ctx.clear(*(c / 255.0 for c in fill), viewport=rect)
+        self.ctx.enable(moderngl.BLEND)
+        self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
+        size = tuple(float(v) for v in window_size)
+        if len(quads):
+            self.quads.write(quads)
+            self.glyphs.use(4)
+            self.quad_prog["u_window"] = size
+            self.quad_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=len(quads))
+        if len(lines):
+            self.lines.write(lines)
+            self.line_prog["u_window"] = size
+            self.line_vao.render(moderngl.LINES, vertices=len(lines))
+        self.ctx.disable(moderngl.BLEND)
+
+    def release(self) -> None:
+        for obj in (self.quad_vao, self.line_vao, self.quads, self.lines, self.corners, self.quad_prog,
+                    self.line_prog, self.glyphs):
+            obj.release()
+
+
+def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
+              title: str = "PSNR (dB, clamped sRGB) vs iteration") -> None:
+    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x."""
     x0, y0, w, h = rect
-    draw = ImageDraw.Draw(img)
-    draw.rectangle((x0, y0, x0 + w, y0 + h), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
-    put_text(img, (x0 + 6, y0 + 3), title, 12, TEXT, w - 10)
-    pts = [p for c in curves.values() for p in c if np.isfinite(p[1])]
+    pts = np.array([p for c in curves.values() for p in c], np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts[:, 1])]
     left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
-    if not pts:
-        put_text(img, (left, top + 10), "no reference: no error curve", 12, DIM)
+    if not len(pts):
+        canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, None, 0.0, 0.0))
+        canvas.text((left, top + 10), "no reference: no error curve", 12, DIM)
         return
-    max_it = max(2, max(p[0] for p in pts))
-    lo, hi = min(p[1] for p in pts), max(p[1] for p in pts)
-    lo, hi = np.floor(lo - 0.5), np.ceil(hi + 0.5)
-
-    def to_px(it: float, val: float) -> tuple[float, float]:
-        # log x so the fast early gains and the slow tail are both readable
-        fx = np.log1p(it - 1) / np.log1p(max_it - 1) if max_it > 1 else 0.0
-        return left + fx * (right - left), bottom - (val - lo) / (hi - lo) * (bottom - top)
-
-    draw.line((left, top, left, bottom, right, bottom), fill=(120, 120, 130, 255))
-    for val in np.linspace(lo, hi, 4):
-        _, py = to_px(1, val)
-        draw.line((left - 3, py, left, py), fill=(120, 120, 130, 255))
-        put_text(img, (x0 + 4, py - 6), f"{val:.0f}", 11, DIM)
-    for it in sorted({1, max_it} | {2**k for k in range(1, 12) if 2**k < max_it}):
-        px, _ = to_px(it, lo)
-        draw.line((px, bottom, px, bottom + 3), fill=(120, 120, 130, 255))
-        put_text(img, (px - 4, bottom + 4), str(it), 11, DIM)
+    max_it = max(2, int(pts[:, 0].max()))
+    lo, hi = float(np.floor(pts[:, 1].min() - 0.5)), float(np.ceil(pts[:, 1].max() + 0.5))
+    canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, max_it, lo, hi))
+    to_px = _plot_mapping(rect, max_it, lo, hi)
     legend_x = left + 6
     for name, curve in curves.items():
-        colour = CURVE_COLOURS.get(name, (255, 255, 255))
-        good = [p for p in curve if np.isfinite(p[1])]
+        colour = CURVE_COLOURS.get(name, (255, 255, 255)) + (255,)
+        good = np.array([p for p in curve if np.isfinite(p[1])], np.float64).reshape(-1, 2)
         if len(good) >= 2:
-            draw.line([to_px(*p) for p in good], fill=colour + (255,), width=2)
-        elif good:
+            xy = to_px(good[:, 0], good[:, 1])
+            canvas.polyline(xy, colour)
+            canvas.polyline(xy + (0, 1), colour)  # 2 pixels thick (core GL has no wide lines)
+        elif len(good):
             px, py = to_px(*good[0])
-            draw.ellipse((px - 2, py - 2, px + 2, py + 2), fill=colour + (255,))
-        label = f"{name} {good[-1][1]:.1f}" if good else name
-        legend_x += put_text(img, (legend_x, top + 2), label, 11, colour + (255,)) + 12
+            canvas.rect(px - 2, py - 2, 4, 4, colour)
+        label = f"{name} {good[-1, 1]:.1f}" if len(good) else name
+        legend_x += canvas.text((legend_x, top + 2), label, 11, colour) + 12
 
 
-def render_overlay(
+def _plot_mapping(rect, max_it: int, lo: float, hi: float):
+    x0, y0, w, h = rect
+    left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
+
+    def to_px(it, val):
+        # log x so the fast early gains and the slow tail are both readable
+        fx = np.log1p(np.asarray(it, np.float64) - 1) / np.log1p(max_it - 1)
+        return np.stack([left + fx * (right - left), bottom - (np.asarray(val) - lo) / (hi - lo) * (bottom - top)], -1)
+    return to_px
+
+
+@lru_cache(maxsize=64)
+def _plot_frame(atlas: GlyphAtlas, rect, title: str, max_it: int | None, lo: float, hi: float) -> Canvas:
+    """The plot's box, title, axes and ticks: they change only when the axis ranges do."""
+    canvas = Canvas(atlas)
+    x0, y0, w, h = rect
+    canvas.box(x0, y0, w, h)
+    canvas.text((x0 + 6, y0 + 3), title, 12, TEXT, w - 10)
+    if max_it is None:
+        return canvas
+    left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
+    to_px = _plot_mapping(rect, max_it, lo, hi)
+    canvas.polyline([(left, top), (left, bottom), (right, bottom)], AXIS)
+    for val in np.linspace(lo, hi, 4):
+        _, py = to_px(1, val)
+        canvas.polyline([(left - 3, py), (left, py)], AXIS)
+        canvas.text((x0 + 4, py - 6), f"{val:.0f}", 11, DIM)
+    for it in sorted({1, max_it} | {2**k for k in range(1, 12) if 2**k < max_it}):
+        px, _ = to_px(it, lo)
+        canvas.polyline([(px, bottom), (px, bottom + 3)], AXIS)
+        canvas.text((px - 4, bottom + 4), str(it), 11, DIM)
+    return canvas
+
+
+def draw_overlay(
+    canvas: Canvas,
     size: tuple[int, int],
     labels: list[tuple[tuple[int, int], str, int]],
     plot_rect: tuple[int, int, int, int],
@@ -100,43 +336,42 @@ def render_overlay(
     text_lines: list[str],
     help_lines: list[str] | None = None,
     timeline: tuple[list[float], float, tuple[int, int, int]] | None = None,
-) -> np.ndarray:
-    """The whole overlay as an RGBA8 array ``(H, W, 4)``, top row first.
+) -> Canvas:
+    """Everything over the panels into ``canvas``.
 
     Args:
         size: window size (width, height).
         labels: ((x, y), text, max width) panel titles.
         plot_rect, curves: where and what to plot (see :func:`draw_plot`).
-        text_rect, text_lines: the stats block.
+        text_rect, text_lines: the stats block (the first line highlighted).
         help_lines: when given, a translucent help screen over everything.
         timeline: (frame times, shown time, (x0, x1, y)): a clip bar with a marker at the shown time.
     """
     width, height = size
-    img = Image.new("RGBA", (width, height), (0, 0, 0, 0))
-    draw = ImageDraw.Draw(img)
     for (x, y), text, max_width in labels:
-        put_text(img, (x + 2, y + 3), text, 13, TEXT, max_width - 4)
-    draw_plot(img, plot_rect, curves)
+        canvas.text((x + 2, y + 3), text, 13, TEXT, max_width - 4)
+    draw_plot(canvas, plot_rect, curves)
     tx, ty, tw, th = text_rect
-    draw.rectangle((tx, ty, tx + tw, ty + th), fill=(20, 20, 24, 235), outline=(80, 80, 90, 255))
+    canvas.box(tx, ty, tw, th)
     for i, line in enumerate(text_lines):
-        put_text(img, (tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
+        canvas.text((tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
     if timeline is not None and len(timeline[0]) > 1:
         times, shown, (x0, x1, y) = timeline
         span = times[-1] - times[0]
         to_x = lambda t: x0 + (t - times[0]) / span * (x1 - x0)  # noqa: E731
-        draw.line((x0, y, x1, y), fill=(120, 120, 130, 255), width=2)
+        canvas.rect(x0, y - 1, x1 - x0, 2, AXIS)
         for t in times:
-            draw.line((to_x(t), y - 4, to_x(t), y + 4), fill=(170, 170, 180, 255))
+            canvas.polyline([(to_x(t), y - 4), (to_x(t), y + 4)], (170, 170, 180, 255))
         mx = to_x(shown)
-        draw.polygon([(mx - 5, y - 9), (mx + 5, y - 9), (mx, y - 2)], fill=(255, 210, 120, 255))
-        put_text(img, (x0 - 12, y + 4), f"{times[0]:g}", 11, DIM)
-        put_text(img, (x1 - 4, y + 4), f"{times[-1]:g}", 11, DIM)
+        for k in range(6):  # a small downward triangle
+            canvas.rect(mx - 5 + k, y - 9 + k, 11 - 2 * k, 1, (255, 210, 120, 255))
+        canvas.text((x0 - 12, y + 4), f"{times[0]:g}", 11, DIM)
+        canvas.text((x1 - 4, y + 4), f"{times[-1]:g}", 11, DIM)
     if help_lines:
-        draw.rectangle((0, 0, width, height), fill=(0, 0, 0, 200))
+        canvas.rect(0, 0, width, height, (0, 0, 0, 200))
         columns = 2 if len(help_lines) > (height - 20) // 16 else 1
         per_col = -(-len(help_lines) // columns)
         for i, line in enumerate(help_lines):
             col, row = divmod(i, per_col)
-            put_text(img, (16 + col * width // 2, 10 + 16 * row), line, 13, TEXT)
-    return np.asarray(img, dtype=np.uint8)
+            canvas.text((16 + col * width // 2, 10 + 16 * row), line, 13, TEXT)
+    return canvas

@@ -1,8 +1,10 @@
 """GL side of the demo: window layout and the panel renderer.
 
-The images of one displayed frame (raw average, Gaussian-filtered, ours) travel to the GPU as one
-packed float texture, written once per frame; the reference is uploaded once per progression and the
-error heat map is computed from both in the fragment shader.
+The engine's estimates of every row (clip frames and tracked in-between times) travel to the GPU as
+one float texture array, written once per iteration straight from the engine's state (no per-panel
+CPU work); the reference is uploaded once per progression. Tone mapping, the blend between rows for a
+shown in-between time and the error heat map all happen in the fragment shader, at image resolution
+into a small framebuffer that is then magnified into the window.
 """
 from __future__ import annotations
 
@@ -11,13 +13,14 @@ from pathlib import Path
 
 import moderngl
 import numpy as np
+import torch
 
 SHADER_PATH = Path(__file__).with_name("shaders") / "panel.glsl"
 
-#: Panel slots in the packed image texture, left to right.
+#: Panel slots (estimates) in the uploaded texture array, left to right.
 SLOTS = ("raw", "gaussian", "ours")
 
-MODE_IMAGE, MODE_DISPLAY, MODE_HEAT, MODE_OVERLAY = 0, 1, 2, 3
+MODE_IMAGE, MODE_DISPLAY, MODE_HEAT = 0, 1, 2
 
 
 @dataclass(frozen=True)
@@ -83,86 +86,115 @@ class Layout:
 
 
 class PanelRenderer:
-    """Draws the panels and the overlay into the current framebuffer.
+    """Draws the panels into the current framebuffer.
 
     Args:
-        ctx: the window's moderngl context (the tracer renders in the same one).
-        image_width, image_height: size of one image (one slot), in pixels.
+        ctx: the window's moderngl context.
+        image_width, image_height: size of one image, in pixels.
+        n_panels: panels in the row (the estimates, then the heat map).
     """
 
-    def __init__(self, ctx: moderngl.Context, image_width: int, image_height: int):
+    def __init__(self, ctx: moderngl.Context, image_width: int, image_height: int, n_panels: int = 4):
         self.ctx = ctx
         self.image_size = (image_width, image_height)
+        self.n_panels = n_panels
         source = SHADER_PATH.read_text()
-        self.program = ctx.program(
-            vertex_shader="#version 330\n#define VERTEX_SHADER\n" + source,
-            fragment_shader="#version 330\n#define FRAGMENT_SHADER\n" + source,
-        )
+        vs = "#version 330\n#define VERTEX_SHADER\n" + source
+        self.programs = [ctx.program(vertex_shader=vs, fragment_shader=f"#version 330\n#define FRAGMENT_SHADER\n"
+                                     f"#define MODE {mode}\n" + source) for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
+        self.magnify = ctx.program(vertex_shader=vs, fragment_shader="#version 330\n#define FRAGMENT_SHADER\n"
+                                   "#define MAGNIFY\n" + source)
         quad = np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4")
         self.vbo = ctx.buffer(quad.tobytes())
-        self.vao = ctx.vertex_array(self.program, [(self.vbo, "2f", "in_pos")])
-        # Float textures keep HDR radiance; tone mapping happens in the shader.
-        self.images = ctx.texture((image_width * len(SLOTS), image_height), 3, dtype="f4")
-        self.reference = ctx.texture((image_width, image_height), 3, dtype="f4")
-        self.reference.write(np.zeros((image_height, image_width, 3), "f4").tobytes())
-        for tex in (self.images, self.reference):
+        self.vaos = [ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in self.programs]
+        self.magnify_vao = ctx.vertex_array(self.magnify, [(self.vbo, "2f", "in_pos")])
+        self.estimates = None  # float planes (rows * 3 estimates * 3 channels), HDR: tone mapped in the shader
+        self.rows = 0
+        self.reference = self._planes(3)  # placeholder until a reference arrives
+        self.view = ctx.texture((image_width, image_height), 3, dtype="f4")
+        self.small = ctx.texture((image_width * n_panels, image_height), 4)
+        self.small_fbo = ctx.framebuffer(color_attachments=[self.small])
+        for tex in (self.view, self.small):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             tex.repeat_x = tex.repeat_y = False
-        self.overlay = None
-        self.program["u_image"] = 0
-        self.program["u_reference"] = 1
-        self.program["u_overlay"] = 2
-        self.program["u_exposure"] = 1.0
-        self.program["u_heat_gain"] = 5.0
+        for prog in self.programs:
+            for name, value in (("u_estimates", 0), ("u_reference", 1), ("u_view", 2), ("u_heat_gain", 5.0)):
+                if name in prog:  # the compiler drops what a mode does not use
+                    prog[name] = value
+        self.magnify["u_small"] = 3
         self.has_reference = False
+        self.uploads = 0  # texture writes of estimates so far (one per iteration)
 
-    def upload_images(self, packed: np.ndarray) -> None:
-        """One write per frame: ``packed`` is float32 ``(H, len(SLOTS) * W, 3)``, top row first."""
+    def _planes(self, layers: int) -> moderngl.TextureArray:
         w, h = self.image_size
-        expected = (h, w * len(SLOTS), 3)
-        if packed.shape != expected or packed.dtype != np.float32:
-            raise ValueError(f"packed images: expected float32 {expected}, got {packed.dtype} {packed.shape}")
-        self.images.write(np.ascontiguousarray(packed))
+        tex = self.ctx.texture_array((w, h, layers), 1, dtype="f4")
+        tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+        return tex
 
-    def upload_reference(self, image: np.ndarray | None) -> None:
-        """Reference frame ``(H, W, 3)`` float32 for the heat map, or None to hide the heat map."""
-        self.has_reference = image is not None
-        if image is not None:
-            self.reference.write(np.ascontiguousarray(image, dtype=np.float32))
+    def upload_estimates(self, planes: torch.Tensor) -> None:
+        """One write per iteration: ``planes`` is float32 ``(rows, len(SLOTS), 3, H, W)``."""
+        w, h = self.image_size
+        if planes.dim() != 5 or tuple(planes.shape[1:]) != (len(SLOTS), 3, h, w) or planes.dtype != torch.float32:
+            raise ValueError(f"estimates: expected float32 (rows, {len(SLOTS)}, 3, {h}, {w}), got "
+                             f"{planes.dtype} {tuple(planes.shape)}")
+        rows = planes.shape[0]
+        if self.estimates is None or rows != self.rows:
+            if self.estimates is not None:
+                self.estimates.release()
+            self.estimates, self.rows = self._planes(rows * len(SLOTS) * 3), rows
+        self.estimates.write(planes.contiguous().numpy())
+        self.uploads += 1
 
-    def upload_overlay(self, rgba: np.ndarray) -> None:
-        """RGBA8 ``(H, W, 4)`` layer drawn over the whole window."""
-        h, w = rgba.shape[:2]
-        if self.overlay is None or self.overlay.size != (w, h):
-            if self.overlay is not None:
-                self.overlay.release()
-            self.overlay = self.ctx.texture((w, h), 4, dtype="f1")
-            self.overlay.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.overlay.write(np.ascontiguousarray(rgba))
+    def upload_reference(self, frames: torch.Tensor | None) -> None:
+        """Reference frames ``(T, 3, H, W)`` for the heat map (once per run), or None (no heat map)."""
+        self.has_reference = frames is not None
+        if frames is not None:
+            w, h = self.image_size
+            if frames.dim() != 4 or tuple(frames.shape[1:]) != (3, h, w):
+                raise ValueError(f"reference: expected (T, 3, {h}, {w}), got {tuple(frames.shape)}")
+            self.reference.release()
+            self.reference = self._planes(frames.shape[0] * 3)
+            self.reference.write(frames.float().contiguous().numpy())
 
-    def draw_panel(self, viewport, slot: int, mode: int, exposure: float = 1.0) -> None:
-        self.ctx.viewport = viewport
-        self.images.use(0)
-        self.reference.use(1)
-        self.program["u_slot"] = (float(slot), float(len(SLOTS)))
-        self.program["u_mode"] = mode
-        self.program["u_exposure"] = exposure
-        self.vao.render(moderngl.TRIANGLE_STRIP)
+    def upload_view(self, image: torch.Tensor) -> None:
+        """A display-ready ``(3, H, W)`` image in [0, 1] (a feature buffer) for :data:`MODE_DISPLAY`."""
+        self.view.write(image.permute(1, 2, 0).float().contiguous().numpy())
 
-    def draw_overlay(self, viewport, uv_rect=(0.0, 0.0, 1.0, 1.0)) -> None:
-        """Blend the overlay's ``uv_rect`` (u, v, du, dv; v from the top) into ``viewport``."""
-        if self.overlay is None:
+    def draw_panels(self, panels, rows: tuple[int, int], blend: float, ref_frame: int | None,
+                    exposure: float) -> None:
+        """Pass 1: ``panels`` = [(mode, estimate index)] left to right, at image resolution."""
+        if self.estimates is None:
             return
-        self.ctx.viewport = viewport
-        self.overlay.use(2)
-        self.program["u_mode"] = MODE_OVERLAY
-        self.program["u_sub"] = tuple(float(x) for x in uv_rect)
-        self.ctx.enable(moderngl.BLEND)
-        self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
-        self.vao.render(moderngl.TRIANGLE_STRIP)
-        self.ctx.disable(moderngl.BLEND)
+        w, h = self.image_size
+        self.small_fbo.use()
+        self.small_fbo.clear(0.0, 0.0, 0.0, 1.0)
+        self.estimates.use(0)
+        self.reference.use(1)
+        self.view.use(2)
+        values = {"u_rows": rows, "u_blend": float(blend), "u_exposure": float(exposure),
+                  "u_ref_frame": -1 if ref_frame is None else int(ref_frame)}
+        for i, (mode, estimate) in enumerate(panels):
+            if mode is None or (mode == MODE_HEAT and (ref_frame is None or not self.has_reference)):
+                continue  # left black: no reference at this time
+            self.small_fbo.viewport = (i * w, 0, w, h)
+            prog = self.programs[mode]
+            for name, value in dict(values, u_estimate=estimate).items():
+                if name in prog:
+                    prog[name] = value
+            self.vaos[mode].render(moderngl.TRIANGLE_STRIP)
+
+    def draw_magnified(self, fbo, viewports) -> None:
+        """Pass 2: panel ``i`` of pass 1 into ``viewports[i]`` of ``fbo`` (nearest)."""
+        fbo.use()
+        self.small.use(3)
+        n = self.n_panels
+        for i, viewport in enumerate(viewports):
+            self.ctx.viewport = viewport
+            self.magnify["u_sub"] = (i / n, 0.0, 1.0 / n, 1.0)
+            self.magnify_vao.render(moderngl.TRIANGLE_STRIP)
 
     def release(self) -> None:
-        for obj in (self.vao, self.vbo, self.program, self.images, self.reference, self.overlay):
+        for obj in (*self.vaos, self.magnify_vao, self.vbo, *self.programs, self.magnify, self.estimates, self.reference, self.view, self.small_fbo,
+                    self.small):
             if obj is not None:
                 obj.release()

@@ -10,6 +10,7 @@ PSNR curves against the reference, the mean feature buffers for the feature view
 from __future__ import annotations
 
 import contextlib
+import time
 from dataclasses import dataclass
 
 import torch
@@ -61,7 +62,16 @@ def engine_settings(p: FilterParams, feature_names) -> dict:
 
 @dataclass
 class StepTiming:
+    """Milliseconds of one iteration.
+
+    trace_ms: rendering one sample of every clip frame (in the tracer process when it runs ahead).
+    trace_wait_ms: how long the iteration waited for the tracer (all of ``trace_ms`` without look-ahead).
+    filter_ms: the engine's filtering and accumulation plus the error curves: the iteration's wall time
+        without the wait.
+    """
+
     trace_ms: float = 0.0
+    trace_wait_ms: float = 0.0
     filter_ms: float = 0.0
 
 
@@ -118,6 +128,9 @@ class DemoSession:
             self.params = params
         self.engine.set_settings(**engine_settings(self.params, self.feature_names))
         self.engine.restart()
+        if hasattr(self.tracer, "drop_lookahead"):  # samples rendered ahead are those of the old progression
+            self.tracer.drop_lookahead()
+        self.state = None  # the engine's ProgressiveState of the last iteration
         self.version += 1
         self.history: dict[str, list[tuple[int, float]]] = {k: [] for k in ("raw", "gaussian", "ours")}
         self.timing = StepTiming()
@@ -149,15 +162,31 @@ class DemoSession:
     # ------------------------------------------------------------------------------------ step
     def step(self) -> StepTiming:
         """One iteration: 1 more spp for every clip frame, filter, accumulate, record errors."""
+        t0 = time.perf_counter()
         with torch_threads(self.threads):
             state = self.engine.step()
-        self.version += 1
-        self.timing = StepTiming(state.render_seconds * 1e3, (state.seconds - state.render_seconds) * 1e3)
-        if self.reference is not None:
-            for kind in ESTIMATES:
-                img = torch.stack([self.estimate(t, kind) for t in self.frame_times])
-                self.history[kind].append((self.iteration, psnr(img, self.reference)))
+            self.state = state
+            self.version += 1
+            if self.reference is not None:
+                rows = [self.engine.query_times.index(t) for t in self.frame_times]
+                for kind in ESTIMATES:
+                    self.history[kind].append((self.iteration, psnr(getattr(state, kind)[rows], self.reference)))
+        wall = time.perf_counter() - t0
+        # a TracerProcess renders ahead in its own process: its trace time is its own, the step only waits
+        trace = self.tracer.trace_seconds if getattr(self.tracer, "prefetch", False) else state.render_seconds
+        self.timing = StepTiming(trace * 1e3, state.render_seconds * 1e3, (wall - state.render_seconds) * 1e3)
         return self.timing
+
+    def planes(self) -> torch.Tensor:
+        """The last iteration's estimates of every row as float32 ``(rows, 3, 3, H, W)`` (raw, gaussian,
+        ours; rows in :attr:`row_times` order): what the display uploads, once per iteration."""
+        s = self.state
+        return torch.stack([s.raw, s.gaussian, s.ours], 1)
+
+    @property
+    def row_times(self) -> list[float]:
+        """The times of the rows of :meth:`planes`."""
+        return list(self.state.query_times) if self.state is not None else []
 
     def _keep_features(self, frame: int, res) -> None:
         self._feat_sum[frame] += res.features[0].float()

@@ -1,6 +1,11 @@
-// One textured quad per panel. Images arrive as linear radiance and are tone mapped here, so the
-// CPU hands over raw float data once per frame and the heat map is computed on the GPU from the
-// "ours" slot and a reference texture that was uploaded once.
+// The panels, drawn in two passes. Pass 1 (modes 0-2) runs once per image pixel into a small
+// framebuffer: it reads the engine's estimates of the whole clip from one texture array (uploaded once
+// per iteration, one float plane per layer: layer = (row * 3 + estimate) * 3 + channel), blends the
+// two rows around the shown time, tone maps, and computes the error heat map against the reference
+// array (uploaded once). Pass 2 (mode 3) magnifies that small image into the window (nearest), so
+// the per-fragment work in the window is one texture read. Each pass is its own program (MAGNIFY
+// defined for pass 2, MODE for pass 1's three kinds): llvmpipe runs a shader's branches masked, so one program with both would pay
+// the tone map for every window pixel.
 #if defined VERTEX_SHADER
 in vec2 in_pos;            // unit quad corners in [0,1]^2
 out vec2 uv;
@@ -8,15 +13,26 @@ void main() {
     uv = in_pos;
     gl_Position = vec4(in_pos * 2.0 - 1.0, 0.0, 1.0);
 }
+#elif defined FRAGMENT_SHADER && defined MAGNIFY
+uniform sampler2D u_small;          // pass 1's result
+uniform vec4 u_sub;                 // (u, v, du, dv) of u_small drawn into this viewport (v up)
+in vec2 uv;
+out vec4 frag;
+void main() {
+    // u_small was drawn by GL (bottom row first) like the window: no flip.
+    frag = texture(u_small, u_sub.xy + uv * u_sub.zw);
+}
 #elif defined FRAGMENT_SHADER
-uniform sampler2D u_image;     // packed panel slots side by side (linear RGB)
-uniform sampler2D u_reference; // reference frame (linear RGB), same size as one slot
-uniform sampler2D u_overlay;   // RGBA8 text and plot layer
-uniform vec2 u_slot;           // (slot index, number of slots) of u_image to show
-uniform vec4 u_sub;            // overlay: (u, v, du, dv) of the texture drawn into this viewport
-uniform int u_mode;            // 0 tone-mapped image, 1 display-ready image, 2 error heat map, 3 overlay
+uniform sampler2DArray u_estimates; // engine estimates, planes of (rows, 3 estimates, 3 channels)
+uniform sampler2DArray u_reference; // reference frames, planes of (frames, 3 channels)
+uniform sampler2D u_view;           // a display-ready feature view (RGB in [0,1])
+uniform ivec2 u_rows;               // the two rows around the shown time
+uniform float u_blend;              // weight of u_rows.y
+uniform int u_estimate;             // which estimate: 0 raw, 1 gaussian, 2 ours
+uniform int u_ref_frame;            // reference frame of the shown time (heat map)
+// MODE (a define, one program per mode): 0 tone-mapped estimate, 1 feature view, 2 heat map
 uniform float u_exposure;
-uniform float u_heat_gain;     // heat map saturates at |error| = 1/u_heat_gain (sRGB units)
+uniform float u_heat_gain;          // heat map saturates at |error| = 1/u_heat_gain (sRGB units)
 in vec2 uv;
 out vec4 frag;
 
@@ -38,21 +54,34 @@ vec3 heat(float x) {
     return mix(c, d, (x - 0.66) / 0.34);
 }
 
+vec3 row_rgb(int row, ivec2 px) {
+    int base = (row * 3 + u_estimate) * 3;
+    return vec3(texelFetch(u_estimates, ivec3(px, base), 0).r,
+                texelFetch(u_estimates, ivec3(px, base + 1), 0).r,
+                texelFetch(u_estimates, ivec3(px, base + 2), 0).r);
+}
+
 void main() {
-    // Textures are stored top row first (numpy order), GL samples bottom-up: flip v.
-    vec2 st = vec2(uv.x, 1.0 - uv.y);
-    vec2 slot_st = vec2((u_slot.x + st.x) / u_slot.y, st.y);
-    if (u_mode == 0) {
-        frag = vec4(srgb(texture(u_image, slot_st).rgb * u_exposure), 1.0);
-    } else if (u_mode == 1) {
-        frag = vec4(clamp(texture(u_image, slot_st).rgb, 0.0, 1.0), 1.0);
-    } else if (u_mode == 2) {
-        vec3 ours = srgb(texture(u_image, slot_st).rgb * u_exposure);
-        vec3 ref = srgb(texture(u_reference, st).rgb * u_exposure);
-        float err = dot(abs(ours - ref), vec3(1.0 / 3.0));
+    // Pass 1: one fragment per image pixel (the viewport is one panel at image size); the uploaded
+    // planes are top row first (numpy order), GL counts rows bottom-up: flip.
+    ivec2 size = textureSize(u_estimates, 0).xy;
+    ivec2 px = ivec2(uv * vec2(size));
+    px.y = size.y - 1 - px.y;  // top row first
+#if MODE == 1
+    frag = vec4(clamp(texelFetch(u_view, px, 0).rgb, 0.0, 1.0), 1.0);
+#else
+    vec3 x = mix(row_rgb(u_rows.x, px), row_rgb(u_rows.y, px), u_blend);
+#if MODE == 0
+    frag = vec4(srgb(x * u_exposure), 1.0);
+#else
+    {
+        int r = u_ref_frame * 3;
+        vec3 ref = vec3(texelFetch(u_reference, ivec3(px, r), 0).r, texelFetch(u_reference, ivec3(px, r + 1), 0).r,
+                        texelFetch(u_reference, ivec3(px, r + 2), 0).r);
+        float err = dot(abs(srgb(x * u_exposure) - srgb(ref * u_exposure)), vec3(1.0 / 3.0));
         frag = vec4(heat(err * u_heat_gain), 1.0);
-    } else {
-        frag = texture(u_overlay, u_sub.xy + st * u_sub.zw);
     }
+#endif
+#endif
 }
 #endif

@@ -18,9 +18,9 @@ from _demo_helpers import SMALL  # noqa: E402
 @pytest.fixture(scope="module")
 def headless_run(tmp_path_factory):
     """The real WindowConfig, headless (EGL): 3 frames = 3 iterations of the progressive engine, then a
-    screenshot."""
+    screenshot and the stats file (beside it, ``shot.json``)."""
     from demo.app import run
 
     shot = tmp_path_factory.mktemp("demo") / "shot.png"
-    app = run(SMALL + ["--headless", "--frames", "3", "--screenshot", str(shot)])
+    app = run(SMALL + ["--headless", "--frames", "3", "--screenshot", str(shot), "--stats", str(shot.with_suffix(".json"))])
     return app, shot

@@ -29,6 +29,72 @@ def test_screenshot_written_with_window_size(headless_run):
     assert app.progression.spp == 3
 
 
+def test_stats_file(headless_run):
+    """The numbers the window shows, written for checks from outside."""
+    import json
+
+    from demo.app import STATS_FIELDS
+
+    app, shot = headless_run
+    stats = json.loads(shot.with_suffix(".json").read_text())
+    for name in STATS_FIELDS:
+        assert np.isfinite(stats[name]) and stats[name] > 0, (name, stats[name])
+    assert stats["ms_per_iteration"] == pytest.approx(1e3 / stats["iterations_per_second"])
+    assert (stats["iterations"], stats["frames"], stats["width"], stats["height"], stats["clip"]) == (3, 3, 48, 32, 2)
+    assert stats["overlap"] is True and stats["temporal_radius"] == app.progression.params.time_window
+    assert stats == {**stats, **app.stage_summary()}  # the same numbers as the window's
+
+
+def test_summary_of_the_stage_log():
+    """Iterations per second from the end times (the real pace); stages are medians."""
+    from demo.app import summarize
+
+    log = [(10.0, 5.0, 1.0, 20.0, 2.0), (10.5, 7.0, 0.0, 30.0, 4.0), (11.0, 6.0, 3.0, 10.0, 3.0)]
+    s = summarize(log)
+    assert s["iterations_per_second"] == pytest.approx(2.0) and s["ms_per_iteration"] == pytest.approx(500.0)
+    assert (s["trace_ms"], s["trace_wait_ms"], s["filter_ms"], s["display_ms"]) == (6.0, 1.0, 20.0, 3.0)
+    assert summarize([]) == {}
+
+
+def test_on_screen_numbers_are_the_summary(headless_run):
+    from demo.app import SCREEN_WINDOW
+
+    app, _ = headless_run
+    st = app.stage_summary(SCREEN_WINDOW)
+    texts = [t for t in _canvas_texts(app)]
+    assert any(f"{st['iterations_per_second']:5.1f} it/s" in t and f"filter {st['filter_ms']:6.1f}" in t
+               for t in texts), texts
+
+
+def _canvas_texts(app):
+    """The strings the overlay draws this frame (recorded from the canvas calls)."""
+    from demo.overlay import Canvas
+
+    seen = []
+    original = Canvas.text
+
+    def record(self, xy, text, *args, **kwargs):
+        seen.append(text)
+        return original(self, xy, text, *args, **kwargs)
+
+    Canvas.text = record
+    try:
+        app.canvas(True)
+    finally:
+        Canvas.text = original
+    return seen
+
+
+def test_size_option():
+    from demo.app import image_size_argv
+
+    assert image_size_argv(["--size", "128x96", "--clip", "3"]) == ["--width", "128", "--height", "96", "--clip", "3"]
+    assert image_size_argv(["--size=40X24"]) == ["--width", "40", "--height", "24"]
+    for bad in (["--size", "128"], ["--size"], ["--size=ax3"]):
+        with pytest.raises(ValueError, match="--size"):
+            image_size_argv(bad)
+
+
 def test_panels_differ_from_each_other(headless_run):
     app, shot = headless_run
     img = np.asarray(Image.open(shot).convert("RGB"))
@@ -103,6 +169,7 @@ def live_app():
     app = create_app(SMALL + ["--headless", "--reference-spp", "8", "--width", "32", "--height", "32"])
     step_frame(app)
     yield app
+    app.on_close()
     app.wnd.destroy()
 
 
@@ -267,11 +334,15 @@ def test_no_display_gives_a_clear_error(monkeypatch):
 def test_real_window_under_xvfb(tmp_path):
     shot = tmp_path / "xvfb.png"
     cmd = ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-m", "demo",
-           "--width", "32", "--height", "32", "--clip", "1", "--reference-spp", "0",
-           "--frames", "2", "--screenshot", str(shot)]
+           "--size", "32x32", "--clip", "1", "--reference-spp", "0",
+           "--frames", "2", "--screenshot", str(shot), "--stats", str(tmp_path / "stats.json")]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     img = np.asarray(Image.open(shot).convert("RGB")).astype(np.float64)
     assert img.std() > 10.0  # not blank
     assert img[22:86, 4:68].std() > 10.0  # the raw panel has an image in it
+    import json
+
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert (stats["width"], stats["height"], stats["iterations"]) == (32, 32, 2) and stats["display_ms"] > 0

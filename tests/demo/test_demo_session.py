@@ -39,7 +39,7 @@ def test_session_shows_the_engine_run_built_by_hand(tracer):
     with literal settings; the feature view is the mean of the very samples it rendered."""
     session = DemoSession(tracer, [0.0, 1.0], seed=5)
     by_hand = ProgressiveRenderer(tracer, [0.0, 1.0], seed=5, alpha=DEFAULT_ALPHA, settings=DenoiseSettings(
-        sigma_s=3.0, temporal_radius=1, sigma_t=0.5, mode="window", tree_height=2,
+        sigma_s=3.0, temporal_radius=0, sigma_t=0.5, mode="window", tree_height=2,
         guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=3.0))
     for _ in range(2):
         session.step()
@@ -104,3 +104,61 @@ def test_threads_setting_is_restored_and_bad_input_is_named(tracer):
 def test_bad_params_name_the_field(kwargs, name):
     with pytest.raises(ValueError, match=name):
         FilterParams(**kwargs)
+
+
+@pytest.fixture(scope="module")
+def tracer_proc():
+    from demo.tracing import TracerProcess, TracerSpec
+    from torchmanifold.render import default_scene
+
+    thread = TracerProcess(TracerSpec(default_scene(), 32, 32), [0.0, 1.0, 2.0])
+    yield thread
+    thread.close()
+
+
+def test_tracer_process_renders_what_the_tracer_renders(tracer, tracer_proc):
+    """A frame cut out of the worker's whole-clip render is the frame rendered alone, bit for bit; the
+    first frame of sample i queues sample i + 1 of the clip."""
+    tracer_proc.drop_lookahead()
+    for offset in (0, 1):
+        for t in (2.0, 0.0):
+            got = tracer_proc.render(times=[t], spp=1, seed=9, sample_offset=offset)
+            want = tracer.render(times=[t], spp=1, seed=9, sample_offset=offset)
+            for name in ("color", "features", "emission"):
+                assert torch.equal(getattr(got, name), getattr(want, name)), (offset, t, name)
+        assert set(tracer_proc._clip) == {(9, offset), (9, offset + 1)}  # the next sample is on its way
+    # other calls (the reference: many samples) run in the worker as they are
+    ref = tracer_proc.render(times=[0.5, 1.0], spp=3, seed=2)
+    assert torch.equal(ref.color, tracer.render(times=[0.5, 1.0], spp=3, seed=2).color)
+    tracer_proc.drop_lookahead()
+    assert not tracer_proc._clip
+
+
+def test_session_through_the_tracer_process_is_the_same_progression(tracer, tracer_proc):
+    times = [0.0, 1.0, 2.0]
+    direct = DemoSession(tracer, times, seed=4)
+    ahead = DemoSession(tracer_proc, times, seed=4)
+    for _ in range(2):
+        direct.step()
+        timing = ahead.step()
+    assert timing.trace_ms > 0 and timing.filter_ms > 0
+    for t in times:
+        assert torch.equal(direct.ours(t), ahead.ours(t))
+        assert torch.equal(direct.raw(t), ahead.raw(t))
+    assert torch.equal(ahead.planes()[:, 2], ahead.state.ours)  # the upload: raw, gaussian, ours per row
+    ahead.restart()  # the look-ahead of the old progression is dropped, the new one starts at sample 0
+    assert not tracer_proc._clip
+    ahead.step()
+    direct.restart()
+    direct.step()
+    assert torch.equal(direct.ours(1.0), ahead.ours(1.0))
+
+
+def test_tracer_process_reports_a_bad_tracer():
+    """The child's error comes back to the caller, named."""
+    from demo.tracing import TracerProcess, TracerSpec
+
+    with pytest.raises(TypeError, match="scene must be"):
+        TracerProcess(TracerSpec(None, 32, 32), [0.0])
+    with pytest.raises(ValueError, match="clip_times"):
+        TracerProcess(TracerSpec(None, 32, 32), [])
