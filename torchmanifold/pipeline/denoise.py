@@ -9,15 +9,21 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    before filtering and added back unfiltered, so lights do not bleed into walls.
 3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
    albedo averaged over the pixel footprint (a 1-spp albedo is one point of the pixel; the reference
-   is the pixel's mean), so texture stays sharp.
+   is the pixel's mean), so texture stays sharp. Where the albedo is about 0 (delta BSDFs, black
+   surfaces) the radiance itself is filtered, among those pixels only.
 4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
    to it, and the clamped samples are filtered linearly. The energy removed is measured and returned
    (``stats["firefly_energy_removed"]``).
-5. **Guide scaling**: each feature group gets its own range sigma (albedo, normals, world position or
-   depth relative to the scene's extent, directions); see :func:`default_guide_sigmas`.
+5. **Guide**: each feature group gets its own range sigma (albedo, normals, world position or depth
+   relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
+   channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
+   set in a surface, shadows, what glass shows.
 6. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode.
+
+Every statistic comes from the frames of one query's window, so a clip gives the same bytes streamed,
+sharded or all at once.
 """
 from __future__ import annotations
 
