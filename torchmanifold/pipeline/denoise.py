@@ -105,6 +105,9 @@ def _extent(x: Tensor, valid: Tensor) -> Tensor:
     return torch.tensor(out, dtype=torch.float64)
 
 
+#: the float32 guard's box, in spatial sigmas: the samples a pixel mixes lie almost all within it
+#: (a Gaussian keeps 86% of its weight inside 2 sigma in 2-D), and a wider box bounds nothing
+_GUARD_RADIUS = 2
 #: ways of handling fireflies (see :class:`DenoiseSettings`)
 FIREFLY_MODES = ("clamp", "log", "none")
 #: guide-sigma key of the log-radiance channel the denoiser adds to the renderer's features
@@ -293,7 +296,7 @@ class _Filter:
         as garbage; this bounds it (float64 needs no guard)."""
         if values.dtype == torch.float64:
             return out
-        r = max(1, int(math.ceil(2 * self.sigma_s)))
+        r = max(1, int(math.ceil(_GUARD_RADIUS * self.sigma_s)))
         big = torch.finfo(values.dtype).max
         hi = torch.where(mask > 0, values, -big)
         lo = torch.where(mask > 0, -values, -big)
