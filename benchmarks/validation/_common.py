@@ -99,6 +99,11 @@ def ref_b_entry(ref_b_frame: int | None) -> dict | None:
                     "method can score"}
 
 
+def ref_b_files(ref_b_frame: int | None) -> dict:
+    """The manifest's ``files`` entry for the second reference (empty without one)."""
+    return {} if ref_b_frame is None else {"ref_b_XXXX.exr": "a second independent reference of that frame"}
+
+
 def write_manifest(out_dir: Path, manifest: dict) -> None:
     (Path(out_dir) / "manifest.json").write_text(json.dumps(manifest, indent=1))
 

@@ -406,7 +406,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
             "frame4spp_XXXX.exr": "the same at 4 spp (independent samples)",
             "reference_XXXX.exr": f"R,G,B float32, {ref_spp} spp: float64 mean of {ref_spp // ref_chunk} chunks of "
                                   "Blender's Combined",
-            **({"ref_b_XXXX.exr": "a second independent reference of that frame"} if ref_b_frame is not None else {}),
+            **C.ref_b_files(ref_b_frame),
             **({"mask_XXXX.exr": "moving: 1 where Cycles' object index (first sample of reference chunk 0) is a "
                                  "moving object"} if moving else {}),
         },

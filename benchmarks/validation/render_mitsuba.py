@@ -339,7 +339,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
                               "Z (distance along the camera ray, 0 on a miss) float32",
             "frame4spp_XXXX.exr": "the same at 4 samples per pixel (independent samples)",
             "reference_XXXX.exr": f"R,G,B float32, {ref_spp} spp: float64 mean of {ref_spp // ref_chunk} chunks",
-            **({"ref_b_XXXX.exr": "a second independent reference of that frame"} if ref_b_frame is not None else {}),
+            **C.ref_b_files(ref_b_frame),
             **({"mask_XXXX.exr": "moving: fraction of the pixel's first hits (16 spp) on a moving object"}
                if moving else {}),
         },
