@@ -60,19 +60,13 @@ struct PhaseClock {
   }
 };
 
-struct Options {
-  double sigma_s, sigma_r;
-  int64_t tree_height, power_iterations;
-  bool adjust_outliers;
-};
-
 // One image. The numbered comments refer to the fixed choices listed at the top of
 // torchmanifold/ops/_reference.py, which this kernel matches.
 template <typename T>
 class ImageFilter {
  public:
   ImageFilter(const T* values, const T* guide, T* out, int64_t C, int64_t D, int64_t H, int64_t W,
-              const Options& opt)
+              const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt),
         df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
@@ -106,12 +100,7 @@ class ImageFilter {
  private:
   using Node = ManifoldNode<T>;
 
-  // A level's n nodes' weights w ((n, H, W)) and blurred [P, P0] ((n, C + 1, Hl, Wl)), kept for
-  // the last pass's slices.
-  struct Sliced {
-    int64_t n = 0;
-    Scratch<T> w, P;
-  };
+  using Sliced = LevelSlices<T>;
 
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
@@ -532,8 +521,8 @@ class ImageFilter {
             const T* wr = splat_row(k, depth, i, bi, dist.data() + band_row, fp.data(), ws.data(), sl);
             if (leaf) continue;
             projection_from_band(ve_up[k], i, proj.data() + band_row, t0.data());
-            split_sides(depth, static_cast<int32_t>(level[k].id), keep_labels, labels(i * W_), guide_mask(i * W_), wr,
-                        t0.data(), t1.data(), W_);
+            split_sides(depth, static_cast<int32_t>(level[k].id), keep_labels, labels(i * W_), guide_mask(i * W_),
+                        wr, t0.data(), t1.data(), W_);
             children_sums_row(k, i, bi, t0.data(), t1.data(), Q.data());
           }
         }
@@ -588,17 +577,12 @@ class ImageFilter {
     // ~4 per channel and node
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
       std::vector<T> s0(W_), alpha(W_);
-      std::vector<std::vector<RowUpsampler<T>>> up;
-      for (const Sliced& l : sliced_) {
-        std::vector<const T*> blurred(l.n);
-        for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C_ + 1) * Nl_;
-        up.push_back(upsamplers(blurred, C_ + 1));
-      }
+      std::vector<std::vector<RowUpsampler<T>>> up = slice_upsamplers(sliced_, C_, Hl_, Wl_, W_, ty_, tx_);
       for (int64_t i = b; i < e; ++i) {
         for (size_t l = 0; l < sliced_.size(); ++l)
           for (int64_t k = 0; k < sliced_[l].n; ++k)
-            slice_row(up[l][k], sliced_[l].w.data() + k * N_ + i * W_, i, l == 0 && k == 0, S_ + i * W_, C_, N_,
-                      W_, s0.data());
+            slice_row(up[l][k], sliced_[l].w.data() + k * N_ + i * W_, i, l == 0 && k == 0, S_ + i * W_, C_,
+                      N_, W_, s0.data());
         finish_row(i, s0.data(), alpha.data());
       }
     });
@@ -608,7 +592,8 @@ class ImageFilter {
   // Pixels whose S0 is below the floor keep the input.
   void finish_row(int64_t i, const T* s0, T* alpha) {
     const int64_t row = i * W_;
-    if (opt_.adjust_outliers) outlier_alpha_row(minD_.data() + row, half_inv_r2_, mv_.data() + row, alpha, W_);
+    if (opt_.adjust_outliers)
+      outlier_alpha_row(minD_.data() + row, half_inv_r2_, mv_.data() + row, alpha, W_);
     // A row where every S0 clears the floor (nearly every row) and no adjustment follows needs
     // no input.
     const bool reads_input = !all_above_floor(s0, W_) || opt_.adjust_outliers;
@@ -617,7 +602,7 @@ class ImageFilter {
   }
 
   const int64_t C_, D_, H_, W_, N_;
-  const Options opt_;
+  const FilterOptions opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_;
   const int64_t gram_stride_;  // 8. M sums the rows of every gram_stride_-th band
   const Taps<T> ty_, tx_;
@@ -651,7 +636,7 @@ at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& gui
   at::Tensor out = at::empty_like(f);
   const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
   if (out.numel() == 0) return out;
-  const Options opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
+  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
     for (int64_t b = 0; b < B; ++b) {
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W,

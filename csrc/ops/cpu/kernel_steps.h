@@ -18,6 +18,13 @@
 namespace torchmanifold {
 namespace cpu {
 
+// The filter's parameters, as the ops take them.
+struct FilterOptions {
+  double sigma_s, sigma_r;
+  int64_t tree_height, power_iterations;
+  bool adjust_outliers;
+};
+
 // 1 / sigma_r^2, clamped to the type's largest value (a tiny sigma_r would overflow it).
 template <typename T>
 T inverse_square(double sigma_r) {
@@ -33,6 +40,14 @@ struct ManifoldNode {
   Scratch<T> eta;
 };
 
+// A level's n nodes' slice weights w ((n, H, W)) and blurred [P, P0] ((n, C + 1, Hl, Wl)), kept
+// for the last pass's slices.
+template <typename T>
+struct LevelSlices {
+  int64_t n = 0;
+  Scratch<T> w, P;
+};
+
 // A RowUpsampler per low-res plane stack in `low` (each `planes` planes of (hl, wl)), for a task's
 // rows of a (h, w) image.
 template <typename T>
@@ -43,6 +58,20 @@ std::vector<RowUpsampler<T>> make_upsamplers(const std::vector<const T*>& low, i
   for (const T* l : low) {
     ups.emplace_back(planes, hl, wl, w, ty, tx);
     ups.back().reset(l);
+  }
+  return ups;
+}
+
+// Per level, a RowUpsampler per node over its blurred [P, P0] (C + 1 planes), for a task's rows.
+template <typename T>
+std::vector<std::vector<RowUpsampler<T>>> slice_upsamplers(const std::vector<LevelSlices<T>>& levels, int64_t C,
+                                                           int64_t hl, int64_t wl, int64_t w, const Taps<T>& ty,
+                                                           const Taps<T>& tx) {
+  std::vector<std::vector<RowUpsampler<T>>> ups;
+  for (const LevelSlices<T>& l : levels) {
+    std::vector<const T*> blurred(l.n);
+    for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C + 1) * hl * wl;
+    ups.push_back(make_upsamplers(blurred, C + 1, hl, wl, w, ty, tx));
   }
   return ups;
 }

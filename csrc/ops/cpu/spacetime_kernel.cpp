@@ -37,12 +37,6 @@ namespace {
 // Full-res rows per task group at least: fixed, so partial sums never depend on the thread count.
 constexpr int64_t kGroupRows = 16;
 
-struct SpacetimeOptions {
-  double sigma_s, sigma_r;
-  int64_t tree_height, power_iterations;
-  bool adjust_outliers;
-};
-
 // One frame of the window that splats (tau > 0).
 template <typename T>
 struct Frame {
@@ -59,7 +53,7 @@ class SpacetimeFilter {
   // values/guide: the image's T frames ((T, C, H, W) / (T, D, H, W)); tau: (T,) this query's time
   // weights; query: (D, H, W); out: (C, H, W).
   SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query, T* out,
-                  int64_t C, int64_t D, int64_t H, int64_t W, const SpacetimeOptions& opt)
+                  int64_t C, int64_t D, int64_t H, int64_t W, const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt), df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         bpg_(std::max<int64_t>(1, kGroupRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
@@ -99,10 +93,7 @@ class SpacetimeFilter {
 
  private:
   using Node = ManifoldNode<T>;
-  struct Sliced {
-    int64_t n = 0;
-    Scratch<T> w, P;  // (n, H, W) slice weights, (n, C + 1, Hl, Wl) blurred splats
-  };
+  using Sliced = LevelSlices<T>;
 
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
@@ -389,26 +380,24 @@ class SpacetimeFilter {
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
       std::vector<T> s0(W_), fb(C_ * W_), alpha(W_);
       std::vector<uint8_t> has(W_);
-      std::vector<std::vector<RowUpsampler<T>>> ups;
-      for (const Sliced& l : sliced_) {
-        std::vector<const T*> blurred(l.n);
-        for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C_ + 1) * Nl_;
-        ups.push_back(upsamplers(blurred, C_ + 1));
-      }
+      std::vector<std::vector<RowUpsampler<T>>> ups = slice_upsamplers(sliced_, C_, Hl_, Wl_, W_, ty_, tx_);
       for (int64_t i = b; i < e; ++i) {
         const int64_t row = i * W_;
         std::fill(s0.begin(), s0.end(), T(0));
         for (int64_t c = 0; c < C_; ++c) std::fill_n(S_ + c * N_ + row, W_, T(0));
         for (size_t l = 0; l < sliced_.size(); ++l)
           for (int64_t k = 0; k < sliced_[l].n; ++k)
-            slice_row(ups[l][k], sliced_[l].w.data() + k * N_ + row, i, false, S_ + row, C_, N_, W_, s0.data());
+            slice_row(ups[l][k], sliced_[l].w.data() + k * N_ + row, i, false, S_ + row, C_, N_, W_,
+                      s0.data());
         if (all_above_floor(s0.data(), W_) && !opt_.adjust_outliers) {
           normalise_row<T>(S_ + row, N_, s0.data(), nullptr, 0, nullptr, c_, C_, W_);
           continue;
         }
         fallback_row(row, fb.data(), has.data());
-        if (opt_.adjust_outliers) outlier_alpha_row(minD_.data() + row, half_inv_r2_, has.data(), alpha.data(), W_);
-        normalise_row(S_ + row, N_, s0.data(), fb.data(), W_, opt_.adjust_outliers ? alpha.data() : nullptr, c_, C_, W_);
+        if (opt_.adjust_outliers)
+          outlier_alpha_row(minD_.data() + row, half_inv_r2_, has.data(), alpha.data(), W_);
+        normalise_row(S_ + row, N_, s0.data(), fb.data(), W_, opt_.adjust_outliers ? alpha.data() : nullptr, c_, C_,
+                      W_);
       }
     });
   }
@@ -440,7 +429,7 @@ class SpacetimeFilter {
   }
 
   const int64_t C_, D_, H_, W_, N_;
-  const SpacetimeOptions opt_;
+  const FilterOptions opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_, gram_stride_;
   const Taps<T> ty_, tx_;
   const T* q_in_;
@@ -505,7 +494,7 @@ at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::T
                    q = query_guide.contiguous();
   at::Tensor out = at::empty({B, Q, C, H, W}, values.options());
   if (out.numel() == 0) return out;
-  const SpacetimeOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
+  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
     for (int64_t b = 0; b < B; ++b)
