@@ -4,6 +4,7 @@ Runs inside the renderers' own virtual environments (numpy + OpenEXR only, no to
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -89,6 +90,20 @@ def host() -> dict:
             "nice": os.nice(0)}
 
 
+def ref_b_entry(ref_b_frame: int | None) -> dict | None:
+    """The manifest's ``ref_b`` entry: the frame with a second, independent reference (None: no such frame)."""
+    if ref_b_frame is None:
+        return None
+    return {"frame": ref_b_frame, "file": f"ref_b_{ref_b_frame:04d}.exr",
+            "note": "second reference of one frame with independent seeds: its PSNR against reference_ caps what any "
+                    "method can score"}
+
+
+def ref_b_files(ref_b_frame: int | None) -> dict:
+    """The manifest's ``files`` entry for the second reference (empty without one)."""
+    return {} if ref_b_frame is None else {"ref_b_XXXX.exr": "a second independent reference of that frame"}
+
+
 def write_manifest(out_dir: Path, manifest: dict) -> None:
     (Path(out_dir) / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
@@ -114,3 +129,23 @@ class Timer:
         now = time.process_time()
         self.cpu[name] = round(self.cpu.get(name, 0.0) + now - self._cpu0, 2)
         self._cpu0 = now
+
+
+def clip_main(description: str, clips, render_clip, argv=None) -> None:
+    """A renderer script's command line: render the named clips (default all of ``clips``) with
+    ``render_clip(name, out_root, frames, ref_spp) -> clip folder`` and list each finished one in READY."""
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("clips", nargs="*", default=list(clips), help=f"clips to render (default all: {list(clips)})")
+    ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
+    ap.add_argument("--frames", type=int, default=FRAMES)
+    ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default per clip, see CLIPS)")
+    ap.add_argument("--no-ready", action="store_true", help="do not append to <out>/READY")
+    args = ap.parse_args(argv)
+    for name in args.clips:
+        if name not in clips:
+            ap.error(f"unknown clip {name!r}; known: {list(clips)}")
+    for name in args.clips:
+        out = render_clip(name, args.out, args.frames, args.ref_spp)
+        if not args.no_ready:
+            mark_ready(out)
+        print(f"{name}: {out}")

@@ -19,7 +19,6 @@ filter, a new ``cycles.seed`` per frame, pass and chunk (``_common.seed``).
 """
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import tempfile
@@ -398,10 +397,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         "seeds": seeds,
         "seed_rule": "clip_id*100000 + pass*10000 + frame*100 + chunk (pass: noisy1 1, noisy4 2, reference 3, ref_b 4)",
         "clip_id": clip_id,
-        "ref_b": None if ref_b_frame is None else {
-            "frame": ref_b_frame, "file": f"ref_b_{ref_b_frame:04d}.exr",
-            "note": "second reference of one frame with independent seeds: its PSNR against reference_ caps what any "
-                    "method can score"},
+        "ref_b": C.ref_b_entry(ref_b_frame),
         "render_seconds": timer.secs,
         "render_cpu_seconds": timer.cpu,
         "host": C.host(),
@@ -410,7 +406,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
             "frame4spp_XXXX.exr": "the same at 4 spp (independent samples)",
             "reference_XXXX.exr": f"R,G,B float32, {ref_spp} spp: float64 mean of {ref_spp // ref_chunk} chunks of "
                                   "Blender's Combined",
-            **({"ref_b_XXXX.exr": "a second independent reference of that frame"} if ref_b_frame is not None else {}),
+            **C.ref_b_files(ref_b_frame),
             **({"mask_XXXX.exr": "moving: 1 where Cycles' object index (first sample of reference chunk 0) is a "
                                  "moving object"} if moving else {}),
         },
@@ -421,21 +417,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("clips", nargs="*", default=list(CLIPS), help=f"clips to render (default all: {list(CLIPS)})")
-    ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
-    ap.add_argument("--frames", type=int, default=C.FRAMES)
-    ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default per clip, see CLIPS)")
-    ap.add_argument("--no-ready", action="store_true", help="do not append to <out>/READY")
-    args = ap.parse_args(argv)
-    for name in args.clips:
-        if name not in CLIPS:
-            ap.error(f"unknown clip {name!r}; known: {list(CLIPS)}")
-    for name in args.clips:
-        out = render_clip(name, args.out, args.frames, args.ref_spp)
-        if not args.no_ready:
-            C.mark_ready(out)
-        print(f"{name}: {out}")
+    C.clip_main(__doc__.split("\n")[0], CLIPS, render_clip, argv)
 
 
 if __name__ == "__main__":

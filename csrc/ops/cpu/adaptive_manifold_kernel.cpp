@@ -30,6 +30,7 @@
 #include <ctime>
 
 #include "ops/adaptive_manifold_common.h"
+#include "ops/cpu/kernel_steps.h"
 #include "ops/cpu/manifold_ops.h"
 #include "ops/cpu/recursive_filter.h"
 #include "ops/cpu/workspace.h"
@@ -59,19 +60,13 @@ struct PhaseClock {
   }
 };
 
-struct Options {
-  double sigma_s, sigma_r;
-  int64_t tree_height, power_iterations;
-  bool adjust_outliers;
-};
-
 // One image. The numbered comments refer to the fixed choices listed at the top of
 // torchmanifold/ops/_reference.py, which this kernel matches.
 template <typename T>
 class ImageFilter {
  public:
   ImageFilter(const T* values, const T* guide, T* out, int64_t C, int64_t D, int64_t H, int64_t W,
-              const Options& opt)
+              const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt),
         df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
@@ -79,9 +74,7 @@ class ImageFilter {
         bpg_(std::max<int64_t>(1, kReduceRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
         gram_stride_(gram_band_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), f_in_(values),
         g_in_(guide), S_(out) {
-    const double fmax = static_cast<double>(std::numeric_limits<T>::max());
-    const double r2 = opt.sigma_r * opt.sigma_r;
-    inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
+    inv_r2_ = inverse_square<T>(opt.sigma_r);
     half_inv_r2_ = static_cast<T>(0.5 * static_cast<double>(inv_r2_));
     ss_low_ = opt.sigma_s / static_cast<double>(df_);
     sr_low_ = opt.sigma_r / std::sqrt(2.0);
@@ -105,18 +98,9 @@ class ImageFilter {
   }
 
  private:
-  // A manifold of the tree: heap id (children 2k, 2k+1) and its low-res (D, Hl, Wl) map.
-  struct Node {
-    int64_t id;
-    Scratch<T> eta;
-  };
+  using Node = ManifoldNode<T>;
 
-  // A level's n nodes' weights w ((n, H, W)) and blurred [P, P0] ((n, C + 1, Hl, Wl)), kept for
-  // the last pass's slices.
-  struct Sliced {
-    int64_t n = 0;
-    Scratch<T> w, P;
-  };
+  using Sliced = LevelSlices<T>;
 
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
@@ -186,43 +170,16 @@ class ImageFilter {
       }
     });
     lowpass_planes(acc.data(), D_ + 1, Hl_, Wl_, ss_low_);
-    const T* den = acc.data() + D_ * Nl_;
-    for (int64_t d = 0; d < D_; ++d)
-      for (int64_t i = 0; i < Nl_; ++i)
-        root_eta_[d * Nl_ + i] = den[i] > T(0) ? acc[d * Nl_ + i] / den[i] : T(0);
-    // An invalid guide pixel sits on the root manifold.
     gs_buf_.resize(D_ * N_);
-    rows_parallel(3 * D_, [&](int64_t b, int64_t e) {
-      std::vector<T> tmp(Wl_), up(W_);
-      for (int64_t i = b; i < e; ++i)
-        for (int64_t d = 0; d < D_; ++d) {
-          upsample_row(root_eta_.data() + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
-          const uint8_t* m = mg_.data() + i * W_;
-          const T* src = g_in_ + d * N_ + i * W_;
-          T* dst = gs_buf_.data() + d * N_ + i * W_;
-          for (int64_t j = 0; j < W_; ++j) dst[j] = m[j] ? src[j] : up[j];
-        }
-    });
+    masked_root_and_guide(acc.data(), g_in_, mg_.data(), D_, H_, W_, Hl_, Wl_, ty_, tx_, root_eta_.data(),
+                          gs_buf_.data());
     gs_ = gs_buf_.data();
   }
 
-  // planes rows of a low-res plane stack (stride Nl_), block row starting at p: sums -> means over
-  // the pixels that exist in each block.
+  // planes rows of a low-res plane stack (stride Nl_), block row starting at p, covering `rows`
+  // full-res rows: sums -> means over the pixels that exist in each block.
   void to_block_means(T* p, int64_t planes, int64_t rows) const {
-    const int64_t full = rows * df_;
-    const T last = static_cast<T>(rows * (W_ - (Wl_ - 1) * df_));  // the last block may be partial
-    // A power-of-2 count (every full block row) divides as its reciprocal multiplies, exactly, and
-    // a vector multiply is several times cheaper than a divide.
-    const bool pow2 = (full & (full - 1)) == 0;
-    const T inv = T(1) / static_cast<T>(full);
-    for (int64_t c = 0; c < planes; ++c) {
-      T* q = p + c * Nl_;
-      if (pow2)
-        for (int64_t bj = 0; bj + 1 < Wl_; ++bj) q[bj] *= inv;
-      else
-        for (int64_t bj = 0; bj + 1 < Wl_; ++bj) q[bj] /= static_cast<T>(full);
-      q[Wl_ - 1] /= last;
-    }
+    cpu::to_block_means(p, planes, rows, df_, W_, Wl_, Nl_);
   }
 
   void prepare_values() {
@@ -272,14 +229,7 @@ class ImageFilter {
       });
       f_s_ = fs_buf_.data();
     }
-    c_.assign(C_, T(0));
-    for (int64_t c = 0; c < C_; ++c) {
-      T l = std::numeric_limits<T>::infinity(), h = -l;
-      for (int64_t ch = 0; ch < chunks; ++ch)
-        l = std::min(l, lo[ch * C_ + c]), h = std::max(h, hi[ch * C_ + c]);
-      const T mid = l + (h - l) / T(2);
-      c_[c] = std::isfinite(mid) ? mid : T(0);
-    }
+    c_ = channel_centres(lo, hi, chunks, C_);
     // ms (every mask is 1 when all samples are finite: no ms then). f' is made row by row where
     // it is splatted, and the root's cluster is the pixels with a finite guide (8.), so the
     // labels are first written by the root's split.
@@ -311,11 +261,9 @@ class ImageFilter {
   // The guide mask's row at offset `row`, or nullptr when every guide sample is finite.
   const uint8_t* guide_mask(int64_t row) const { return all_g_ ? nullptr : mg_.data() + row; }
 
-  // Whether pixel j of row `lr` (labels) / `mg` (guide_mask) is in the cluster `id`. The root
-  // (depth 0) holds every pixel with a finite guide; its labels are not stored.
-  static bool in_cluster(int64_t depth, const int32_t* lr, const uint8_t* mg, int32_t id, int64_t j) {
-    return depth == 0 ? !mg || mg[j] != 0 : lr[j] == id;
-  }
+  // The labels' row at offset `row`; nullptr below height 3, where no split reads them (at depth 0
+  // in_cluster reads none).
+  int32_t* labels(int64_t row) { return label_.size() > 0 ? label_.data() + row : nullptr; }
 
   // A band: the full-res rows from i on (before `end`, at most kBandRows) that share their
   // upsampled manifold rows, i.e. the same pair of low-res rows.
@@ -413,13 +361,7 @@ class ImageFilter {
 
   // A RowUpsampler per node of the level for a task's rows.
   std::vector<RowUpsampler<T>> upsamplers(const std::vector<const T*>& low, int64_t planes) const {
-    std::vector<RowUpsampler<T>> ups;
-    ups.reserve(low.size());
-    for (const T* l : low) {
-      ups.emplace_back(planes, Hl_, Wl_, W_, ty_, tx_);
-      ups.back().reset(l);
-    }
-    return ups;
+    return make_upsamplers(low, planes, Hl_, Wl_, W_, ty_, tx_);
   }
 
   // 8. Each node's split direction: M = sum r r^T over its cluster on the rows of every
@@ -456,7 +398,8 @@ class ImageFilter {
       });
     }
     std::vector<std::vector<T>> v(n);
-    for (int64_t k = 0; k < n; ++k) v[k] = split_direction(mpart.data() + k * groups_ * msize);
+    for (int64_t k = 0; k < n; ++k)
+      v[k] = split_direction<T>(mpart.data() + k * groups_ * msize, groups_, D_, opt_.power_iterations);
     return v;
   }
 
@@ -509,49 +452,12 @@ class ImageFilter {
       for (int64_t j = 0; j < W_; ++j) ws[j] = sr[j] ? wr[j] : T(0);
       wsplat = ws;
     }
-    if (opt_.adjust_outliers) {
-      T* mr = minD_.data() + row;
-      if (depth == 0)
-        std::copy(dr, dr + W_, mr);
-      else
-        for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dr[j]);
-    }
+    if (opt_.adjust_outliers) update_min_distance(depth, dr, minD_.data() + row, W_);
     T* pk = sl.P.data() + k * (C_ + 1) * Nl_;
     for (int64_t c = 0; c < C_; ++c)
       block_dot_row(wsplat, fp + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
     block_sum_row(wsplat, W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
     return wr;
-  }
-
-  // 8. The sides of node `id`'s cluster at the row at offset `row`: on entry t0 holds the
-  // projection v . r, on exit t0 = theta = 1 - w on the - side (0 elsewhere) and t1 on the + side;
-  // with keep_labels the pixels' labels become their child's id.
-  void split_sides(int64_t depth, int32_t id, bool keep_labels, int64_t row, const T* wr, T* t0,
-                   T* t1) {
-    // labels exist from height 3 on (prepare_values); at depth 0 in_cluster reads none
-    int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
-    const uint8_t* mg = guide_mask(row);
-    if (depth == 0 && !mg && !keep_labels) {
-      // every pixel is in the root's cluster and no labels are kept (height 2): the same sides
-      // without branches, so that the loop vectorises
-      for (int64_t j = 0; j < W_; ++j) {
-        const bool plus = t0[j] >= T(0);
-        const T theta = T(1) - wr[j];
-        t1[j] = plus ? theta : T(0);
-        t0[j] = plus ? T(0) : theta;
-      }
-      return;
-    }
-    for (int64_t j = 0; j < W_; ++j) {
-      const bool in = in_cluster(depth, lr, mg, id, j);
-      const bool plus = t0[j] >= T(0);
-      const T theta = T(1) - wr[j];
-      t0[j] = in && !plus ? theta : T(0);
-      t1[j] = in && plus ? theta : T(0);
-      if (!keep_labels) continue;
-      if (in) lr[j] = 2 * id + (plus ? 1 : 0);
-      else if (depth == 0) lr[j] = 0;  // label 0 is never a node
-    }
   }
 
   // 8. The children's sums of node k at full-res row i (block row bi): Q's side planes get
@@ -615,7 +521,8 @@ class ImageFilter {
             const T* wr = splat_row(k, depth, i, bi, dist.data() + band_row, fp.data(), ws.data(), sl);
             if (leaf) continue;
             projection_from_band(ve_up[k], i, proj.data() + band_row, t0.data());
-            split_sides(depth, static_cast<int32_t>(level[k].id), keep_labels, i * W_, wr, t0.data(), t1.data());
+            split_sides(depth, static_cast<int32_t>(level[k].id), keep_labels, labels(i * W_), guide_mask(i * W_),
+                        wr, t0.data(), t1.data(), W_);
             children_sums_row(k, i, bi, t0.data(), t1.data(), Q.data());
           }
         }
@@ -624,55 +531,6 @@ class ImageFilter {
           to_block_means(Q.data() + side * (D_ + 1) * Nl_ + bi * Wl_, D_ + 1, i1 - i0);
       }
     });
-  }
-
-  // 7. Per node: the low-res domain-transform blur of [P, P0] steered by its manifold (the slice
-  // waits for the last pass).
-  void blur_level(const std::vector<Node>& level, Sliced& sl) const {
-    for (int64_t k = 0; k < sl.n; ++k) {
-      std::vector<T> ah(Nl_), av(Nl_);
-      domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(),
-                                    av.data());
-      domain_transform_planes(sl.P.data() + k * (C_ + 1) * Nl_, C_ + 1, Hl_, Wl_, ah.data(), av.data());
-    }
-  }
-
-  // 8. The children from their sums Q: eta = h(down(T gs)) / h(down(T)), the parent's manifold
-  // where 0/0. Pruned when sum(T) == 0 (T >= 0, so any positive block mean means a positive sum).
-  std::vector<Node> children(const std::vector<Node>& level, Scratch<T>& Q) {
-    const int64_t n = static_cast<int64_t>(level.size());
-    const int64_t qside = (D_ + 1) * Nl_;
-    std::vector<uint8_t> alive(2 * n);
-    for (int64_t c = 0; c < 2 * n; ++c) {
-      const T* q0 = Q.data() + c * qside + D_ * Nl_;
-      alive[c] = std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); });
-    }
-    lowpass_planes(Q.data(), 2 * n * (D_ + 1), Hl_, Wl_, ss_low_);  // all children in one go
-    std::vector<Node> next;
-    std::vector<int64_t> made;  // the children's indices in Q
-    for (int64_t c = 0; c < 2 * n; ++c)
-      if (alive[c]) {
-        made.push_back(c);
-        next.push_back({2 * level[c / 2].id + c % 2, Scratch<T>()});
-        next.back().eta.resize(D_ * Nl_);
-      }
-    const int64_t m = static_cast<int64_t>(made.size());
-    parallel_work(0, m * D_, 2 * Nl_, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t c = made[t / D_], d = t % D_;
-        const T* __restrict q = Q.data() + c * qside + d * Nl_;
-        const T* __restrict q0 = Q.data() + c * qside + D_ * Nl_;
-        const T* __restrict parent = level[c / 2].eta.data() + d * Nl_;
-        T* __restrict eta = next[t / D_].eta.data() + d * Nl_;
-        for (int64_t i = 0; i < Nl_; ++i) {
-          // divided unconditionally (by 1 in the unused lane) so the loop vectorises: a division
-          // under a condition may not be speculated
-          const T ratio = q[i] / (q0[i] > T(0) ? q0[i] : T(1));
-          eta[i] = q0[i] > T(0) ? ratio : parent[i];
-        }
-      }
-    });
-    return next;
   }
 
   // One level of the tree (7., 8.): splat every node, blur, keep the slices for the last pass and,
@@ -684,11 +542,11 @@ class ImageFilter {
     Scratch<T> Q;
     level_pass(level, depth, leaf, sp, sl, Q);
     clock_.lap("pass", depth);
-    blur_level(level, sl);
+    blur_level(level, sl.P.data(), C_ + 1, D_, Hl_, Wl_, ss_low_, sr_low_);
     sliced_.push_back(std::move(sl));
     clock_.lap("blur", depth);
     if (leaf) return {};
-    std::vector<Node> next = children(level, Q);
+    std::vector<Node> next = children(level, Q, D_, Hl_, Wl_, ss_low_);
     clock_.lap("children", depth);
     return next;
   }
@@ -710,55 +568,6 @@ class ImageFilter {
     gram_upper_row(res, D_, W_, m);
   }
 
-  // 8. Power iteration u = M v, v = u/|u| from ones/sqrt(D); the largest-variance channel when it
-  // collapses. M is the fixed-order sum of per-group partials.
-  std::vector<T> split_direction(const double* mpart) {
-    const int64_t msize = D_ * (D_ + 1) / 2;
-    std::vector<double> v(D_, 1.0 / std::sqrt(static_cast<double>(D_)));
-    std::vector<T> out(D_, T(0));
-    if (opt_.power_iterations <= 0) {
-      for (int64_t d = 0; d < D_; ++d) out[d] = static_cast<T>(v[d]);
-      return out;
-    }
-    std::vector<double> M(D_ * D_, 0.0);
-    {
-      std::vector<double> tri(msize, 0.0);
-      for (int64_t g = 0; g < groups_; ++g)
-        for (int64_t k = 0; k < msize; ++k) tri[k] += mpart[g * msize + k];
-      int64_t k = 0;
-      for (int64_t a = 0; a < D_; ++a)
-        for (int64_t b = a; b < D_; ++b, ++k) M[a * D_ + b] = M[b * D_ + a] = tri[k];
-    }
-    double trace = 0;
-    for (int64_t d = 0; d < D_; ++d) trace += M[d * D_ + d];
-    const double eps = static_cast<double>(std::numeric_limits<T>::epsilon());
-    bool collapsed = false;
-    std::vector<double> u(D_);
-    for (int64_t it = 0; it < opt_.power_iterations; ++it) {
-      double norm = 0;
-      for (int64_t a = 0; a < D_; ++a) {
-        double s = 0;
-        for (int64_t b = 0; b < D_; ++b) s += M[a * D_ + b] * v[b];
-        u[a] = s;
-        norm += s * s;
-      }
-      norm = std::sqrt(norm);
-      const bool bad = !(norm > eps * trace) || !std::isfinite(norm);
-      collapsed = collapsed || bad;
-      if (!bad)
-        for (int64_t d = 0; d < D_; ++d) v[d] = u[d] / norm;
-    }
-    if (collapsed) {  // split on the channel with the largest spread (first on ties)
-      int64_t k = 0;
-      for (int64_t d = 1; d < D_; ++d)
-        if (M[d * D_ + d] > M[k * D_ + k]) k = d;
-      out[k] = T(1);
-    } else {
-      for (int64_t d = 0; d < D_; ++d) out[d] = static_cast<T>(v[d]);
-    }
-    return out;
-  }
-
   // The last pass: row by row, S and S0 (s0, W scratch) from every level's slices in the order of
   // the tree (7.), then 9., 10.
   void slice_and_finish() {
@@ -768,74 +577,32 @@ class ImageFilter {
     // ~4 per channel and node
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
       std::vector<T> s0(W_), alpha(W_);
-      std::vector<std::vector<RowUpsampler<T>>> up;
-      for (const Sliced& l : sliced_) {
-        std::vector<const T*> blurred(l.n);
-        for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C_ + 1) * Nl_;
-        up.push_back(upsamplers(blurred, C_ + 1));
-      }
+      std::vector<std::vector<RowUpsampler<T>>> up = slice_upsamplers(sliced_, C_, Hl_, Wl_, W_, ty_, tx_);
       for (int64_t i = b; i < e; ++i) {
         for (size_t l = 0; l < sliced_.size(); ++l)
           for (int64_t k = 0; k < sliced_[l].n; ++k)
-            slice_row(up[l][k], sliced_[l].w.data() + k * N_ + i * W_, i, l == 0 && k == 0, s0.data());
+            slice_row(up[l][k], sliced_[l].w.data() + k * N_ + i * W_, i, l == 0 && k == 0, S_ + i * W_, C_,
+                      N_, W_, s0.data());
         finish_row(i, s0.data(), alpha.data());
       }
     });
   }
 
-  // S += w up(blur [P, P0]) at full-res row i for one node, S in the output and S0 in s0 (W); the
-  // first node's slice starts them.
-  void slice_row(RowUpsampler<T>& up, const T* wr, int64_t i, bool first, T* s0) {
-    const int64_t row = i * W_;
-    const T fy = up.seek(i);
-    for (int64_t c = 0; c <= C_; ++c) {
-      T* s = c < C_ ? S_ + c * N_ + row : s0;
-      const T* b = up.base(c);
-      const T* db = up.delta(c);
-      if (first)
-        for (int64_t j = 0; j < W_; ++j) s[j] = wr[j] * (b[j] + fy * db[j]);
-      else
-        for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (b[j] + fy * db[j]);
-    }
-  }
-
   // 9., 10. Full-res row i, in place (S_ is the output tensor); s0: the row's S0; alpha: W scratch.
-  // Branch-free inner loops so they vectorise; same operations per element.
-  // Below tiny/eps, S and S0 are sums of subnormal terms with absolute rounding: their ratio is
-  // no longer a weighted mean of the samples, so such pixels keep the input (as where S0 == 0).
+  // Pixels whose S0 is below the floor keep the input.
   void finish_row(int64_t i, const T* s0, T* alpha) {
-    const T s0_floor = std::numeric_limits<T>::min() / std::numeric_limits<T>::epsilon();
     const int64_t row = i * W_;
-    if (opt_.adjust_outliers) {
-      const uint8_t* mv = mv_.data() + row;
-      exp_neg_scaled_row(minD_.data() + row, half_inv_r2_, alpha, W_);
-      for (int64_t j = 0; j < W_; ++j) alpha[j] = mv[j] ? alpha[j] : T(1);
-    }
+    if (opt_.adjust_outliers)
+      outlier_alpha_row(minD_.data() + row, half_inv_r2_, mv_.data() + row, alpha, W_);
     // A row where every S0 clears the floor (nearly every row) and no adjustment follows needs
     // no input.
-    int64_t low = 0;
-    for (int64_t j = 0; j < W_; ++j) low += !(s0[j] > s0_floor);
-    const bool reads_input = low > 0 || opt_.adjust_outliers;
-    for (int64_t c = 0; c < C_; ++c) {
-      const T* fs = f_s_ + c * N_ + row;
-      T* out = S_ + c * N_ + row;
-      const T cc = c_[c];
-      if (!reads_input) {
-        for (int64_t j = 0; j < W_; ++j) out[j] = cc + out[j] / s0[j];
-        continue;
-      }
-      for (int64_t j = 0; j < W_; ++j) {
-        // divided unconditionally (by 1 in the unused lane) so the loop vectorises
-        const T mean = cc + out[j] / (s0[j] > s0_floor ? s0[j] : T(1));
-        out[j] = s0[j] > s0_floor ? mean : fs[j];
-      }
-      if (opt_.adjust_outliers)
-        for (int64_t j = 0; j < W_; ++j) out[j] = fs[j] + alpha[j] * (out[j] - fs[j]);
-    }
+    const bool reads_input = !all_above_floor(s0, W_) || opt_.adjust_outliers;
+    normalise_row(S_ + row, N_, s0, reads_input ? f_s_ + row : nullptr, N_,
+                  opt_.adjust_outliers ? alpha : nullptr, c_, C_, W_);
   }
 
   const int64_t C_, D_, H_, W_, N_;
-  const Options opt_;
+  const FilterOptions opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_;
   const int64_t gram_stride_;  // 8. M sums the rows of every gram_stride_-th band
   const Taps<T> ty_, tx_;
@@ -869,7 +636,7 @@ at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& gui
   at::Tensor out = at::empty_like(f);
   const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
   if (out.numel() == 0) return out;
-  const Options opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
+  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
     for (int64_t b = 0; b < B; ++b) {
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W,

@@ -25,6 +25,7 @@
 #include <vector>
 
 #include "ops/adaptive_manifold_common.h"
+#include "ops/cpu/kernel_steps.h"
 #include "ops/cpu/manifold_ops.h"
 #include "ops/cpu/recursive_filter.h"
 #include "ops/cpu/workspace.h"
@@ -36,12 +37,6 @@ namespace {
 // Full-res rows per task group at least: fixed, so partial sums never depend on the thread count.
 constexpr int64_t kGroupRows = 16;
 
-struct SpacetimeOptions {
-  double sigma_s, sigma_r;
-  int64_t tree_height, power_iterations;
-  bool adjust_outliers;
-};
-
 // One frame of the window that splats (tau > 0).
 template <typename T>
 struct Frame {
@@ -52,56 +47,19 @@ struct Frame {
   Scratch<uint8_t> ms;  // (H, W) splat mask when not all_finite
 };
 
-// Power iteration u = M v, v = u / |u| from ones / sqrt(D) on the D x D matrix M (row-major); the
-// channel of largest spread (first on ties) when |u| <= eps trace(M) or |u| is not finite at any step.
-template <typename T>
-std::vector<T> dominant_direction(const std::vector<double>& M, int64_t D, int64_t iterations) {
-  std::vector<double> v(D, 1.0 / std::sqrt(static_cast<double>(D))), u(D);
-  std::vector<T> out(D, T(0));
-  double trace = 0;
-  for (int64_t d = 0; d < D; ++d) trace += M[d * D + d];
-  const double eps = static_cast<double>(std::numeric_limits<T>::epsilon());
-  bool collapsed = false;
-  for (int64_t it = 0; it < iterations; ++it) {
-    double norm = 0;
-    for (int64_t a = 0; a < D; ++a) {
-      double s = 0;
-      for (int64_t b = 0; b < D; ++b) s += M[a * D + b] * v[b];
-      u[a] = s;
-      norm += s * s;
-    }
-    norm = std::sqrt(norm);
-    const bool bad = !(norm > eps * trace) || !std::isfinite(norm);
-    collapsed = collapsed || bad;
-    if (!bad)
-      for (int64_t d = 0; d < D; ++d) v[d] = u[d] / norm;
-  }
-  if (collapsed) {
-    int64_t k = 0;
-    for (int64_t d = 1; d < D; ++d)
-      if (M[d * D + d] > M[k * D + k]) k = d;
-    out[k] = T(1);
-  } else {
-    for (int64_t d = 0; d < D; ++d) out[d] = static_cast<T>(v[d]);
-  }
-  return out;
-}
-
 template <typename T>
 class SpacetimeFilter {
  public:
   // values/guide: the image's T frames ((T, C, H, W) / (T, D, H, W)); tau: (T,) this query's time
   // weights; query: (D, H, W); out: (C, H, W).
   SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query, T* out,
-                  int64_t C, int64_t D, int64_t H, int64_t W, const SpacetimeOptions& opt)
+                  int64_t C, int64_t D, int64_t H, int64_t W, const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt), df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         bpg_(std::max<int64_t>(1, kGroupRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
         gram_stride_(gram_band_stride(H, W)), ty_(H, Hl_, df_), tx_(W, Wl_, df_), q_in_(query), S_(out),
         frames_(frames) {
-    const double fmax = static_cast<double>(std::numeric_limits<T>::max());
-    const double r2 = opt.sigma_r * opt.sigma_r;
-    inv_r2_ = static_cast<T>(r2 > 0 ? std::min(1.0 / r2, fmax) : fmax);
+    inv_r2_ = inverse_square<T>(opt.sigma_r);
     half_inv_r2_ = static_cast<T>(0.5 * static_cast<double>(inv_r2_));
     ss_low_ = opt.sigma_s / static_cast<double>(df_);
     sr_low_ = opt.sigma_r / std::sqrt(2.0);
@@ -134,14 +92,8 @@ class SpacetimeFilter {
   }
 
  private:
-  struct Node {
-    int64_t id;  // heap id: children 2 id, 2 id + 1
-    Scratch<T> eta;  // (D, Hl, Wl)
-  };
-  struct Sliced {
-    int64_t n = 0;
-    Scratch<T> w, P;  // (n, H, W) slice weights, (n, C + 1, Hl, Wl) blurred splats
-  };
+  using Node = ManifoldNode<T>;
+  using Sliced = LevelSlices<T>;
 
   template <typename F>
   void rows_parallel(int64_t work_per_row, const F& fn) {
@@ -151,13 +103,7 @@ class SpacetimeFilter {
   // Block sums of the block row bi in `planes` planes (stride Nl_) -> means over the pixels that
   // exist in each block (a partial edge block averages fewer, as avg_pool2d with ceil_mode).
   void block_means(T* p, int64_t planes, int64_t bi) const {
-    const int64_t rows = std::min(H_, (bi + 1) * df_) - bi * df_;
-    const T full = static_cast<T>(rows * df_), last = static_cast<T>(rows * (W_ - (Wl_ - 1) * df_));
-    for (int64_t c = 0; c < planes; ++c) {
-      T* q = p + c * Nl_ + bi * Wl_;
-      for (int64_t bj = 0; bj + 1 < Wl_; ++bj) q[bj] /= full;
-      q[Wl_ - 1] /= last;
-    }
+    to_block_means(p + bi * Wl_, planes, std::min(H_, (bi + 1) * df_) - bi * df_, df_, W_, Wl_, Nl_);
   }
 
   // Up(eta) of `planes` planes at full-res row i into out ((planes, W)).
@@ -185,13 +131,7 @@ class SpacetimeFilter {
   }
 
   std::vector<RowUpsampler<T>> upsamplers(const std::vector<const T*>& low, int64_t planes) const {
-    std::vector<RowUpsampler<T>> ups;
-    ups.reserve(low.size());
-    for (const T* l : low) {
-      ups.emplace_back(planes, Hl_, Wl_, W_, ty_, tx_);
-      ups.back().reset(l);
-    }
-    return ups;
+    return make_upsamplers(low, planes, Hl_, Wl_, W_, ty_, tx_);
   }
 
   // 2., 6. of the reference on the query guide: its mask, the root manifold
@@ -242,22 +182,9 @@ class SpacetimeFilter {
       return;
     }
     root_eta_.resize(D_ * Nl_);
-    const T* den = acc.data() + D_ * Nl_;
-    for (int64_t d = 0; d < D_; ++d)
-      for (int64_t i = 0; i < Nl_; ++i)
-        root_eta_[d * Nl_ + i] = den[i] > T(0) ? acc[d * Nl_ + i] / den[i] : T(0);
     gs_buf_.resize(D_ * N_);
-    rows_parallel(3 * D_, [&](int64_t b, int64_t e) {
-      std::vector<T> tmp(Wl_), up(W_);
-      for (int64_t i = b; i < e; ++i)
-        for (int64_t d = 0; d < D_; ++d) {
-          upsample_row(root_eta_.data() + d * Nl_, 1, Hl_, Wl_, i, W_, ty_, tx_, tmp.data(), up.data());
-          const uint8_t* m = mq_.data() + i * W_;
-          const T* src = q_in_ + d * N_ + i * W_;
-          T* dst = gs_buf_.data() + d * N_ + i * W_;
-          for (int64_t j = 0; j < W_; ++j) dst[j] = m[j] ? src[j] : up[j];
-        }
-    });
+    masked_root_and_guide(acc.data(), q_in_, mq_.data(), D_, H_, W_, Hl_, Wl_, ty_, tx_, root_eta_.data(),
+                          gs_buf_.data());
     gs_ = gs_buf_.data();
   }
 
@@ -302,18 +229,11 @@ class SpacetimeFilter {
         }
       });
     }
-    c_.assign(C_, T(0));
-    for (int64_t c = 0; c < C_; ++c) {
-      T l = std::numeric_limits<T>::infinity(), h = -l;
-      for (int64_t r = 0; r < nf * H_; ++r) l = std::min(l, lo[r * C_ + c]), h = std::max(h, hi[r * C_ + c]);
-      const T mid = l + (h - l) / T(2);
-      c_[c] = std::isfinite(mid) ? mid : T(0);
-    }
+    c_ = channel_centres(lo, hi, nf * H_, C_);
   }
 
-  bool in_cluster(int64_t depth, const int32_t* lr, int32_t id, int64_t row, int64_t j) const {
-    return depth == 0 ? all_q_ || mq_[row + j] != 0 : lr[j] == id;
-  }
+  // The query guide's mask at the row at offset `row`, nullptr when every query sample is finite.
+  const uint8_t* query_mask(int64_t row) const { return all_q_ ? nullptr : mq_.data() + row; }
 
   // 8. Each node's split direction from M = sum r r^T, r = gs - up(eta) on its cluster, over the
   // rows of every gram_stride_-th band: partial sums per fixed group of rows, added in order.
@@ -321,8 +241,8 @@ class SpacetimeFilter {
     const int64_t n = static_cast<int64_t>(level.size());
     const int64_t msize = D_ * (D_ + 1) / 2;
     std::vector<std::vector<T>> v(n);
-    if (opt_.power_iterations <= 0) {
-      for (auto& x : v) x.assign(D_, static_cast<T>(1.0 / std::sqrt(static_cast<double>(D_))));
+    if (opt_.power_iterations <= 0) {  // no M to sum
+      for (auto& x : v) x = split_direction<T>(nullptr, 0, D_, 0);
       return v;
     }
     std::vector<double> mpart(n * groups_ * msize, 0.0);
@@ -340,13 +260,14 @@ class SpacetimeFilter {
           if ((i / kGramBand) % gram_stride_ != 0) continue;
           const int64_t row = i * W_;
           const int32_t* lr = depth > 0 ? label_.data() + row : nullptr;
+          const uint8_t* mq = query_mask(row);
           for (int64_t k = 0; k < n; ++k) {
             eta_row(eta[k], D_, i, W_, res.data());
             const int32_t id = static_cast<int32_t>(level[k].id);
             for (int64_t d = 0; d < D_; ++d) {
               T* r = res.data() + d * W_;
               const T* g = gs_ + d * N_ + row;
-              for (int64_t j = 0; j < W_; ++j) r[j] = in_cluster(depth, lr, id, row, j) ? g[j] - r[j] : T(0);
+              for (int64_t j = 0; j < W_; ++j) r[j] = in_cluster(depth, lr, mq, id, j) ? g[j] - r[j] : T(0);
             }
             gram_upper_row(res.data(), D_, W_, mrow.data() + k * msize);
           }
@@ -356,15 +277,8 @@ class SpacetimeFilter {
             mpart[(k * groups_ + grp) * msize + m] = static_cast<double>(mrow[k * msize + m]);
       }
     });
-    for (int64_t k = 0; k < n; ++k) {
-      std::vector<double> M(D_ * D_, 0.0), tri(msize, 0.0);
-      for (int64_t g = 0; g < groups_; ++g)
-        for (int64_t m = 0; m < msize; ++m) tri[m] += mpart[(k * groups_ + g) * msize + m];
-      int64_t m = 0;
-      for (int64_t a = 0; a < D_; ++a)
-        for (int64_t b = a; b < D_; ++b, ++m) M[a * D_ + b] = M[b * D_ + a] = tri[m];
-      v[k] = dominant_direction<T>(M, D_, opt_.power_iterations);
-    }
+    for (int64_t k = 0; k < n; ++k)
+      v[k] = split_direction<T>(mpart.data() + k * groups_ * msize, groups_, D_, opt_.power_iterations);
     return v;
   }
 
@@ -402,13 +316,7 @@ class SpacetimeFilter {
             distance_row(gs_, row, e.data(), dist.data());
             T* wr = sl.w.data() + k * N_ + row;
             exp_neg_scaled_row(dist.data(), inv_r2_, wr, W_);
-            if (opt_.adjust_outliers) {
-              T* mr = minD_.data() + row;
-              if (depth == 0)
-                std::copy(dist.begin(), dist.end(), mr);
-              else
-                for (int64_t j = 0; j < W_; ++j) mr[j] = std::min(mr[j], dist[j]);
-            }
+            if (opt_.adjust_outliers) update_min_distance(depth, dist.data(), minD_.data() + row, W_);
             // every frame splats with its own guide's weight times its time weight
             T* pk = sl.P.data() + k * pnode;
             for (int64_t a = 0; a < nf; ++a) {
@@ -443,18 +351,7 @@ class SpacetimeFilter {
               const T* er = e.data() + d * W_;
               for (int64_t j = 0; j < W_; ++j) t0[j] += vd * (g[j] - er[j]);
             }
-            for (int64_t j = 0; j < W_; ++j) {
-              const bool in = in_cluster(depth, lr, id, row, j);
-              const bool plus = t0[j] >= T(0);
-              const T theta = T(1) - wr[j];
-              t0[j] = in && !plus ? theta : T(0);
-              t1[j] = in && plus ? theta : T(0);
-              if (!keep_labels) continue;
-              if (in)
-                lr[j] = 2 * id + (plus ? 1 : 0);
-              else if (depth == 0)
-                lr[j] = 0;  // label 0 is never a node
-            }
+            split_sides(depth, id, keep_labels, lr, query_mask(row), wr, t0.data(), t1.data(), W_);
             T* q = Q.data() + k * 2 * qside;
             for (int64_t d = 0; d < D_; ++d) {
               const T* g = gs_ + d * N_ + row;
@@ -469,41 +366,10 @@ class SpacetimeFilter {
         if (!leaf) block_means(Q.data(), n * 2 * (D_ + 1), bi);
       }
     });
-    for (int64_t k = 0; k < n; ++k) {
-      Scratch<T> ah, av;
-      ah.resize(Nl_);
-      av.resize(Nl_);
-      domain_transform_coefficients(level[k].eta.data(), D_, Hl_, Wl_, ss_low_, sr_low_, ah.data(), av.data());
-      domain_transform_planes(sl.P.data() + k * pnode, C_ + 1, Hl_, Wl_, ah.data(), av.data());
-    }
+    blur_level(level, sl.P.data(), C_ + 1, D_, Hl_, Wl_, ss_low_, sr_low_);
     sliced_.push_back(std::move(sl));
-    std::vector<Node> next;
-    if (leaf) return next;
-
-    // children: eta = h(down(theta gs)) / h(down(theta)), the parent's manifold where 0/0; a child
-    // with no mass (theta >= 0, so any positive block mean means a positive sum) is pruned
-    std::vector<int64_t> made;
-    for (int64_t c = 0; c < 2 * n; ++c) {
-      const T* q0 = Q.data() + c * qside + D_ * Nl_;
-      if (std::any_of(q0, q0 + Nl_, [](T x) { return x > T(0); })) made.push_back(c);
-    }
-    lowpass_planes(Q.data(), 2 * n * (D_ + 1), Hl_, Wl_, ss_low_);
-    for (int64_t c : made) {
-      next.push_back({2 * level[c / 2].id + c % 2, Scratch<T>()});
-      next.back().eta.resize(D_ * Nl_);
-    }
-    const int64_t m = static_cast<int64_t>(made.size());
-    parallel_work(0, m * D_, 2 * Nl_, [&](int64_t b, int64_t e) {
-      for (int64_t t = b; t < e; ++t) {
-        const int64_t c = made[t / D_], d = t % D_;
-        const T* q = Q.data() + c * qside + d * Nl_;
-        const T* q0 = Q.data() + c * qside + D_ * Nl_;
-        const T* parent = level[c / 2].eta.data() + d * Nl_;
-        T* eta = next[t / D_].eta.data() + d * Nl_;
-        for (int64_t i = 0; i < Nl_; ++i) eta[i] = q0[i] > T(0) ? q[i] / q0[i] : parent[i];
-      }
-    });
-    return next;
+    if (leaf) return {};
+    return children(level, Q, D_, Hl_, Wl_, ss_low_);
   }
 
   // S = sum over levels and nodes of w up(blur P), S0 likewise; out = c + S / S0 where S0 clears the
@@ -511,56 +377,27 @@ class SpacetimeFilter {
   void slice_and_finish() {
     int64_t nodes = 0;
     for (const Sliced& l : sliced_) nodes += l.n;
-    const T s0_floor = std::numeric_limits<T>::min() / std::numeric_limits<T>::epsilon();
     rows_parallel(20 + 12 * C_ + 4 * (C_ + 1) * nodes, [&](int64_t b, int64_t e) {
-      std::vector<T> s0(W_), fb(C_ * W_), alpha(W_), up(W_);
+      std::vector<T> s0(W_), fb(C_ * W_), alpha(W_);
       std::vector<uint8_t> has(W_);
-      std::vector<std::vector<RowUpsampler<T>>> ups;
-      for (const Sliced& l : sliced_) {
-        std::vector<const T*> blurred(l.n);
-        for (int64_t k = 0; k < l.n; ++k) blurred[k] = l.P.data() + k * (C_ + 1) * Nl_;
-        ups.push_back(upsamplers(blurred, C_ + 1));
-      }
+      std::vector<std::vector<RowUpsampler<T>>> ups = slice_upsamplers(sliced_, C_, Hl_, Wl_, W_, ty_, tx_);
       for (int64_t i = b; i < e; ++i) {
         const int64_t row = i * W_;
         std::fill(s0.begin(), s0.end(), T(0));
         for (int64_t c = 0; c < C_; ++c) std::fill_n(S_ + c * N_ + row, W_, T(0));
         for (size_t l = 0; l < sliced_.size(); ++l)
-          for (int64_t k = 0; k < sliced_[l].n; ++k) {
-            RowUpsampler<T>& u = ups[l][k];
-            const T fy = u.seek(i);
-            const T* wr = sliced_[l].w.data() + k * N_ + row;
-            for (int64_t c = 0; c <= C_; ++c) {
-              T* s = c < C_ ? S_ + c * N_ + row : s0.data();
-              const T* bb = u.base(c);
-              const T* db = u.delta(c);
-              for (int64_t j = 0; j < W_; ++j) s[j] += wr[j] * (bb[j] + fy * db[j]);
-            }
-          }
-        int64_t low = 0;
-        for (int64_t j = 0; j < W_; ++j) low += !(s0[j] > s0_floor);
-        if (low == 0 && !opt_.adjust_outliers) {
-          for (int64_t c = 0; c < C_; ++c) {
-            T* out = S_ + c * N_ + row;
-            for (int64_t j = 0; j < W_; ++j) out[j] = c_[c] + out[j] / s0[j];
-          }
+          for (int64_t k = 0; k < sliced_[l].n; ++k)
+            slice_row(ups[l][k], sliced_[l].w.data() + k * N_ + row, i, false, S_ + row, C_, N_, W_,
+                      s0.data());
+        if (all_above_floor(s0.data(), W_) && !opt_.adjust_outliers) {
+          normalise_row<T>(S_ + row, N_, s0.data(), nullptr, 0, nullptr, c_, C_, W_);
           continue;
         }
         fallback_row(row, fb.data(), has.data());
-        if (opt_.adjust_outliers) {
-          exp_neg_scaled_row(minD_.data() + row, half_inv_r2_, alpha.data(), W_);
-          for (int64_t j = 0; j < W_; ++j) alpha[j] = has[j] ? alpha[j] : T(1);
-        }
-        for (int64_t c = 0; c < C_; ++c) {
-          T* out = S_ + c * N_ + row;
-          const T* f = fb.data() + c * W_;
-          for (int64_t j = 0; j < W_; ++j) {
-            const T mean = c_[c] + out[j] / (s0[j] > s0_floor ? s0[j] : T(1));
-            out[j] = s0[j] > s0_floor ? mean : f[j];
-          }
-          if (opt_.adjust_outliers)
-            for (int64_t j = 0; j < W_; ++j) out[j] = f[j] + alpha[j] * (out[j] - f[j]);
-        }
+        if (opt_.adjust_outliers)
+          outlier_alpha_row(minD_.data() + row, half_inv_r2_, has.data(), alpha.data(), W_);
+        normalise_row(S_ + row, N_, s0.data(), fb.data(), W_, opt_.adjust_outliers ? alpha.data() : nullptr, c_, C_,
+                      W_);
       }
     });
   }
@@ -592,7 +429,7 @@ class SpacetimeFilter {
   }
 
   const int64_t C_, D_, H_, W_, N_;
-  const SpacetimeOptions opt_;
+  const FilterOptions opt_;
   const int64_t df_, Hl_, Wl_, Nl_, bpg_, groups_, gram_stride_;
   const Taps<T> ty_, tx_;
   const T* q_in_;
@@ -657,7 +494,7 @@ at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::T
                    q = query_guide.contiguous();
   at::Tensor out = at::empty({B, Q, C, H, W}, values.options());
   if (out.numel() == 0) return out;
-  const SpacetimeOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
+  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
     for (int64_t b = 0; b < B; ++b)
