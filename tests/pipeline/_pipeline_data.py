@@ -7,19 +7,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "mitsuba" / "cbox_glossy_tex"
-if not DATA.is_dir():
-    DATA = Path("/work/shared/data/mitsuba/cbox_glossy_tex")
 FEATURES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z", "P.X", "P.Y", "P.Z"]
 
 
-def load_clip(kind: str, frames, crop=None):
-    """(T,3,H,W) colour (and (T,D,H,W) features for 1-spp frames) of the sample clip."""
+def load_clip(data: Path, kind: str, frames, crop=None):
+    """(T,3,H,W) colour (and (T,D,H,W) features for 1-spp frames) of the sample clip in ``data`` (the
+    ``mitsuba_dir`` fixture)."""
     from torchmanifold.io import read_exr
 
     cols, feats = [], []
     for i in frames:
-        d = read_exr(DATA / f"{kind}_{i:04d}.exr")
+        d = read_exr(data / f"{kind}_{i:04d}.exr")
         sl = (slice(None), slice(None)) if crop is None else crop
         cols.append(np.stack([d[c][sl] for c in "RGB"]))
         if kind == "frame":

@@ -6,7 +6,6 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from _pipeline_data import DATA
 from torchmanifold.cli import main
 from torchmanifold.io import read_exr, read_render_frame, write_exr
 
@@ -16,9 +15,9 @@ CROP = (slice(96, 160), slice(80, 176))  # 64 x 96 of the Mitsuba clip: the sphe
 ROT = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, -0.8], [-0.8, 0.0, -0.6]], np.float32)
 
 
-def blender_passes(i: int) -> dict[str, dict[str, np.ndarray]]:
-    """Frame i of the Mitsuba clip as Blender 5 would lay it out: ``{pass: {channel: (H, W)}}``."""
-    d = read_exr(DATA / f"frame_{i:04d}.exr")
+def blender_passes(data, i: int) -> dict[str, dict[str, np.ndarray]]:
+    """Frame i of the Mitsuba clip in ``data`` as Blender 5 would lay it out: ``{pass: {channel: (H, W)}}``."""
+    d = read_exr(data / f"frame_{i:04d}.exr")
     d = {k: v[CROP] for k, v in d.items()}
     n = np.stack([d[f"N.{c}"] for c in "XYZ"])
     ncam = np.einsum("ij,jhw->ihw", ROT, n)
@@ -60,8 +59,8 @@ def run(capsys, *args):
     return rc, cap.out, cap.err
 
 
-def test_multipart_and_single_part_read_the_same(tmp_path, mitsuba_available):
-    passes = blender_passes(0)
+def test_multipart_and_single_part_read_the_same(tmp_path, mitsuba_dir):
+    passes = blender_passes(mitsuba_dir, 0)
     a = read_render_frame(write_blender(tmp_path / "multi.exr", passes, multipart=True))
     with OpenEXR.File(str(tmp_path / "multi.exr"), separate_channels=True) as f:
         assert len(f.parts) == len(passes)  # really one part per pass
@@ -82,7 +81,7 @@ def test_multipart_and_single_part_read_the_same(tmp_path, mitsuba_available):
         assert any("Depth.Z" in n and "1e+10" in n for n in fr.notes)
 
 
-def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_available):
+def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_dir):
     import torch
 
     from torchmanifold import metrics as M
@@ -91,9 +90,9 @@ def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_available):
     src.mkdir()
     flat.mkdir()
     for i in range(2):
-        passes = blender_passes(i)
+        passes = blender_passes(mitsuba_dir, i)
         write_blender(src / f"frame_{i:04d}.exr", passes, multipart=i == 0)  # both kinds in one clip
-        d = read_exr(DATA / f"frame_{i:04d}.exr")
+        d = read_exr(mitsuba_dir / f"frame_{i:04d}.exr")
         write_exr(flat / f"frame_{i:04d}.exr", {k: v[CROP] for k, v in d.items()})
     paths = sorted(src.glob("*.exr"))
     rc, out, err = run(capsys, *paths, "--out", tmp_path / "out")
@@ -106,9 +105,9 @@ def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_available):
         assert sorted(d) == [f"{LAYER}.Combined.{c}" for c in "ABGR"]  # the input's layout, alpha kept
         np.testing.assert_array_equal(d[f"{LAYER}.Combined.A"], 1.0)
         den = torch.from_numpy(np.stack([d[f"{LAYER}.Combined.{c}"] for c in "RGB"]))
-        ref = read_exr(DATA / f"reference_{i:04d}.exr")
+        ref = read_exr(mitsuba_dir / f"reference_{i:04d}.exr")
         ref = torch.from_numpy(np.stack([ref[c][CROP] for c in "RGB"]))
-        raw = torch.from_numpy(np.stack([blender_passes(i)["Combined"][c] for c in "RGB"]))
+        raw = torch.from_numpy(np.stack([blender_passes(mitsuba_dir, i)["Combined"][c] for c in "RGB"]))
         assert M.psnr(den, ref) > M.psnr(raw, ref) + 5
     # with the same features, the Blender clip gives exactly what the Mitsuba files of it give
     same = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
@@ -124,8 +123,8 @@ def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_available):
             np.testing.assert_array_equal(b[c], f[c])
 
 
-def test_combined_only_is_denoised_and_says_so(tmp_path, capsys, mitsuba_available):
-    p = write_blender(tmp_path / "c.exr", {"Combined": blender_passes(0)["Combined"]})
+def test_combined_only_is_denoised_and_says_so(tmp_path, capsys, mitsuba_dir):
+    p = write_blender(tmp_path / "c.exr", {"Combined": blender_passes(mitsuba_dir, 0)["Combined"]})
     rc, out, err = run(capsys, p, "--out", tmp_path / "out")
     assert rc == 0, err
     assert json.loads(out.strip().splitlines()[-1])["feature_channels"] == []
@@ -169,10 +168,10 @@ CASES = [(c, m) for c in sorted(BAD) for m in (True, False) if m or c != "smalle
 
 
 @pytest.mark.parametrize("case,multipart", CASES)
-def test_bad_blender_input_is_refused_by_name(tmp_path, capsys, mitsuba_available, case, multipart):
+def test_bad_blender_input_is_refused_by_name(tmp_path, capsys, mitsuba_dir, case, multipart):
     edit, expected = BAD[case]
-    good = write_blender(tmp_path / "good.exr", blender_passes(1))
-    bad = write_blender(tmp_path / f"{case}.exr", edit(blender_passes(0)), multipart)
+    good = write_blender(tmp_path / "good.exr", blender_passes(mitsuba_dir, 1))
+    bad = write_blender(tmp_path / f"{case}.exr", edit(blender_passes(mitsuba_dir, 0)), multipart)
     out = tmp_path / "out"
     rc, _, err = run(capsys, good, bad, "--out", out)  # the bad frame second: fails after reading the first
     assert rc == 2
@@ -182,8 +181,8 @@ def test_bad_blender_input_is_refused_by_name(tmp_path, capsys, mitsuba_availabl
     assert not out.exists() or not list(out.rglob("*.exr"))  # nothing written half-way
 
 
-def test_partly_nan_features_are_masked_and_reported(tmp_path, capsys, mitsuba_available):
-    passes = blender_passes(0)
+def test_partly_nan_features_are_masked_and_reported(tmp_path, capsys, mitsuba_dir):
+    passes = blender_passes(mitsuba_dir, 0)
     passes["Denoising Albedo"]["G"][10:12, 10:13] = np.nan
     rc, out, err = run(capsys, write_blender(tmp_path / "n.exr", passes), "--out", tmp_path / "out")
     assert rc == 0, err
@@ -192,8 +191,8 @@ def test_partly_nan_features_are_masked_and_reported(tmp_path, capsys, mitsuba_a
     assert np.isfinite(read_exr(tmp_path / "out" / "n.exr")[f"{LAYER}.Combined.G"]).all()
 
 
-def test_several_view_layers_need_a_choice(tmp_path, capsys, mitsuba_available):
-    passes = blender_passes(0)
+def test_several_view_layers_need_a_choice(tmp_path, capsys, mitsuba_dir):
+    passes = blender_passes(mitsuba_dir, 0)
     chans = {}
     for layer in ("Front", "Back.001"):  # Blender names copies with a dot: the layer name holds one
         for p, cs in passes.items():

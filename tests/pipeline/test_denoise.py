@@ -25,9 +25,9 @@ def best_classic(c, f, ref) -> float:
 
 
 @pytest.fixture(scope="module")
-def clip(mitsuba_available):
-    c, f = load_clip("frame", [3, 4, 5], CROP)
-    return c, f, load_clip("reference", [3, 4, 5], CROP)
+def clip(mitsuba_dir):
+    c, f = load_clip(mitsuba_dir, "frame", [3, 4, 5], CROP)
+    return c, f, load_clip(mitsuba_dir, "reference", [3, 4, 5], CROP)
 
 
 def test_mitsuba_crop_beats_classic_filters(clip):

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-from _pipeline_data import DATA
 from torchmanifold.cli import main
 from torchmanifold.io import read_exr, write_exr
 from torchmanifold.pipeline import shards
@@ -42,13 +41,13 @@ def cluster(kill_flag):
 
 
 @pytest.fixture(scope="module")
-def clip(tmp_path_factory):
+def clip(tmp_path_factory, mitsuba_dir):
     """7 small frames whose brightness and position range differ per frame, so any statistic taken over
     more than a frame's window (scene extent, firefly floor) changes the result of a chunk."""
     src = tmp_path_factory.mktemp("clip")
     paths = []
     for k in range(N_FRAMES):
-        d = read_exr(DATA / f"frame_{k % 4:04d}.exr")
+        d = read_exr(mitsuba_dir / f"frame_{k % 4:04d}.exr")
         d = {n: v[96:120, 96:128].copy() for n, v in d.items()}
         for n in "RGB":
             d[n] *= 1.0 + 0.5 * k
