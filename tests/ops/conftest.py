@@ -1,4 +1,4 @@
-"""Fixtures of the filter tests: procedural natural-looking images and a Mitsuba crop."""
+"""Fixtures of the filter tests: procedural natural-looking images, a Mitsuba crop, thread-count restore."""
 import numpy as np
 import pytest
 import torch
@@ -30,3 +30,11 @@ def mitsuba_crop(mitsuba_dir):
     values = torch.from_numpy(np.clip(rgb, 0, 1)).double()[None]
     guide = torch.from_numpy(np.stack(feats)).double()[None]
     return values, guide
+
+
+@pytest.fixture
+def threads():
+    """Restores torch's thread count after a test that sets it."""
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)

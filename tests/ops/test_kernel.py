@@ -125,13 +125,6 @@ def test_noncontiguous_inputs(random_inputs):
     assert torch.equal(op(ft, gt, 8.0, 0.3, 2, 3, False), op(f, g, 8.0, 0.3, 2, 3, False))
 
 
-@pytest.fixture
-def threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("D,sigma_s", [(17, 12.0), (1, 4.0)])
 def test_thread_count_invariance(random_inputs, threads, dtype, D, sigma_s):

@@ -135,13 +135,6 @@ def test_queries_and_images_are_independent():
             assert torch.equal(whole[b : b + 1, q : q + 1], one)
 
 
-@pytest.fixture
-def threads():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_thread_count_invariance(threads, dtype):
     # large enough (above the serial-work threshold of parallel_work) that every pass really splits
