@@ -340,19 +340,17 @@ class ProgressiveRenderer:
             for key, v in st.items():
                 stats_all[key] = stats_all.get(key, 0) + v
             x = interpolate(samples, ft, q)
-            gauss = gaussian_baseline(x[None], self.gaussian_sigma * self._schedule.factor(i))[0]
-            # accumulate: "ours" is the latest filtered mean, kept as i times itself in the sums
-            ours = y[0].double()
-            if self.scheme == "accumulate":
-                ours = ours * i - (0 if self._sums is None else self._sums[qi, 0])
-            rows[qi] = torch.stack([ours, x.double(), gauss.double()])
+            gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
+            rows[qi] = torch.stack([y[0], x, gauss]).double()
             if self.progress is not None:
                 self.progress(1)
         new = torch.stack(rows)
         if self._sums is None:
-            self._sums = new.double()
+            self._sums = new
         else:
             self._sums += new
+        if self.scheme == "accumulate":  # "ours" is the latest filtered mean: i times itself in the sums
+            self._sums[:, ESTIMATES.index("ours")] = new[:, ESTIMATES.index("ours")] * i
         self.iteration = i
         stats_all["firefly_energy_removed"] = stats_all.get("firefly_energy_removed", 0.0) / len(qt)
         avg = (self._sums / i).float()
