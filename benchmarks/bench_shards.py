@@ -28,6 +28,7 @@ from torchmanifold.io import read_exr, write_exr
 from torchmanifold.pipeline import shards
 from torchmanifold.pipeline.denoise import DenoiseSettings
 from torchmanifold.pipeline.job import denoise_files
+from torchmanifold.pipeline.render_job import render_query_times
 from torchmanifold.pipeline.progressive import ProgressiveRenderer
 from torchmanifold.render import PathTracer, default_scene
 
@@ -120,7 +121,7 @@ def test_render_throughput(cluster, tmp_path, quick):
 def test_render_halo_plan():
     """Frame renders per owned frame-iteration, from the plan, for a 240-frame clip at radius 1."""
     frames, rows = 240, []
-    times, query = shards.render_query_times(frames, 0)
+    times, query = render_query_times(frames, 0)
     for iterations in (4, 16, 64):
         for chunk in (8, 24, 60, 120):
             plan = shards.plan_chunks(range(frames), chunk, lambda o: (0, 0))

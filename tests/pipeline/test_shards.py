@@ -16,6 +16,7 @@ from torchmanifold.cli import main
 from torchmanifold.io import read_exr, write_exr
 from torchmanifold.pipeline import shards
 from torchmanifold.pipeline.denoise import DenoiseSettings
+from torchmanifold.pipeline.render_job import render_query_times
 from torchmanifold.pipeline.job import denoise_files, render_job
 
 ray = pytest.importorskip("ray", reason="requirements.txt installs ray; the sharded engine needs it")
@@ -80,7 +81,7 @@ def test_plan_and_cone():
     c = shards.plan_chunks([0, 1, 2, 5, 6, 7, 8], 3, shards.denoise_halo(9, 2))
     assert [(x.owned, x.lo, x.hi) for x in c] == [((0, 1, 2), 0, 4), ((5, 6, 7), 3, 8), ((8,), 6, 8)]
     # frames 0..9, radius 1, 3 iterations: owned 4, 5 need 3..6 after iteration 2 and 2..7 after iteration 1
-    times, query = shards.render_query_times(10, 0)
+    times, query = render_query_times(10, 0)
     keep, lo, hi = shards.render_cone(times, query, [4, 5], 1, 3)
     assert keep == [list(range(2, 8)), list(range(2, 8)), list(range(3, 7))]
     assert (lo, hi) == (1, 8)
@@ -121,7 +122,7 @@ def test_render_sharded_is_bitwise_one_process(cluster, render_reference, tmp_pa
     names = [f"frames/frame_{i:04d}.exr" for i in range(q)] + [f"png/frame_{i:04d}.png" for i in range(q)]
     _same_files(render_reference, out, names)
     s = res["shards"]
-    times, query = shards.render_query_times(RENDER["frames"], RENDER["inbetween"])
+    times, query = render_query_times(RENDER["frames"], RENDER["inbetween"])
     plan = shards.plan_chunks(range(q), chunk, lambda o: (0, 0))
     # the halo's cost: the engine renders exactly the planned cone of every chunk
     assert s["frames_traced"] == sum(shards.traced_frames(

@@ -75,6 +75,14 @@ def _resolve_scene(scene):
     return load_scene(scene), str(scene)
 
 
+def render_query_times(frames: int, inbetween: int) -> tuple[list[float], list[float]]:
+    """The frame times ``0 .. frames-1`` and the output (query) times: ``inbetween`` extra times between
+    each pair of frames."""
+    times = [float(t) for t in range(frames)]
+    step = 1.0 / (inbetween + 1)
+    return times, [t + k * step for t in times[:-1] for k in range(inbetween + 1)] + [times[-1]]
+
+
 def render_reference(tracer, query: Sequence[float], spp: int, seed: int, progress: bool = False):
     """The converged reference ``(Q, 3, H, W)`` at the query times: ``spp`` samples drawn in chunks
     of :data:`REFERENCE_CHUNK_SPP` with the job's seed + :data:`REFERENCE_SEED_OFFSET`, summed in
@@ -200,9 +208,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     settings = settings or DenoiseSettings(temporal_radius=1, mode="spacetime")
 
     tracer = PathTracer(scene_obj, width, height)
-    times = [float(t) for t in range(frames)]
-    step = 1.0 / (inbetween + 1)
-    query = [t + k * step for t in times[:-1] for k in range(inbetween + 1)] + [times[-1]]
+    times, query = render_query_times(frames, inbetween)
     moving_ids = scene_obj.moving_objects()
 
     t0 = time.perf_counter()

@@ -44,7 +44,7 @@ import torch
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
 from torchmanifold.timewindow import frame_at, window
 
-__all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "render_query_times", "traced_frames", "connect",
+__all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
            "shard_denoise", "shard_render", "MANIFEST", "RAY_VERSION"]
 
 #: the name of the manifest of finished frames, in the output folder
@@ -110,14 +110,6 @@ def plan_chunks(todo: Sequence[int], chunk: int, reads) -> list[Chunk]:
 def denoise_halo(n: int, r: int):
     """``reads`` of :func:`plan_chunks` for ``denoise``: owned frames ``a..b`` read ``a-r .. b+r``."""
     return lambda owned: (max(0, owned[0] - r), min(n - 1, owned[-1] + r))
-
-
-def render_query_times(frames: int, inbetween: int) -> tuple[list[float], list[float]]:
-    """The frame times and output (query) times of a render job: ``inbetween`` extra times between
-    each pair of frames, computed exactly as the one-process render job computes them."""
-    times = [float(t) for t in range(frames)]
-    step = 1.0 / (inbetween + 1)
-    return times, [t + k * step for t in times[:-1] for k in range(inbetween + 1)] + [times[-1]]
 
 
 def render_cone(times: Sequence[float], query: Sequence[float], owned: Sequence[int], radius: int,
@@ -617,24 +609,15 @@ def shard_render(out, scene=None, frames: int = 8, iterations: int = 16, width: 
     Raises:
         ValueError: bad arguments (named). ImportError, ConnectionError: as :func:`shard_denoise`.
     """
+    from torchmanifold.pipeline.render_job import _check_job_ints, _resolve_scene, render_query_times
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
-    from torchmanifold.render import default_scene, load_scene
-    from torchmanifold.render.scene import Scene
 
     if chunk is not None:
         _check_chunk(chunk)
-    for name, v, lo in (("frames", frames, 1), ("iterations", iterations, 1), ("width", width, 8),
-                        ("height", height, 8), ("reference_spp", reference_spp, 0), ("inbetween", inbetween, 0),
-                        ("seed", seed, 0)):
-        if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-            raise ValueError(f"{name} must be an int >= {lo}, got {v!r}")
+    _check_job_ints(frames=frames, iterations=iterations, width=width, height=height,
+                    reference_spp=reference_spp, inbetween=inbetween, seed=seed)
     alpha = DEFAULT_ALPHA if alpha is None else alpha
-    if scene is None:
-        scene_obj = default_scene()
-    elif isinstance(scene, Scene):
-        scene_obj = scene
-    else:
-        scene_obj = load_scene(scene)
+    scene_obj, _ = _resolve_scene(scene)
     settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
     times, query = render_query_times(frames, inbetween)
     ray, started = connect(address)
