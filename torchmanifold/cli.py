@@ -36,7 +36,11 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
 
     d = DenoiseSettings()
     g = p.add_argument_group("filter")
-    g.add_argument("--sigma-s", type=float, default=d.sigma_s, help="spatial sigma in pixels (%(default)s)")
+    g.add_argument("--sigma-s", type=float, default=d.sigma_s,
+                   help="reference spatial sigma in pixels, the unit of --bandwidths (%(default)s)")
+    g.add_argument("--bandwidths", type=float, nargs="+", default=list(d.bandwidths), metavar="FACTOR",
+                   help="spatial sigmas blended per pixel by their cross-validated error, as multiples of "
+                        "--sigma-s; one value filters at that bandwidth alone (%(default)s)")
     g.add_argument("--tree-height", type=int, default=tree_height,
                    help="manifold tree height (1 to %d; default %%(default)s)" % MAX_TREE_HEIGHT)
     g.add_argument("--guide", nargs="+", default=None, metavar="CHANNEL",
@@ -57,7 +61,7 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
 def _settings(a):
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
-    return DenoiseSettings(sigma_s=a.sigma_s, tree_height=a.tree_height, guide=a.guide,
+    return DenoiseSettings(sigma_s=a.sigma_s, bandwidths=tuple(a.bandwidths), tree_height=a.tree_height, guide=a.guide,
                            guide_sigmas=_guide_sigmas(a.guide_sigma), firefly=a.firefly, firefly_k=a.firefly_k,
                            demodulate=not a.no_demodulate, temporal_radius=a.temporal_radius,
                            sigma_t=a.sigma_t, mode=a.mode).check()

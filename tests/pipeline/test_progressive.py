@@ -229,13 +229,13 @@ def test_restart_repeats_the_first_iteration_and_on_render_sees_every_frame(smal
 def test_both_schemes_tend_to_the_raw_mean_as_the_bandwidth_vanishes(small_tracer):
     """Consistency: once the filter is the identity, "accumulate" shows the running mean of the samples
     at once, and "average" is the mean of the per-iteration images, the samples' mean again."""
-    tiny = DenoiseSettings(**{**EXACT, "sigma_s": 1e-3, "temporal_radius": 0, "albedo_blur": 0.0})
+    tiny = DenoiseSettings(**{**EXACT, "sigma_s": 1e-3, "temporal_radius": 0, "footprint_sigma": 0.0})
     avg = ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=tiny, scheme="average")
     st = avg.run(3)
     torch.testing.assert_close(st.ours, st.raw, atol=1e-5, rtol=1e-5)
     acc = ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=DenoiseSettings(**{**EXACT, "sigma_s": 3.0}))
     acc.run(2)
     assert (acc.history[-1].ours - acc.history[-1].raw).abs().max() > 1e-2  # filtered so far
-    acc.set_settings(sigma_s=1e-3, albedo_blur=0.0, sigma_t=1e-3)
+    acc.set_settings(sigma_s=1e-3, footprint_sigma=0.0, sigma_t=1e-3)
     st = acc.step()
     torch.testing.assert_close(st.ours, st.raw, atol=1e-5, rtol=1e-5)

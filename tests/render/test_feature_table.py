@@ -112,7 +112,7 @@ def test_synthetic_feature_flows_through(with_synthetic, tmp_path):
     c[..., 8:] = 1.0
     f = torch.zeros(1, 2, 16, 16)
     f[:, :, :, 8:] = 1.0
-    s = DenoiseSettings(firefly="none", sigma_s=4.0, radiance_sigma=0.0)  # Q the only guide
+    s = DenoiseSettings(firefly="none", sigma_s=4.0, radiance_sigma=0.0, footprint_sigma=0.0)  # Q the only guide
     guided = denoise_frames(c, f, ["Q.U", "Q.V"], settings=s)
     blind = denoise_frames(c, f[:, :0], [], settings=s)
     step = lambda y: float(y[0, 0, :, 8].mean() - y[0, 0, :, 7].mean())  # noqa: E731

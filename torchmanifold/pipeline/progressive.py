@@ -297,12 +297,12 @@ class ProgressiveRenderer:
         render_s = 0.0
         sig_s = self._schedule.sigma_s(i)
         rscale = self._schedule.sigma_r(i)
-        # the albedo's footprint blur and the time sigma are bandwidths too: they shrink with the
+        # the pixel footprint and the time sigma are bandwidths too: they shrink with the
         # schedule, so the filter tends to the identity (consistency); time by the square root of the
         # spatial factor, since neighbour frames are most of the samples early on (built-in scene, 10
         # iterations: 0.6 dB better than the spatial rate, 0.2 dB short of not shrinking at all)
         shrink = self._schedule.factor(i)
-        settings = replace(self._settings, sigma_s=sig_s, albedo_blur=self._settings.albedo_blur * shrink,
+        settings = replace(self._settings, sigma_s=sig_s, footprint_sigma=self._settings.footprint_sigma * shrink,
                            sigma_t=self._settings.sigma_t * shrink ** 0.5)
         k_ff = self._settings.firefly_k * i ** self.firefly_growth
         qt = self._query_times

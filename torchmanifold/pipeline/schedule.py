@@ -17,12 +17,11 @@ from torchmanifold._checks import check_int, check_number, check_positive
 
 __all__ = ["DEFAULT_ALPHA", "bandwidth_factors", "bandwidth_factor", "BandwidthSchedule"]
 
-#: default ``a``, chosen by measurement on the built-in scene (64x64, 2 frames, +-1 frame window, reference
-#: 256 spp; PSNR of ours at iterations 10 / 32 / 64): a=0.2: 24.57 / 26.07 / 27.54, a=0.5: 23.93 / 24.79 / -,
-#: a=2/3 (the progressive photon mapping choice): 23.61 / 24.08 / -, a=0.8: 23.39 / 23.78 / -, a=0.95: 23.14 /
-#: 23.64 / - (raw: 20.94 / 23.08 / 24.92). The running average keeps every early, wide-kernel iteration, so
-#: its bias falls like n^(a-1): a fast shrink pays.
-DEFAULT_ALPHA = 0.2
+#: default ``a``, chosen by measurement on the built-in scene (96x96, 4 frames, +-1 frame space-time window,
+#: reference 512 spp; PSNR of ours at iteration 10): a=0.2: 27.03, a=0.5: 27.82, a=0.7: 27.74 (plain path
+#: tracing at 128 spp: 27.55). The denoiser picks among bandwidths per pixel itself, so the schedule need not
+#: shrink fast; with one fixed bandwidth a=0.2 was best (64x64, 2 frames: 24.57 at a=0.2, 23.93 at a=0.5).
+DEFAULT_ALPHA = 0.5
 
 
 def _check_alpha(alpha) -> float:
