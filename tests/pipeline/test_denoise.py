@@ -47,22 +47,20 @@ def test_mitsuba_crop_beats_classic_filters(clip):
 def test_preprocessing_each_step_helps(clip):
     """Demodulation and firefly handling each pay off on real 1-spp frames (ablation)."""
     c, f, ref = clip
-    c, f, ref = c[:1], f[:1], ref[:1]
     full = M.psnr(denoise_frames(c, f, FEATURES), ref)
     no_ff = M.psnr(denoise_frames(c, f, FEATURES, settings=DenoiseSettings(firefly="none")), ref)
     no_demod = M.psnr(denoise_frames(c, f, FEATURES, settings=DenoiseSettings(demodulate=False)), ref)
-    assert full > no_ff + 0.15, (full, no_ff)
+    assert full > no_ff + 0.2, (full, no_ff)
     assert full > no_demod + 0.5, (full, no_demod)
 
 
 def test_bandwidth_selection_beats_every_bandwidth_it_blends(clip):
     """Per-pixel cross-validated blending of the bandwidths beats each of them alone on real frames."""
     c, f, ref = clip
-    c, f, ref = c[:1], f[:1], ref[:1]
     chosen = M.psnr(denoise_frames(c, f, FEATURES), ref)
     single = {b: M.psnr(denoise_frames(c, f, FEATURES, settings=DenoiseSettings(bandwidths=(b,))), ref)
               for b in DenoiseSettings().bandwidths}
-    assert chosen > max(single.values()) + 0.2, (chosen, single)
+    assert chosen > max(single.values()) + 0.1, (chosen, single)
 
 
 @pytest.mark.parametrize("radius,queries", [(0, None), (1, [0.0, 0.5, 1.0])])
