@@ -98,16 +98,13 @@ def _extent(x: Tensor, valid: Tensor) -> Tensor:
     sharded runs give the same frames)."""
     out = []
     for t in range(x.shape[0]):
-        spreads = []
-        for c in range(x.shape[1]):
-            v = x[t, c][valid[t, 0]]
-            if v.numel() < 2:
-                continue
-            if v.numel() > 200_000:  # quantile of a deterministic subsample is plenty
-                v = v[:: v.numel() // 100_000]
-            lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64))
-            spreads.append(float(hi - lo))
-        s = max(spreads) if spreads else 0.0
+        v = x[t][:, valid[t, 0]]  # (C, N)
+        s = 0.0
+        if v.shape[1] >= 2:
+            if v.shape[1] > 200_000:  # quantile of a deterministic subsample is plenty
+                v = v[:, :: v.shape[1] // 100_000]
+            lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64), dim=1)
+            s = float((hi - lo).max())
         out.append(s if s > 0 and math.isfinite(s) else 1.0)
     return torch.tensor(out, dtype=torch.float64)
 
@@ -334,11 +331,15 @@ class _Filter:
 
     def by_class(self, values: Tensor, mask: Tensor, flat: Tensor) -> Tensor:
         """Filter demodulated pixels and flat (not demodulated) ones apart: one holds irradiance, the
-        other radiance, and no guide channel tells a black or delta surface from a dark albedo."""
+        other radiance, and no guide channel tells a black or delta surface from a dark albedo. One op
+        call carries both classes (the op filters channels independently)."""
         if not bool(flat.any()):
             return self(values, mask)
-        out = self(values, mask * (~flat).to(mask.dtype))
-        own = self(values, mask * flat.to(mask.dtype))
+        m = [mask * (~flat).to(mask.dtype), mask * flat.to(mask.dtype)]
+        y = self.apply(torch.cat([values * m[0], m[0], values * m[1], m[1]], 1))
+        c = values.shape[1] + 1
+        out, own = (self.normalise(y[:, k * c:(k + 1) * c - 1], y[:, (k + 1) * c - 1:(k + 1) * c], values, m[k])
+                    for k in range(2))
         return torch.where(self.at_queries(flat.to(values.dtype)) > 0.5, own, out)
 
     def _guard(self, out: Tensor, values: Tensor, mask: Tensor) -> Tensor:
