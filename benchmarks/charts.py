@@ -218,6 +218,63 @@ def key_numbers(ds: dict) -> list:
     return out
 
 
+VALIDATION = RESULTS / "validation"
+FINDINGS = ROOT / "benchmarks" / "validation" / "findings.md"
+CLASSIC = ("gaussian", "joint-bilateral", "opencv-am")
+
+
+def validation_section(rel: str) -> list:
+    """Per-scene table of ``results/validation/scores.json`` (written by ``validation/score.py``) and the
+    findings behind the denoiser's defaults (``validation/findings.md``)."""
+    path = VALIDATION / "scores.json"
+    if not path.exists():
+        return []
+    res = json.loads(path.read_text())
+    meta = res.get("meta", {})
+    lines = ["## Validation set: renders from Mitsuba 3 and Blender Cycles", "",
+             "Seven clips from two renderers this project did not write (`benchmarks/README.md`: what each covers, "
+             "how to regenerate them); tuned on the `tune` scenes only, `test` scenes held out. Full tables with "
+             "relMSE, FLIP, ms/frame and moving-object masks: `benchmarks/results/validation/scores.md`; regenerate "
+             "with `.venv/bin/python benchmarks/validation/score.py` (it needs `pyoidn`, installed by the set-up), "
+             "then this file with `benchmarks/charts.py`.", "",
+             f"![validation PSNR]({rel}/validation/psnr.png)", "",
+             f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
+             f"{meta.get('cpu_count')} cores, torch threads {meta.get('torch_threads')}. PSNR (dB, clamped sRGB, mean "
+             "over all frames); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
+             "scene, an oracle choice) and OpenCV `amFilter`; ms: median per frame of ours and OIDN in the same "
+             "process, from 1 spp.", "",
+             "| scene | split | raw 1 spp | best classic | OIDN | ours | ours - OIDN | raw 4 spp | best classic | "
+             "OIDN | ours | ms ours / OIDN |", "|---" * 12 + "|"]
+    cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours")} for spp in ("1", "4")}
+    for name, sc in res["scenes"].items():
+        cells = []
+        for spp in ("1", "4"):
+            s = sc.get(spp)
+            if s is None:
+                cells += ["-"] * (5 if spp == "1" else 4)
+                continue
+            best = {f: s["methods"][m] for f, m in s["best_of_family"].items()}
+            row = {"raw": best["raw"]["psnr"], "classic": max(best[f]["psnr"] for f in CLASSIC if f in best),
+                   "oidn": best["oidn"]["psnr"], "ours": best["ours"]["psnr"]}
+            for k, v in row.items():
+                cols[spp][k].append(v)
+            cells += [_f(row[k]) for k in ("raw", "classic", "oidn", "ours")]
+            if spp == "1":
+                cells.append(f"{row['ours'] - row['oidn']:+.2f}")
+        one = sc.get("1")
+        ms = (f"{one['methods'][one['best_of_family']['ours']]['ms_median']:.0f} / "
+              f"{one['methods'][one['best_of_family']['oidn']]['ms_median']:.0f}") if one else "-"
+        lines.append(f"| {name} | {sc['split']} | " + " | ".join(cells) + f" | {ms} |")
+    mean = lambda v: _f(float(np.mean(v))) if v else "-"  # noqa: E731
+    m1, m4 = cols["1"], cols["4"]
+    gap = f"{np.mean(m1['ours']) - np.mean(m1['oidn']):+.2f}" if m1["ours"] else "-"
+    lines += [f"| **mean** | | {mean(m1['raw'])} | {mean(m1['classic'])} | {mean(m1['oidn'])} | **{mean(m1['ours'])}** | "
+              f"{gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | **{mean(m4['ours'])}** | |", ""]
+    if FINDINGS.exists():
+        lines += [FINDINGS.read_text().strip(), ""]
+    return lines
+
+
 def summary(folder: Path, rel: str) -> str:
     methods, sc, ab, pr = (load(folder, n) for n in ("methods", "scaling", "ablation", "progressive"))
     meta = next((d["meta"] for d in (methods, sc, ab, pr) if d), {})
@@ -286,6 +343,8 @@ def summary(folder: Path, rel: str) -> str:
             lines.append(f"| {s} | " + " | ".join(_f(ab["scenes"][sc_]["sets"].get(s, {}).get("psnr"))
                                                   for sc_ in ab["scenes"]) + " |")
         lines += ["", ab.get("conclusion", ""), ""]
+    if folder == RESULTS:  # the quick run scores no validation set
+        lines += validation_section(rel)
     return "\n".join(lines)
 
 
