@@ -106,10 +106,61 @@ def methods() -> list:
     return out
 
 
+#: a directly seen light: reference luminance above this many frame means (emitters are far brighter
+#: than anything they light; the sky of the open scenes stays under 3)
+LIGHT_LEVEL = 4.0
+#: the ring around lights whose energy is compared (issue 15: "a ring of 8 px")
+RING_PX = 8
+#: a caustic: a diffuse pixel (albedo luminance over 0.02) whose irradiance (reference / albedo) is at
+#: least this many times its 8-px neighbourhood's and the frame's mean: light focused by glass or a mirror
+CAUSTIC_LEVEL = 2.0
+MIN_REGION_PX = 20
+
+
+def _dilate(m: torch.Tensor, r: int) -> torch.Tensor:
+    return torch.nn.functional.max_pool2d(m.float(), 2 * r + 1, 1, r) > 0
+
+
+def energy_regions(ds: harness.Dataset) -> dict:
+    """Per-frame masks ``(F, 1, H, W)`` of the rings around lights and of caustics, from the reference
+    (frames with fewer than ``MIN_REGION_PX`` pixels in a region have it empty)."""
+    from torchmanifold.pipeline.denoise import footprint_blur, luminance
+
+    L = luminance(ds.reference.clamp_min(0))
+    mean = L.mean((1, 2, 3), keepdim=True)
+    light = L > LIGHT_LEVEL * mean
+    ring = _dilate(light, RING_PX) & ~_dilate(light, 1)
+    out = {"light_ring": ring}
+    if ds.albedo is not None:  # on irradiance (radiance / albedo), so texture is no caustic
+        a = luminance(ds.albedo.clamp(0, 1))
+        diffuse = (a > 0.02).float()
+        E = L / a.clamp_min(0.02) * diffuse
+        local = footprint_blur(E, 8.0) / footprint_blur(diffuse, 8.0).clamp_min(1e-6)
+        mean_e = E.sum((1, 2, 3), keepdim=True) / diffuse.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+        bright = (diffuse > 0) & ~light & (E > CAUSTIC_LEVEL * local) & (E > CAUSTIC_LEVEL * mean_e)
+        out["caustic"] = _dilate(~_dilate(~bright, 1), 1)  # opened: blobs, not sparkles or texture edges
+    for k, m in out.items():
+        out[k] = m & (m.sum((1, 2, 3), keepdim=True) >= MIN_REGION_PX)
+    return out
+
+
+def energy_ratios(out: torch.Tensor, ds: harness.Dataset, regions: dict) -> dict:
+    """Energy of ``out`` over the reference's in each region (1 = kept), over the frames that have it."""
+    from torchmanifold.pipeline.denoise import luminance
+
+    res = {}
+    for k, m in regions.items():
+        if bool(m.any()):
+            res[f"{k}_energy"] = float((luminance(out.clamp_min(0)) * m).sum() /
+                                       (luminance(ds.reference.clamp_min(0)) * m).sum())
+    return res
+
+
 def score(out: torch.Tensor, ds: harness.Dataset, extra: dict) -> dict:
     from torchmanifold import metrics
 
     res = harness.scores(out, ds.reference)
+    res.update(energy_ratios(out, ds, extra["regions"]))
     if "mask" in extra:
         m = extra["mask"]
         frames = [q for q in range(m.shape[0]) if float(m[q].sum()) >= 1.0]
@@ -119,11 +170,14 @@ def score(out: torch.Tensor, ds: harness.Dataset, extra: dict) -> dict:
     return res
 
 
-def run_scene(path: Path, spp: int, meths: list) -> dict:
+def run_scene(path: Path, spp: int, meths: list, strips: Path | None = None) -> dict:
     ds, extra = load_scene(path, spp)
+    extra["regions"] = energy_regions(ds)
     clip, alb = harness.clip_for(ds, use=GUIDE)
-    res = {"size": list(ds.color.shape[-2:]), "frames": ds.color.shape[0], "features": list(ds.names), "methods": {}}
+    res = {"size": list(ds.color.shape[-2:]), "frames": ds.color.shape[0], "features": list(ds.names), "methods": {},
+           "region_pixels": {k: int(m.sum()) for k, m in extra["regions"].items()}}
     res["methods"]["raw"] = {"family": "raw", **score(ds.color, ds, extra), "ms_median": 0.0}
+    outputs = {"input": ds.color, "reference": ds.reference}
     if "ref_b" in extra:
         q, rb = extra["ref_b"]
         res["reference_agreement_psnr"] = harness.scores(rb, ds.reference[q : q + 1], with_flip=False)["psnr"]
@@ -135,6 +189,8 @@ def run_scene(path: Path, spp: int, meths: list) -> dict:
         out = torch.where(finite, out, ds.color)
         r.update(score(out, ds, extra))
         res["methods"][m.name] = r
+        if m.family in ("oidn", "ours"):
+            outputs[m.family] = out
     # Per family, the member with the best PSNR on this scene (Gaussian: best sigma; bilateral: best sigma_r).
     best = {}
     for name, r in res["methods"].items():
@@ -142,7 +198,29 @@ def run_scene(path: Path, spp: int, meths: list) -> dict:
         if f not in best or r["psnr"] > res["methods"][best[f]]["psnr"]:
             best[f] = name
     res["best_of_family"] = best
+    if strips is not None:
+        res["worst_frame"] = worst_frame_strip(outputs, strips / f"{path.name}_{spp}spp.png")
     return res
+
+
+def worst_frame_strip(outputs: dict, png: Path) -> int:
+    """Input, ours, OIDN and reference of the frame where ours scores lowest, above their error maps
+    (4x the absolute sRGB error); written to ``png``. Returns the frame index."""
+    from PIL import Image
+
+    from torchmanifold import metrics
+
+    ref = outputs["reference"]
+    q = int(np.argmin([metrics.psnr(outputs["ours"][k], ref[k]) for k in range(ref.shape[0])]))
+    names = ["input", "ours", "oidn", "reference"]
+    srgb = {n: metrics.linear_to_srgb(outputs[n][q].clamp(0, 1)) for n in names}
+    err = {n: (4 * (srgb[n] - srgb["reference"]).abs().mean(0, keepdim=True)).expand(3, -1, -1) for n in names}
+    img = torch.cat([torch.cat([srgb[n] for n in names], -1), torch.cat([err[n] for n in names], -1)], -2)
+    img = (img.clamp(0, 1).permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    scale = max(1, 256 // ref.shape[-2])
+    png.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(img).resize((img.shape[1] * scale, img.shape[0] * scale), Image.NEAREST).save(png)
+    return q
 
 
 def resolve(entry: dict, data_root: Path | None) -> Path:
@@ -215,6 +293,23 @@ def markdown(results: dict, split: dict) -> str:
         row = family_row(s)
         lines.append(f"| {name} | " + " | ".join(
             f"{row[f]['psnr_moving']:.2f} / {row[f]['psnr_static']:.2f}" if f in row else "-" for f in FAMILIES) + " |")
+    lines += ["", "## Energy kept (from 1 spp; ratio of the output's luminance to the reference's, 1 = kept)", "",
+              f"Light ring: pixels 2 to {RING_PX} px from a directly seen light (reference luminance over "
+              f"{LIGHT_LEVEL:g} frame means). Caustic: diffuse pixels over {CAUSTIC_LEVEL:g} times both their 8-px "
+              "neighbourhood and the frame mean. Scenes without such regions are left out.", "",
+              "| scene | region (px) | " + " | ".join(FAMILIES) + " |", "|---" * (len(FAMILIES) + 2) + "|"]
+    for name, sc in results["scenes"].items():
+        s = sc.get("1")
+        if s is None:
+            continue
+        row = family_row(s)
+        for region, px in s.get("region_pixels", {}).items():
+            key = f"{region}_energy"
+            if px and key in s["methods"]["raw"]:
+                lines.append(f"| {name} | {region} ({px}) | " + " | ".join(
+                    f"{row[f][key]:.3f}" if f in row and key in row[f] else "-" for f in FAMILIES) + " |")
+    lines += ["", "Worst frame of ours per scene (input, ours, OIDN, reference; 4x sRGB error below): "
+              "`strips/<scene>_<spp>spp.png`.", ""]
     lines += ["", "## Best setting per scene", "", "| scene | spp | gaussian | joint bilateral |", "|---|---|---|---|"]
     for name, sc in results["scenes"].items():
         for spp in ("1", "4"):
@@ -296,7 +391,7 @@ def main(argv=None):
               "path": str(path)}
         for spp in args.spp:
             t0 = time.perf_counter()
-            sc[str(spp)] = run_scene(path, spp, meths)
+            sc[str(spp)] = run_scene(path, spp, meths, args.out / "strips")
             tqdm.write(f"{name} {spp} spp: {time.perf_counter() - t0:.0f} s; " + ", ".join(
                 f"{f} {r['psnr']:.2f}" for f, r in family_row(sc[str(spp)]).items()))
         results["scenes"][name] = sc
