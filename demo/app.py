@@ -143,7 +143,7 @@ class DemoApp(WindowConfig):
         params = FilterParams(
             sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
             tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
-            temporal_mode=args.temporal_mode,
+            temporal_mode=args.temporal_mode, adaptive=args.adaptive,
         )
         self.progression = DemoSession(self.tracer, self.frame_times, params, seed=args.seed, reference=reference,
                                        threads=args.threads or None)
@@ -342,7 +342,7 @@ class DemoApp(WindowConfig):
             f" (waited {st['trace_wait_ms']:5.1f})   filter {st['filter_ms']:6.1f}   display {st['display_ms']:5.1f}",
             f"sigma_s {p.sigma_s:.2f} -> {sigma_s:.2f}   sigma_r {p.sigma_r:.3f} -> {sigma_r:.3f}   a {p.a:.2f}",
             f"time window +-{p.time_window} ({p.temporal_mode})   tree height {p.tree_height}   clamp "
-            + (f"{p.clamp:g}" if p.clamp else "off"),
+            + (f"{p.clamp:g}" if p.clamp else "off") + f"   bandwidth {'adaptive' if p.adaptive else 'fixed'}",
             f"feature set {p.feature_set}: {guide}",
             f"clip {len(prog.frame_times)} frames  {self.tracer.width}x{self.tracer.height}   exposure "
             f"{self.exposure:.2f}   trace {'ahead' if self.tracer.prefetch else 'in turn'}",
@@ -412,6 +412,8 @@ def add_demo_arguments(parser) -> None:
     g.add_argument("--clamp", type=float, default=d.clamp,
                    help="firefly clamp: 1-spp samples above this multiple of the running estimate are clamped; "
                         f"it grows as sqrt(iteration); 0 = off (default {d.clamp})")
+    g.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=d.adaptive,
+                   help="per-pixel bandwidth selection (sharper, about 3x the filter time; default off)")
     g.add_argument("--exposure", type=float, default=1.0)
     g.add_argument("--threads", type=int, default=1,
                    help="torch threads for the filter, 0 = torch's default (default 1: the images are small)")
@@ -448,7 +450,7 @@ def validate_args(args) -> None:
         raise ValueError("--screenshot with --headless needs --frames N > 0")
     FilterParams(sigma_s=args.sigma_s, sigma_r=args.sigma_r, a=args.a, time_window=args.time_window,
                  tree_height=args.tree_height, feature_set=args.feature_set, clamp=args.clamp,
-                 temporal_mode=args.temporal_mode)
+                 temporal_mode=args.temporal_mode, adaptive=args.adaptive)
 
 
 def image_size_argv(argv: list[str]) -> list[str]:

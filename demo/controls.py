@@ -53,6 +53,9 @@ class FilterParams:
     (0 = off); the multiple grows as sqrt(iteration), so its bias fades and the result stays consistent.
     temporal_mode: "window" (average the window, then filter: the paper's accumulation) or "spacetime"
     (joint filter, no ghosts of moving objects; slower).
+    adaptive: per-pixel bandwidth selection (the denoiser's default: sigma_s x 0.5..4 blended by a
+    cross-validated error); off filters at sigma_s alone, the demo's default because it costs about
+    three times the filter time (see :class:`torchmanifold.pipeline.DenoiseSettings`).
     """
 
     sigma_s: float = 3.0
@@ -63,6 +66,7 @@ class FilterParams:
     feature_set: str = "albedo+normal+depth"
     clamp: float = DenoiseSettings.firefly_k  # the engine's default threshold
     temporal_mode: str = "window"
+    adaptive: bool = False
 
     def __post_init__(self):
         if not self.sigma_s >= 1.0:
@@ -105,6 +109,7 @@ BINDINGS = (
     ("NUMBER_0", "height_up", "tree height + 1"),
     ("G", "feature_set", "next feature set (guide channels)"),
     ("C", "clamp", "firefly clamp on / off"),
+    ("B", "adaptive", "per-pixel bandwidth selection on / off (sharper, ~3x filter time)"),
     ("F", "feature_view", "show next feature buffer instead of raw"),
     ("M", "heat_source", "heat map of raw / gaussian / ours"),
     ("MINUS", "exposure_down", "exposure / 1.5"),
@@ -148,6 +153,8 @@ def adjust_params(params: FilterParams, action: str) -> FilterParams | None:
         return p.with_(temporal_mode=next_in(TEMPORAL_MODES, p.temporal_mode))
     if action == "clamp":
         return p.with_(clamp=0.0 if p.clamp > 0 else FilterParams().clamp)
+    if action == "adaptive":
+        return p.with_(adaptive=not p.adaptive)
     if action == "feature_set":
         return p.with_(feature_set=next_in(FEATURE_SETS, p.feature_set))
     return None

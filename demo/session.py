@@ -17,6 +17,7 @@ import torch
 
 from demo.controls import FEATURE_GROUPS, FEATURE_SETS, SIGMA_R_UNSCALED, FilterParams
 from torchmanifold.metrics import psnr
+from torchmanifold.pipeline import DenoiseSettings
 from torchmanifold.pipeline.progressive import ESTIMATES, ProgressiveRenderer
 from torchmanifold.timewindow import frame_at, interpolate
 
@@ -56,6 +57,7 @@ def engine_settings(p: FilterParams, feature_names) -> dict:
         tree_height=p.tree_height,
         guide=guide_channels(p.feature_set, feature_names) or None,
         firefly="clamp" if p.clamp > 0 else "none",
+        bandwidths=DenoiseSettings().bandwidths if p.adaptive else (1.0,),
         **({"firefly_k": p.clamp} if p.clamp > 0 else {}),
     )
 

@@ -179,7 +179,7 @@ def live_app():
     ("a_up", "a", 1), ("a_down", "a", -1),
     ("window_up", "time_window", 1), ("window_down", "time_window", -1),
     ("height_up", "tree_height", 1), ("height_down", "tree_height", -1),
-    ("clamp", "clamp", -1), ("clamp", "clamp", 1),
+    ("clamp", "clamp", -1), ("clamp", "clamp", 1), ("adaptive", "adaptive", 1), ("adaptive", "adaptive", -1),
 ])
 def test_parameter_keys_change_and_restart(live_app, action, field, direction):
     app = live_app
