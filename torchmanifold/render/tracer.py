@@ -88,11 +88,12 @@ def _feature_slots(feature_names: Sequence[str]) -> list[int]:
     return slots
 
 
-def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str]) -> str:
+def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str],
+                   aux_pass: bool = False) -> str:
     src = SHADER_PATH.read_text()
     slots = ", ".join(str(s) for s in _feature_slots(feature_names))
     defines = (f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
-               f"#define OUTPUT_SLOTS {slots}\n" + shader_defines())
+               f"#define AUX_PASS {int(aux_pass)}\n#define OUTPUT_SLOTS {slots}\n" + shader_defines())
     src = src.replace("#version 430\n", defines, 1)
     return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
 
@@ -170,6 +171,7 @@ class PathTracer:
         self._times_buf: moderngl.Buffer | None = None
         self._batches: list[dict[str, moderngl.Buffer]] = []
         self._batch_frames: list[int] = []  # frames each batch holds
+        self._aux_times: list[bytes | None] = []  # the frame times each batch's aux buffer was made for
         self._last: dict | None = None
         self._set_scene_uniforms()
 
@@ -196,6 +198,9 @@ class PathTracer:
             bake_scene = max(len(self.scene.objects), len(packed["keys"])) <= MAX_BAKED_OBJECTS
         self.baked = bool(bake_scene)
         self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked, self.feature_names))
+        # object ids and motion do not depend on the samples: their own program, run when frame times change
+        self._aux_program = self.ctx.compute_shader(
+            _shader_source(packed, self.has_mesh, self.baked, self.feature_names, aux_pass=True))
         names = _SCENE_BUFFERS + (_MESH_BUFFERS if self.has_mesh else ())
         self._scene_bufs = {BINDINGS[n]: self.ctx.buffer(packed[n].tobytes()) for n in names}
 
@@ -214,8 +219,9 @@ class PathTracer:
         self._set("u_up", tuple(float(x) for x in scene.camera.up))
 
     def _set(self, name: str, value) -> None:
-        if name in self.program:  # the GLSL compiler drops unused uniforms
-            self.program[name].value = value
+        for program in (self.program, self._aux_program):
+            if name in program:  # the GLSL compiler drops unused uniforms
+                program[name].value = value
 
     @property
     def buffers(self) -> list[tuple[int, int, dict[str, moderngl.Buffer]]]:
@@ -254,10 +260,11 @@ class PathTracer:
                 "aux": self.ctx.buffer(reserve=3 * plane * need),
             }
             if b < len(self._batches):
-                self._batches[b], self._batch_frames[b] = bufs, need
+                self._batches[b], self._batch_frames[b], self._aux_times[b] = bufs, need, None
             else:
                 self._batches.append(bufs)
                 self._batch_frames.append(need)
+                self._aux_times.append(None)
 
     def dispatch(
         self,
@@ -305,6 +312,13 @@ class PathTracer:
             for key in _OUTPUT_BUFFERS:
                 self._batches[b][key].bind_to_storage_buffer(BINDINGS[key])
             self._set("u_frame_base", f0)
+            batch_times = times_np[f0:f0 + nb].astype(np.float32).tobytes()
+            if self._aux_times[b] != batch_times:
+                for x0, y0 in tiles:
+                    self._set("u_tile_origin", (x0, y0))
+                    self._set("u_tile_size", (tw, th))
+                    self._aux_program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
+                self._aux_times[b] = batch_times
             done = 0
             while done < spp:
                 chunk = min(self.spp_per_dispatch, spp - done)
@@ -409,8 +423,10 @@ class PathTracer:
         if self._times_buf is not None:
             self._times_buf.release()
         self.program.release()
-        self.program = None
-        self._scene_bufs, self._batches, self._batch_frames, self._times_buf = {}, [], [], None
+        self._aux_program.release()
+        self.program = self._aux_program = None
+        self._scene_bufs, self._batches, self._batch_frames, self._aux_times = {}, [], [], []
+        self._times_buf = None
 
     def __enter__(self) -> "PathTracer":
         return self

@@ -15,6 +15,9 @@ layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 #ifndef CONST_SCENE
 #define CONST_SCENE 0
 #endif
+#ifndef AUX_PASS
+#define AUX_PASS 0  // 1: the program of the sample-free pass (object ids, motion) instead of the path tracer
+#endif
 
 const float PI = 3.14159265358979;
 const float INF = 1e30;
@@ -368,15 +371,47 @@ vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
 }
 
 // ---------------------------------------------------------------- main
-void main() {
+// this invocation's pixel and frame (index into this batch's output buffers); false outside the tile/image
+bool invocation_pixel(out ivec2 pix, out int f) {
     ivec2 local = ivec2(gl_GlobalInvocationID.xy);
-    if (local.x >= u_tile_size.x || local.y >= u_tile_size.y) return;
-    ivec2 pix = u_tile_origin + local;
-    if (pix.x >= u_size.x || pix.y >= u_size.y) return;
-    int f = int(gl_GlobalInvocationID.z);
-    float ftime = frame_times[u_frame_base + f];  // f indexes this batch's output buffers
-    int W = u_size.x, H = u_size.y;
-    int plane = W * H, pidx = pix.y * W + pix.x;
+    pix = u_tile_origin + local;
+    f = int(gl_GlobalInvocationID.z);
+    return all(lessThan(local, u_tile_size)) && all(lessThan(pix, u_size));
+}
+
+#if AUX_PASS
+// object id and screen-space motion of the pixel-centre first hit at the frame time: sample-free, so the
+// host runs this pass only when a batch's frame times change, not once per sample chunk
+void main() {
+    ivec2 pix;
+    int f;
+    if (!invocation_pixel(pix, f)) return;
+    float ftime = frame_times[u_frame_base + f];
+    int plane = u_size.x * u_size.y, base3 = f * 3 * plane + pix.y * u_size.x + pix.x;
+    Camera c0 = camera_at(ftime), c1 = camera_at(ftime + 1.0);
+    vec2 centre = vec2(pix) + 0.5;
+    vec3 d0 = camera_dir(c0, centre);
+    Hit h;
+    float id = -1.0;
+    vec3 p1;
+    if (intersect(c0.eye, d0, 0.0, INF, ftime, h)) {
+        id = float(h.prim);
+        p1 = c0.eye + h.t * d0 + prim_offset(h.prim, ftime + 1.0) - prim_offset(h.prim, ftime);
+    } else {
+        p1 = c1.eye + d0 * 1e6;                         // direction at infinity: camera rotation only
+    }
+    vec2 mv = camera_project(c1, p1) - centre;
+    out_aux[base3] = id;
+    out_aux[base3 + plane] = mv.x;
+    out_aux[base3 + 2 * plane] = mv.y;
+}
+#else
+void main() {
+    ivec2 pix;
+    int f;
+    if (!invocation_pixel(pix, f)) return;
+    float ftime = frame_times[u_frame_base + f];
+    int plane = u_size.x * u_size.y, pidx = pix.y * u_size.x + pix.x;
 
     vec3 sum_c = vec3(0.0), sum_e = vec3(0.0);
     float feat[N_FEAT];
@@ -472,24 +507,5 @@ void main() {
         for (int k = 0; k < N_FEAT; ++k)
             if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] = feat[k];
     }
-
-    // object id and screen-space motion of the pixel-centre first hit at the frame time (sample-free)
-    if (u_accumulate == 0) {
-        Camera c0 = camera_at(ftime), c1 = camera_at(ftime + 1.0);
-        vec2 centre = vec2(pix) + 0.5;
-        vec3 d0 = camera_dir(c0, centre);
-        Hit h;
-        float id = -1.0;
-        vec3 p1;
-        if (intersect(c0.eye, d0, 0.0, INF, ftime, h)) {
-            id = float(h.prim);
-            p1 = c0.eye + h.t * d0 + prim_offset(h.prim, ftime + 1.0) - prim_offset(h.prim, ftime);
-        } else {
-            p1 = c1.eye + d0 * 1e6;                         // direction at infinity: camera rotation only
-        }
-        vec2 mv = camera_project(c1, p1) - centre;
-        out_aux[base3] = id;
-        out_aux[base3 + plane] = mv.x;
-        out_aux[base3 + 2 * plane] = mv.y;
-    }
 }
+#endif
