@@ -88,12 +88,20 @@ def _feature_slots(feature_names: Sequence[str]) -> list[int]:
     return slots
 
 
+#: the programs one tracer compiles from the shader (``PASS_<KIND>`` in GLSL): llvmpipe runs both sides of
+#: every branch, so each pass is its own program instead of a branch on a uniform
+PASSES = {"store": 0, "accumulate": 1, "aux": 2}
+
+
 def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str],
-                   aux_pass: bool = False) -> str:
+                   kind: str = "store") -> str:
+    """The shader of one of the :data:`PASSES`: ``store`` writes the sums of the first chunk of samples,
+    ``accumulate`` adds later chunks to them, ``aux`` writes the sample-free object ids and motion."""
     src = SHADER_PATH.read_text()
     slots = ", ".join(str(s) for s in _feature_slots(feature_names))
+    passes = "".join(f"#define PASS_{k.upper()} {v}\n" for k, v in PASSES.items())
     defines = (f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
-               f"#define AUX_PASS {int(aux_pass)}\n#define OUTPUT_SLOTS {slots}\n" + shader_defines())
+               f"{passes}#define PASS {PASSES[kind]}\n#define OUTPUT_SLOTS {slots}\n" + shader_defines())
     src = src.replace("#version 430\n", defines, 1)
     return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
 
@@ -197,10 +205,10 @@ class PathTracer:
         if bake_scene is None:
             bake_scene = max(len(self.scene.objects), len(packed["keys"])) <= MAX_BAKED_OBJECTS
         self.baked = bool(bake_scene)
-        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked, self.feature_names))
-        # object ids and motion do not depend on the samples: their own program, run when frame times change
-        self._aux_program = self.ctx.compute_shader(
-            _shader_source(packed, self.has_mesh, self.baked, self.feature_names, aux_pass=True))
+        self._source = lambda kind: _shader_source(packed, self.has_mesh, self.baked, self.feature_names, kind)
+        self._programs: dict[str, moderngl.ComputeShader] = {}
+        self._uniforms: dict[str, object] = {}
+        self.program = self._program("store")  # compiled now, so shader errors show here; the others on first use
         names = _SCENE_BUFFERS + (_MESH_BUFFERS if self.has_mesh else ())
         self._scene_bufs = {BINDINGS[n]: self.ctx.buffer(packed[n].tobytes()) for n in names}
 
@@ -218,10 +226,22 @@ class PathTracer:
         self._set("u_background", tuple(float(x) for x in scene.background))
         self._set("u_up", tuple(float(x) for x in scene.camera.up))
 
+    def _program(self, kind: str) -> moderngl.ComputeShader:
+        """The compiled program of pass ``kind`` (see :data:`PASSES`), compiled on first use."""
+        prog = self._programs.get(kind)
+        if prog is None:
+            prog = self._programs[kind] = self.ctx.compute_shader(self._source(kind))
+            for name, value in self._uniforms.items():
+                if name in prog:
+                    prog[name].value = value
+        return prog
+
     def _set(self, name: str, value) -> None:
-        for program in (self.program, self._aux_program):
-            if name in program:  # the GLSL compiler drops unused uniforms
-                program[name].value = value
+        """Set a uniform in every program (and in those compiled later)."""
+        self._uniforms[name] = value
+        for prog in self._programs.values():
+            if name in prog:  # the GLSL compiler drops unused uniforms
+                prog[name].value = value
 
     @property
     def buffers(self) -> list[tuple[int, int, dict[str, moderngl.Buffer]]]:
@@ -314,21 +334,22 @@ class PathTracer:
             self._set("u_frame_base", f0)
             batch_times = times_np[f0:f0 + nb].astype(np.float32).tobytes()
             if self._aux_times[b] != batch_times:
+                aux = self._program("aux")
                 for x0, y0 in tiles:
                     self._set("u_tile_origin", (x0, y0))
                     self._set("u_tile_size", (tw, th))
-                    self._aux_program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
+                    aux.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
                 self._aux_times[b] = batch_times
             done = 0
             while done < spp:
                 chunk = min(self.spp_per_dispatch, spp - done)
                 self._set("u_spp", chunk)
                 self._set("u_sample_start", sample_offset + done)
-                self._set("u_accumulate", int(done > 0))
+                program = self._program("accumulate" if done > 0 else "store")
                 for x0, y0 in tiles:
                     self._set("u_tile_origin", (x0, y0))
                     self._set("u_tile_size", (tw, th))
-                    self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
+                    program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
                     if progress:
                         self.ctx.finish()  # so the bar shows finished work, not queued work
                         bar.update()
@@ -422,9 +443,9 @@ class PathTracer:
             b.release()
         if self._times_buf is not None:
             self._times_buf.release()
-        self.program.release()
-        self._aux_program.release()
-        self.program = self._aux_program = None
+        for prog in self._programs.values():
+            prog.release()
+        self.program, self._programs = None, {}
         self._scene_bufs, self._batches, self._batch_frames, self._aux_times = {}, [], [], []
         self._times_buf = None
 

@@ -15,9 +15,9 @@ layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 #ifndef CONST_SCENE
 #define CONST_SCENE 0
 #endif
-#ifndef AUX_PASS
-#define AUX_PASS 0  // 1: the program of the sample-free pass (object ids, motion) instead of the path tracer
-#endif
+// PASS (from the host, tracer.py: PASSES): PASS_STORE / PASS_ACCUMULATE trace samples and store / add their
+// sums, PASS_AUX writes the sample-free object ids and motion. Separate programs, not a branch on a uniform:
+// llvmpipe executes both sides of every branch, and the additions' loads cost as much as the stores.
 
 const float PI = 3.14159265358979;
 const float INF = 1e30;
@@ -67,7 +67,6 @@ uniform int u_n_camkeys;
 uniform int u_spp;             // samples in this dispatch
 uniform uint u_sample_start;   // global index of the first sample of this dispatch
 uniform uint u_seed;
-uniform int u_accumulate;      // 0: overwrite the sums, 1: add to them
 uniform int u_n_feat;          // D
 uniform int u_max_depth;
 uniform int u_rr_depth;
@@ -379,7 +378,7 @@ bool invocation_pixel(out ivec2 pix, out int f) {
     return all(lessThan(local, u_tile_size)) && all(lessThan(pix, u_size));
 }
 
-#if AUX_PASS
+#if PASS == PASS_AUX
 // object id and screen-space motion of the pixel-centre first hit at the frame time: sample-free, so the
 // host runs this pass only when a batch's frame times change, not once per sample chunk
 void main() {
@@ -490,22 +489,18 @@ void main() {
         sum_c += L;
     }
 
-    // sums: the first chunk of samples stores, later ones add (a uniform branch, so the first reads nothing)
+    // sums: the first chunk of samples stores them, later chunks add to them
     int base3 = f * 3 * plane + pidx, basef = f * u_n_feat * plane + pidx;
-    if (u_accumulate != 0) {
-        for (int c = 0; c < 3; ++c) {
-            out_color[base3 + c * plane] += sum_c[c];
-            out_emission[base3 + c * plane] += sum_e[c];
-        }
-        for (int k = 0; k < N_FEAT; ++k)
-            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] += feat[k];
-    } else {
-        for (int c = 0; c < 3; ++c) {
-            out_color[base3 + c * plane] = sum_c[c];
-            out_emission[base3 + c * plane] = sum_e[c];
-        }
-        for (int k = 0; k < N_FEAT; ++k)
-            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] = feat[k];
+#if PASS == PASS_ACCUMULATE
+#define OUT(buf, i, v) buf[i] += v
+#else
+#define OUT(buf, i, v) buf[i] = v
+#endif
+    for (int c = 0; c < 3; ++c) {
+        OUT(out_color, base3 + c * plane, sum_c[c]);
+        OUT(out_emission, base3 + c * plane, sum_e[c]);
     }
+    for (int k = 0; k < N_FEAT; ++k)
+        if (feat_slot[k] >= 0) OUT(out_feat, basef + feat_slot[k] * plane, feat[k]);
 }
 #endif
