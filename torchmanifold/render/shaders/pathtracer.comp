@@ -84,16 +84,19 @@ uvec4 pcg4d(uvec4 v) {
 }
 uvec4 g_key;
 uint g_dim;
-// key = (pixel x, pixel y, sample index, hash(frame time bits, seed)); each draw hashes its dimension in.
-void rng_init(uvec2 pix, uint sample_index, float frame_time) {
-    uvec4 fk = pcg4d(uvec4(floatBitsToUint(frame_time), u_seed, 0x9E3779B9u, 0x85EBCA6Bu));
-    g_key = pcg4d(uvec4(pix.x, pix.y, sample_index, fk.x));
+// key = (pixel x, pixel y, sample index, frame_key = hash(frame time bits, seed)); each draw hashes its
+// dimension in and gives four numbers (pcg4d's four outputs): one hash per four, as call sites draw in fours
+void rng_init(uvec2 pix, uint sample_index, uint frame_key) {
+    g_key = pcg4d(uvec4(pix.x, pix.y, sample_index, frame_key));
     g_dim = 0u;
 }
-float rnd() {
+uint rng_frame_key(float frame_time) {
+    return pcg4d(uvec4(floatBitsToUint(frame_time), u_seed, 0x9E3779B9u, 0x85EBCA6Bu)).x;
+}
+vec4 rnd4() {
     uvec4 h = pcg4d(uvec4(g_key.x, g_key.y, g_key.z ^ g_dim, g_key.w + g_dim * 0x68E31DA4u));
     g_dim += 1u;
-    return float(h.x >> 8u) * (1.0 / 16777216.0);
+    return vec4(h >> 8u) * (1.0 / 16777216.0);
 }
 
 // ---------------------------------------------------------------- motion
@@ -313,13 +316,13 @@ vec3 cosine_dir(vec3 n, float u1, float u2) {
 }
 float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
 
-// next-event estimation: one light chosen uniformly; a sphere light samples the cone of directions it
-// subtends, a quad a point uniform on its area. Returns the radiance contribution (already / pdf) and the
-// unit shadow-ray direction.
-vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
+// next-event estimation: one light chosen uniformly (by u.x); a sphere light samples the cone of directions
+// it subtends, a quad a point uniform on its area (by u.yz). Returns the radiance contribution (already /
+// pdf) and the unit shadow-ray direction.
+vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, vec2 u, out vec3 sdir) {
     Prim lp = prims[li];
     vec3 off = lp.info.w > 0 ? prim_offset(li, time) : vec3(0.0);
-    float u1 = rnd(), u2 = rnd();
+    float u1 = u.x, u2 = u.y;
     float dist, inv_pdf;  // inv_pdf = 1 / (solid-angle pdf of sdir)
     sdir = vec3(0.0);
     if (lp.info.x == PRIM_SPHERE) {
@@ -355,17 +358,17 @@ vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, out vec3
     return le * (albedo / PI) * cos_x * inv_pdf * float(N_LIGHTS);
 }
 
-vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
-    int j = min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1);
+vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, vec3 u, out vec3 sdir) {
+    int j = min(int(u.x * float(N_LIGHTS)), N_LIGHTS - 1);
 #ifdef FOR_EACH_LIGHT
     // one specialised copy per light (constant index), as for FOR_EACH_PRIM
     vec3 r = vec3(0.0);
     sdir = vec3(0.0);
-#define SAMPLE_ONE_LIGHT(k) if (j == k) r = sample_light_prim(lights[k], p, n, albedo, time, sdir);
+#define SAMPLE_ONE_LIGHT(k) if (j == k) r = sample_light_prim(lights[k], p, n, albedo, time, u.yz, sdir);
     FOR_EACH_LIGHT(SAMPLE_ONE_LIGHT)
     return r;
 #else
-    return sample_light_prim(lights[j], p, n, albedo, time, sdir);
+    return sample_light_prim(lights[j], p, n, albedo, time, u.yz, sdir);
 #endif
 }
 
@@ -416,10 +419,12 @@ void main() {
     float feat[N_FEAT];
     for (int k = 0; k < N_FEAT; ++k) feat[k] = 0.0;
 
+    uint frame_key = rng_frame_key(ftime);
     for (int s = 0; s < u_spp; ++s) {
-        rng_init(uvec2(pix), u_sample_start + uint(s), ftime);
-        float time = ftime + (rnd() - 0.5) * u_shutter;
-        vec2 jitter = vec2(rnd(), rnd());
+        rng_init(uvec2(pix), u_sample_start + uint(s), frame_key);
+        vec4 r = rnd4();  // time, jitter x, y
+        float time = ftime + (r.x - 0.5) * u_shutter;
+        vec2 jitter = r.yz;
         Camera cam = camera_at(time);
         vec3 o = cam.eye;
         vec3 d = camera_dir(cam, vec2(pix) + jitter);
@@ -427,6 +432,9 @@ void main() {
         bool count_light = true;  // emission of sampled lights counts unless NEE already did
         feat[FEAT_T] += time;
         for (int depth = 0; depth < u_max_depth; ++depth) {
+            // this vertex's numbers, drawn whatever it needs: light choice and point, BSDF direction, glass
+            // reflect-or-refract, Russian roulette
+            vec4 ra = rnd4(), rb = rnd4();
             Hit h;
             if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
             Material m = h.m;
@@ -448,10 +456,10 @@ void main() {
             if (mtype == MAT_DIFFUSE) {
                 if (N_LIGHTS > 0) {
                     vec3 sdir;
-                    L += beta * sample_light(x, nf, albedo, time, sdir);
+                    L += beta * sample_light(x, nf, albedo, time, vec3(rb.x, ra.xy), sdir);
                     if (depth == 0) { feat[FEAT_SX] += sdir.x; feat[FEAT_SY] += sdir.y; feat[FEAT_SZ] += sdir.z; }
                 }
-                nd = cosine_dir(nf, rnd(), rnd());
+                nd = cosine_dir(nf, ra.z, ra.w);
                 beta *= albedo;
                 count_light = false;
             } else if (mtype == MAT_MIRROR) {
@@ -472,7 +480,7 @@ void main() {
                     float rp = (ci - eta * ct) / (ci + eta * ct);
                     fr = 0.5 * (rs * rs + rp * rp);
                 }
-                if (rnd() < fr) nd = reflect(d, nf);
+                if (rb.y < fr) nd = reflect(d, nf);
                 else nd = normalize(eta * d + (eta * ci - ct) * nf);
                 beta *= albedo;
                 count_light = true;
@@ -482,7 +490,7 @@ void main() {
             d = nd;
             if (depth + 1 >= u_rr_depth) {                 // Russian roulette
                 float q = min(0.95, max(beta.r, max(beta.g, beta.b)));
-                if (q <= 0.0 || rnd() >= q) break;
+                if (q <= 0.0 || rb.z >= q) break;
                 beta /= q;
             }
         }
