@@ -157,31 +157,27 @@ vec2 camera_project(Camera c, vec3 p) {
 // n: geometric normal, front side (outward / u x v). The hit primitive's material and light flag are
 // copied in as it is found: with an unrolled scene these are selects of constants, not per-lane gathers.
 struct Hit { float t; int prim; vec3 n; Material m; bool light; };
+// The tests below are branch-free: llvmpipe runs every branch anyway, and an early return masks all that follows.
 
 float hit_sphere(vec3 o, vec3 d, vec3 c, float r, float tmin) {
     vec3 oc = o - c;
     float b = dot(oc, d);
     vec3 h = oc - b * d;                      // stable discriminant (no huge b*b - c cancellation)
     float disc = r * r - dot(h, h);
-    if (disc < 0.0) return INF;
-    float s = sqrt(disc);
-    float t = -b - s;
-    if (t > tmin) return t;
-    t = -b + s;
-    return t > tmin ? t : INF;
+    float s = sqrt(max(disc, 0.0));
+    float t = -b - s > tmin ? -b - s : -b + s;
+    return (disc >= 0.0 && t > tmin) ? t : INF;
 }
 
 float hit_quad(vec3 o, vec3 d, vec3 q, vec3 u, vec3 v, float tmin) {
     vec3 n = cross(u, v);
     float den = dot(n, d);
-    if (abs(den) < 1e-12) return INF;
     float t = dot(n, q - o) / den;
-    if (t <= tmin) return INF;
-    vec3 p = o + t * d - q;
+    vec3 p = (o - q) + t * d;
     vec3 w = n / dot(n, n);
-    float a = dot(w, cross(p, v));
-    float b = dot(w, cross(u, p));
-    return (a >= 0.0 && a <= 1.0 && b >= 0.0 && b <= 1.0) ? t : INF;
+    float a = dot(p, cross(v, w));  // w . (p x v) = p . (v x w): constant vectors for a baked quad
+    float b = dot(p, cross(w, u));
+    return (abs(den) >= 1e-12 && t > tmin && min(a, b) >= 0.0 && max(a, b) <= 1.0) ? t : INF;
 }
 
 #if HAS_MESH
