@@ -427,6 +427,10 @@ void main() {
         vec3 L = vec3(0.0), beta = vec3(1.0);
         bool count_light = true;  // emission of sampled lights counts unless NEE already did
         feat[FEAT_T] += time;
+        // the first vertex's features, added to the sums after the path: accumulating them inside the bounce
+        // loop would cost at every vertex (llvmpipe executes the depth == 0 branches at every one)
+        float z1 = 0.0;
+        vec3 albedo1 = vec3(0.0), emission1 = vec3(0.0), le1 = vec3(0.0), n1 = vec3(0.0), s1 = vec3(0.0), d1 = vec3(0.0);
         for (int depth = 0; depth < u_max_depth; ++depth) {
             // this vertex's numbers, drawn whatever it needs: light choice and point, BSDF direction, glass
             // reflect-or-refract, Russian roulette
@@ -440,20 +444,13 @@ void main() {
             if (count_light || !h.light) L += beta * le;
             int mtype = int(m.color_type.w);
             vec3 albedo = m.color_type.rgb;
-            if (depth == 0) {
-                sum_e += le;
-                vec3 a = albedo;
-                vec3 e = m.emission_ior.rgb;
-                if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
-                feat[FEAT_Z] += h.t; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
-                feat[FEAT_NX] += nf.x; feat[FEAT_NY] += nf.y; feat[FEAT_NZ] += nf.z;
-            }
+            if (depth == 0) { z1 = h.t; albedo1 = albedo; emission1 = m.emission_ior.rgb; le1 = le; n1 = nf; }
             vec3 nd;
             if (mtype == MAT_DIFFUSE) {
                 if (N_LIGHTS > 0) {
                     vec3 sdir;
                     L += beta * sample_light(x, nf, albedo, time, vec3(rb.x, ra.xy), sdir);
-                    if (depth == 0) { feat[FEAT_SX] += sdir.x; feat[FEAT_SY] += sdir.y; feat[FEAT_SZ] += sdir.z; }
+                    if (depth == 0) s1 = sdir;
                 }
                 nd = cosine_dir(nf, ra.z, ra.w);
                 beta *= albedo;
@@ -468,20 +465,16 @@ void main() {
                 float eta = entering ? 1.0 / ior : ior;
                 float ci = -dot(d, nf);
                 float s2 = eta * eta * (1.0 - ci * ci);
-                float fr = 1.0;
-                float ct = 0.0;
-                if (s2 < 1.0) {
-                    ct = sqrt(1.0 - s2);
-                    float rs = (eta * ci - ct) / (eta * ci + ct);
-                    float rp = (ci - eta * ct) / (ci + eta * ct);
-                    fr = 0.5 * (rs * rs + rp * rp);
-                }
+                float ct = sqrt(max(1.0 - s2, 0.0));       // branch-free: total internal reflection is fr = 1
+                float rs = (eta * ci - ct) / (eta * ci + ct);
+                float rp = (ci - eta * ct) / (ci + eta * ct);
+                float fr = s2 < 1.0 ? 0.5 * (rs * rs + rp * rp) : 1.0;
                 if (rb.y < fr) nd = reflect(d, nf);
                 else nd = normalize(eta * d + (eta * ci - ct) * nf);
                 beta *= albedo;
                 count_light = true;
             }
-            if (depth == 0) { feat[FEAT_DX] += nd.x; feat[FEAT_DY] += nd.y; feat[FEAT_DZ] += nd.z; }
+            if (depth == 0) d1 = nd;
             o = x + (dot(nd, nf) > 0.0 ? nf : -nf) * ray_eps(x);
             d = nd;
             if (depth + 1 >= u_rr_depth) {                 // Russian roulette
@@ -491,6 +484,13 @@ void main() {
             }
         }
         sum_c += L;
+        sum_e += le1;
+        vec3 a = albedo1, e = emission1;  // emitters with black colour: emission / max as albedo
+        if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
+        feat[FEAT_Z] += z1; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
+        feat[FEAT_NX] += n1.x; feat[FEAT_NY] += n1.y; feat[FEAT_NZ] += n1.z;
+        feat[FEAT_SX] += s1.x; feat[FEAT_SY] += s1.y; feat[FEAT_SZ] += s1.z;
+        feat[FEAT_DX] += d1.x; feat[FEAT_DY] += d1.y; feat[FEAT_DZ] += d1.z;
     }
 
     // sums: the first chunk of samples stores them, later chunks add to them
