@@ -416,7 +416,10 @@ void main() {
     for (int k = 0; k < N_FEAT; ++k) feat[k] = 0.0;
 
     uint frame_key = rng_frame_key(ftime);
-    for (int s = 0; s < u_spp; ++s) {
+    // do-while loops (u_spp, u_max_depth >= 1): a loop that exits at its top runs one more, fully masked pass
+    // of its body on llvmpipe (it only leaves a loop when no lane is left at the bottom)
+    int s = 0;
+    do {
         rng_init(uvec2(pix), u_sample_start + uint(s), frame_key);
         vec4 r = rnd4();  // time, jitter x, y
         float time = ftime + (r.x - 0.5) * u_shutter;
@@ -431,7 +434,8 @@ void main() {
         // loop would cost at every vertex (llvmpipe executes the depth == 0 branches at every one)
         float z1 = 0.0;
         vec3 albedo1 = vec3(0.0), emission1 = vec3(0.0), le1 = vec3(0.0), n1 = vec3(0.0), s1 = vec3(0.0), d1 = vec3(0.0);
-        for (int depth = 0; depth < u_max_depth; ++depth) {
+        int depth = 0;
+        do {
             // this vertex's numbers, drawn whatever it needs: light choice and point, BSDF direction, glass
             // reflect-or-refract, Russian roulette
             vec4 ra = rnd4(), rb = rnd4();
@@ -482,7 +486,7 @@ void main() {
                 if (q <= 0.0 || rb.z >= q) break;
                 beta /= q;
             }
-        }
+        } while (++depth < u_max_depth);
         sum_c += L;
         sum_e += le1;
         vec3 a = albedo1, e = emission1;  // emitters with black colour: emission / max as albedo
@@ -491,7 +495,7 @@ void main() {
         feat[FEAT_NX] += n1.x; feat[FEAT_NY] += n1.y; feat[FEAT_NZ] += n1.z;
         feat[FEAT_SX] += s1.x; feat[FEAT_SY] += s1.y; feat[FEAT_SZ] += s1.z;
         feat[FEAT_DX] += d1.x; feat[FEAT_DY] += d1.y; feat[FEAT_DZ] += d1.z;
-    }
+    } while (++s < u_spp);
 
     // sums: the first chunk of samples stores them, later chunks add to them
     int base3 = f * 3 * plane + pidx, basef = f * u_n_feat * plane + pidx;
