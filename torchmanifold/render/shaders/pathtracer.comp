@@ -212,23 +212,24 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, bool any_hit, o
     stack[sp++] = root;
     float best = tmax;
     n = vec3(0.0, 1.0, 0.0);
-    while (sp > 0) {
+    do {  // do-while, as the tracer's other loops: a loop left at its top costs one more masked pass
         int ni = stack[--sp];
         vec4 a = nodes[2 * ni], b = nodes[2 * ni + 1];
         if (!hit_box(o, inv_d, a.xyz, b.xyz, best)) continue;
         int count = floatBitsToInt(b.w), first = floatBitsToInt(a.w);
         if (count > 0) {
-            for (int j = first; j < first + count; ++j) {
+            int j = first;
+            do {
                 vec3 v0 = tris[3 * j].xyz, v1 = tris[3 * j + 1].xyz, v2 = tris[3 * j + 2].xyz;
                 float t = hit_tri(o, d, v0, v1, v2, tmin);
                 if (t < best) { best = t; n = cross(v1 - v0, v2 - v0); }
-            }
+            } while (++j < first + count);
             if (any_hit && best < tmax) break;  // shadow rays need any hit, not the nearest
         } else if (sp < 31) {           // children: ni + 1 and `first`
             stack[sp++] = first;
             stack[sp++] = ni + 1;
         }
-    }
+    } while (sp > 0);
     n = normalize(n);
     return best;
 }
