@@ -72,6 +72,8 @@ def _scene_constants(packed: dict) -> str:
            if len(rows) <= MAX_UNROLLED_OBJECTS else "")
         + ("#define FOR_EACH_LIGHT(X) " + " ".join(f"X({i})" for i in range(packed["n_lights"])) + "\n"
            if 0 < packed["n_lights"] <= MAX_UNROLLED_OBJECTS else "")
+        + ("#define FOR_EACH_CAMSEG(X) " + " ".join(f"X({i})" for i in range(len(cams) - 1)) + "\n"
+           if len(cams) <= MAX_UNROLLED_OBJECTS else "")
         + arr("Prim", "prims", rows, len(rows))
         + arr("Material", "mats", mats, len(mats))
         + arr("vec4", "keys", keys, len(keys))

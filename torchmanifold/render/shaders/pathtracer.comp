@@ -114,24 +114,21 @@ vec3 prim_offset(int i, float t) {
 }
 
 struct Camera { vec3 eye; vec3 fwd; vec3 right; vec3 up; float tan_half; float aspect; };
+// the segment of keys j, j + 1: t past it takes key j + 1, t inside it interpolates (so keys are held before the
+// first and after the last)
+#define CAM_SEGMENT(j) { \
+    vec4 a0 = camkeys[2 * (j)], a1 = camkeys[2 * (j) + 1], b0 = camkeys[2 * (j) + 2], b1 = camkeys[2 * (j) + 3]; \
+    if (t > b0.x) { eye = b0.yzw; target = b1.xyz; fov = b1.w; } \
+    else if (t > a0.x) { float s = (t - a0.x) / max(b0.x - a0.x, 1e-12); \
+        eye = mix(a0.yzw, b0.yzw, s); target = mix(a1.xyz, b1.xyz, s); fov = mix(a1.w, b1.w, s); } }
 Camera camera_at(float t) {
-    int k = 0;
-    float s = 0.0;
-    if (N_CAMKEYS > 1 && t > camkeys[0].x) {
-        k = N_CAMKEYS - 1;
-        for (int j = 0; j < N_CAMKEYS - 1; ++j) {
-            if (t <= camkeys[2 * (j + 1)].x) {
-                s = (t - camkeys[2 * j].x) / max(camkeys[2 * (j + 1)].x - camkeys[2 * j].x, 1e-12);
-                k = j;
-                break;
-            }
-        }
-    }
-    int k1 = min(k + 1, N_CAMKEYS - 1);
-    if (k1 == k) s = 0.0;
-    vec3 eye = mix(camkeys[2 * k].yzw, camkeys[2 * k1].yzw, s);
-    vec3 target = mix(camkeys[2 * k + 1].xyz, camkeys[2 * k1 + 1].xyz, s);
-    float fov = mix(camkeys[2 * k + 1].w, camkeys[2 * k1 + 1].w, s);
+    vec3 eye = camkeys[0].yzw, target = camkeys[1].xyz;
+    float fov = camkeys[1].w;
+#ifdef FOR_EACH_CAMSEG
+    FOR_EACH_CAMSEG(CAM_SEGMENT)  // constant indices: selects of constants, not per-lane reads of the key found
+#else
+    for (int j = 0; j + 1 < N_CAMKEYS; ++j) CAM_SEGMENT(j)
+#endif
     Camera c;
     c.eye = eye;
     c.fwd = normalize(target - eye);
