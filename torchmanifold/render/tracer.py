@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence
 
@@ -25,6 +26,9 @@ MAX_BAKED_OBJECTS = 256  # scenes up to this size become shader constants
 # baked scenes up to this size test every object in straight-line code; measured on the 2-core VM, 64 spheres:
 # 33 s to compile (26 s as a loop), frames 4x faster than the loop
 MAX_UNROLLED_OBJECTS = 64
+# object ids and motion of recent frame times kept on the GPU: the progressive engine renders one frame per
+# call, in turn, and the sample-free pass costs about a tenth of a 1-spp frame on llvmpipe
+AUX_CACHE_BYTES = 64 << 20
 
 #: storage-buffer binding points (``BIND_<NAME>`` in the shader): scene inputs, then outputs
 BINDINGS = {
@@ -182,6 +186,7 @@ class PathTracer:
         self._batches: list[dict[str, moderngl.Buffer]] = []
         self._batch_frames: list[int] = []  # frames each batch holds
         self._aux_times: list[bytes | None] = []  # the frame times each batch's aux buffer was made for
+        self._aux_cache: OrderedDict[bytes, moderngl.Buffer] = OrderedDict()  # float32 time -> (3, H, W), LRU
         self._last: dict | None = None
         self._set_scene_uniforms()
 
@@ -288,6 +293,29 @@ class PathTracer:
                 self._batch_frames.append(need)
                 self._aux_times.append(None)
 
+    def _fill_aux(self, b: int, times32: np.ndarray, tiles: list[tuple[int, int]], tw: int, th: int) -> None:
+        """Object ids and motion of batch ``b``'s frames (float32 ``times32``): copied from the per-time cache when
+        it holds every frame, else made by the aux pass, whose frames then enter the cache."""
+        aux_buf, size = self._batches[b]["aux"], 3 * 4 * self.width * self.height
+        keys = [t.tobytes() for t in times32]
+        if all(k in self._aux_cache for k in keys):
+            for f, k in enumerate(keys):
+                self.ctx.copy_buffer(aux_buf, self._aux_cache[k], size, write_offset=f * size)
+                self._aux_cache.move_to_end(k)
+            return
+        aux = self._program("aux")
+        for x0, y0 in tiles:
+            self._set("u_tile_origin", (x0, y0))
+            self._set("u_tile_size", (tw, th))
+            aux.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), len(keys))
+        self.ctx.memory_barrier()  # the copies read what the pass wrote
+        for f, k in enumerate(keys):
+            buf = self._aux_cache.pop(k, None) or self.ctx.buffer(reserve=size)
+            self.ctx.copy_buffer(buf, aux_buf, size, read_offset=f * size)
+            self._aux_cache[k] = buf
+        while self._aux_cache and len(self._aux_cache) * size > AUX_CACHE_BYTES:
+            self._aux_cache.popitem(last=False)[1].release()
+
     def dispatch(
         self,
         times: Sequence[float] | torch.Tensor,
@@ -334,14 +362,10 @@ class PathTracer:
             for key in _OUTPUT_BUFFERS:
                 self._batches[b][key].bind_to_storage_buffer(BINDINGS[key])
             self._set("u_frame_base", f0)
-            batch_times = times_np[f0:f0 + nb].astype(np.float32).tobytes()
-            if self._aux_times[b] != batch_times:
-                aux = self._program("aux")
-                for x0, y0 in tiles:
-                    self._set("u_tile_origin", (x0, y0))
-                    self._set("u_tile_size", (tw, th))
-                    aux.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
-                self._aux_times[b] = batch_times
+            batch_times = times_np[f0:f0 + nb].astype(np.float32)
+            if self._aux_times[b] != batch_times.tobytes():
+                self._fill_aux(b, batch_times, tiles, tw, th)
+                self._aux_times[b] = batch_times.tobytes()
             done = 0
             while done < spp:
                 chunk = min(self.spp_per_dispatch, spp - done)
@@ -447,7 +471,9 @@ class PathTracer:
             self._times_buf.release()
         for prog in self._programs.values():
             prog.release()
-        self.program, self._programs = None, {}
+        for buf in self._aux_cache.values():
+            buf.release()
+        self.program, self._programs, self._aux_cache = None, {}, OrderedDict()
         self._scene_bufs, self._batches, self._batch_frames, self._aux_times = {}, [], [], []
         self._times_buf = None
 
