@@ -53,7 +53,7 @@ layout(std430, binding = BIND_EMISSION) buffer OutEmission { float out_emission[
 layout(std430, binding = BIND_FEATURES) buffer OutFeat { float out_feat[]; };         // (T, D, H, W) sums
 layout(std430, binding = BIND_AUX) buffer OutAux { float out_aux[]; };           // (T, 3, H, W): id, motion x, y
 #if HAS_MESH
-layout(std430, binding = BIND_NODES) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, left|first), (bmax, count)
+layout(std430, binding = BIND_NODES) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, right|first), (bmax, count|-1-axis)
 layout(std430, binding = BIND_TRIS) readonly buffer Tris { vec4 tris[]; };    // triples v0, v1, v2
 #endif
 
@@ -222,9 +222,10 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, bool any_hit, o
                 if (t < best) { best = t; n = cross(v1 - v0, v2 - v0); }
             } while (++j < first + count);
             if (any_hit && best < tmax) break;  // shadow rays need any hit, not the nearest
-        } else if (sp < 31) {           // children: ni + 1 and `first`
-            stack[sp++] = first;
-            stack[sp++] = ni + 1;
+        } else if (sp < 31) {           // children: ni + 1 (lower along the split axis) and `first`
+            bool lower_first = d[-1 - count] >= 0.0;   // the nearer child is popped first: `best` shrinks sooner
+            stack[sp++] = lower_first ? first : ni + 1;
+            stack[sp++] = lower_first ? ni + 1 : first;
         }
     } while (sp > 0);
     n = normalize(n);
