@@ -378,7 +378,7 @@ bool invocation_pixel(out ivec2 pix, out int f) {
 
 #if PASS == PASS_AUX
 // object id and screen-space motion of the pixel-centre first hit at the frame time: sample-free, so the
-// host runs this pass only when a batch's frame times change, not once per sample chunk
+// host runs this pass only for frame times it has not kept (tracer.py: AUX_CACHE_BYTES), not per render
 void main() {
     ivec2 pix;
     int f;
