@@ -38,9 +38,11 @@ def test_consistency_and_bars(run, reference):
     ours = [M.psnr(s.ours, ref) for s in states]
     raw = [M.psnr(s.raw, ref) for s in states]
     gauss = [M.psnr(s.gaussian, ref) for s in states]
-    # error keeps falling and stays below the raw progressive average
+    # error keeps falling and stays below the raw progressive average. One iteration may lose a little: the
+    # estimate is one random realisation (over 12 seeds each, on the tracer's previous and current random
+    # streams, 14 of 24 runs had some iteration lose more than 0.05 dB, none more than 0.37 dB)
     for i in range(1, ITER):
-        assert ours[i] > ours[i - 1] - 0.05, ours
+        assert ours[i] > ours[i - 1] - 0.5, ours
     assert ours[-1] > ours[0] + 1.0
     assert all(o > r for o, r in zip(ours, raw)), (ours, raw)
     # the bars at test size

@@ -138,6 +138,25 @@ def test_determinism_tiles_batches_offsets(ctx):
     assert ctx.error == "GL_NO_ERROR"
 
 
+@pytest.mark.parametrize("cache_bytes", [None, 1])
+def test_ids_and_motion_follow_each_calls_frame_times(ctx, monkeypatch, cache_bytes):
+    """Object ids and motion come from a sample-free pass the tracer runs only for frame times it has not kept
+    (``cache_bytes=1`` keeps none): whatever the order of calls, each result matches a fresh tracer's."""
+    from torchmanifold.render import default_scene, tracer as tracer_module
+
+    if cache_bytes is not None:
+        monkeypatch.setattr(tracer_module, "AUX_CACHE_BYTES", cache_bytes)
+    scene = default_scene()
+    tr = PathTracer(scene, 20, 16, features=[], ctx=ctx)
+    calls = [([0.0, 6.0], 0), ([6.0, 0.0], 1), ([6.0, 0.0], 2), ([6.0], 3), ([0.0, 6.0], 4), ([3.0, 6.0], 5)]
+    for times, offset in calls:
+        res = tr.render(times, spp=1, seed=2, sample_offset=offset)
+        ref = PathTracer(scene, 20, 16, features=[], ctx=ctx).render(times, spp=1, seed=2, sample_offset=offset)
+        assert torch.equal(res.object_id, ref.object_id) and torch.equal(res.motion, ref.motion), times
+        assert torch.equal(res.color, ref.color), times
+    assert not torch.equal(res.motion[0], res.motion[1])  # the two frame times do differ
+
+
 def test_sample_offsets_are_independent(ctx):
     """Noise of different sample indices (and of neighbouring pixels) is uncorrelated."""
     d = plane_scene_dict(light=False, background=[1.0, 1.0, 1.0], max_depth=3, rr_depth=1)

@@ -102,10 +102,24 @@ def test_bvh_structure():
         if row[7] > 0:
             t = tris[order[int(row[3]):int(row[3] + row[7])]]
             assert np.all(t.min(axis=(0, 1)) >= row[:3]) and np.all(t.max(axis=(0, 1)) <= row[4:7])
+    centroids = tris.mean(axis=1)
+
+    def subtree_centroids(i):  # centroids of the triangles under node i
+        stack, out = [i], []
+        while stack:
+            j = stack.pop()
+            if nodes[j, 7] > 0:
+                out.append(centroids[order[int(nodes[j, 3]):int(nodes[j, 3] + nodes[j, 7])]])
+            else:
+                stack += [j + 1, int(nodes[j, 3])]
+        return np.concatenate(out)
+
     for i, row in enumerate(nodes):
-        if row[7] == 0:
+        if row[7] <= 0:
             for c in (i + 1, int(row[3])):
                 assert np.all(nodes[c, :3] >= row[:3]) and np.all(nodes[c, 4:7] <= row[4:7])
+            axis = int(-1 - row[7])  # the split axis: the left child's centroids are the lower ones
+            assert subtree_centroids(i + 1)[:, axis].max() <= subtree_centroids(int(row[3]))[:, axis].min()
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from pathlib import Path
 from typing import Sequence
 
@@ -25,6 +26,9 @@ MAX_BAKED_OBJECTS = 256  # scenes up to this size become shader constants
 # baked scenes up to this size test every object in straight-line code; measured on the 2-core VM, 64 spheres:
 # 33 s to compile (26 s as a loop), frames 4x faster than the loop
 MAX_UNROLLED_OBJECTS = 64
+# object ids and motion of recent frame times kept on the GPU: the progressive engine renders one frame per
+# call, in turn, and the sample-free pass costs about a tenth of a 1-spp frame on llvmpipe
+AUX_CACHE_BYTES = 64 << 20
 
 #: storage-buffer binding points (``BIND_<NAME>`` in the shader): scene inputs, then outputs
 BINDINGS = {
@@ -72,6 +76,8 @@ def _scene_constants(packed: dict) -> str:
            if len(rows) <= MAX_UNROLLED_OBJECTS else "")
         + ("#define FOR_EACH_LIGHT(X) " + " ".join(f"X({i})" for i in range(packed["n_lights"])) + "\n"
            if 0 < packed["n_lights"] <= MAX_UNROLLED_OBJECTS else "")
+        + ("#define FOR_EACH_CAMSEG(X) " + " ".join(f"X({i})" for i in range(len(cams) - 1)) + "\n"
+           if len(cams) <= MAX_UNROLLED_OBJECTS else "")
         + arr("Prim", "prims", rows, len(rows))
         + arr("Material", "mats", mats, len(mats))
         + arr("vec4", "keys", keys, len(keys))
@@ -88,11 +94,20 @@ def _feature_slots(feature_names: Sequence[str]) -> list[int]:
     return slots
 
 
-def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str]) -> str:
+#: the programs one tracer compiles from the shader (``PASS_<KIND>`` in GLSL): llvmpipe runs both sides of
+#: every branch, so each pass is its own program instead of a branch on a uniform
+PASSES = {"store": 0, "accumulate": 1, "aux": 2}
+
+
+def _shader_source(packed: dict, has_mesh: bool, baked: bool, feature_names: Sequence[str],
+                   kind: str = "store") -> str:
+    """The shader of one of the :data:`PASSES`: ``store`` writes the sums of the first chunk of samples,
+    ``accumulate`` adds later chunks to them, ``aux`` writes the sample-free object ids and motion."""
     src = SHADER_PATH.read_text()
     slots = ", ".join(str(s) for s in _feature_slots(feature_names))
+    passes = "".join(f"#define PASS_{k.upper()} {v}\n" for k, v in PASSES.items())
     defines = (f"#version 430\n#define HAS_MESH {int(has_mesh)}\n#define CONST_SCENE {int(baked)}\n"
-               f"#define OUTPUT_SLOTS {slots}\n" + shader_defines())
+               f"{passes}#define PASS {PASSES[kind]}\n#define OUTPUT_SLOTS {slots}\n" + shader_defines())
     src = src.replace("#version 430\n", defines, 1)
     return src.replace("SCENE_CONSTANTS", _scene_constants(packed) if baked else "", 1)
 
@@ -170,6 +185,8 @@ class PathTracer:
         self._times_buf: moderngl.Buffer | None = None
         self._batches: list[dict[str, moderngl.Buffer]] = []
         self._batch_frames: list[int] = []  # frames each batch holds
+        self._aux_times: list[bytes | None] = []  # the frame times each batch's aux buffer was made for
+        self._aux_cache: OrderedDict[bytes, moderngl.Buffer] = OrderedDict()  # float32 time -> (3, H, W), LRU
         self._last: dict | None = None
         self._set_scene_uniforms()
 
@@ -195,7 +212,10 @@ class PathTracer:
         if bake_scene is None:
             bake_scene = max(len(self.scene.objects), len(packed["keys"])) <= MAX_BAKED_OBJECTS
         self.baked = bool(bake_scene)
-        self.program = self.ctx.compute_shader(_shader_source(packed, self.has_mesh, self.baked, self.feature_names))
+        self._source = lambda kind: _shader_source(packed, self.has_mesh, self.baked, self.feature_names, kind)
+        self._programs: dict[str, moderngl.ComputeShader] = {}
+        self._uniforms: dict[str, object] = {}
+        self.program = self._program("store")  # compiled now, so shader errors show here; the others on first use
         names = _SCENE_BUFFERS + (_MESH_BUFFERS if self.has_mesh else ())
         self._scene_bufs = {BINDINGS[n]: self.ctx.buffer(packed[n].tobytes()) for n in names}
 
@@ -213,9 +233,22 @@ class PathTracer:
         self._set("u_background", tuple(float(x) for x in scene.background))
         self._set("u_up", tuple(float(x) for x in scene.camera.up))
 
+    def _program(self, kind: str) -> moderngl.ComputeShader:
+        """The compiled program of pass ``kind`` (see :data:`PASSES`), compiled on first use."""
+        prog = self._programs.get(kind)
+        if prog is None:
+            prog = self._programs[kind] = self.ctx.compute_shader(self._source(kind))
+            for name, value in self._uniforms.items():
+                if name in prog:
+                    prog[name].value = value
+        return prog
+
     def _set(self, name: str, value) -> None:
-        if name in self.program:  # the GLSL compiler drops unused uniforms
-            self.program[name].value = value
+        """Set a uniform in every program (and in those compiled later)."""
+        self._uniforms[name] = value
+        for prog in self._programs.values():
+            if name in prog:  # the GLSL compiler drops unused uniforms
+                prog[name].value = value
 
     @property
     def buffers(self) -> list[tuple[int, int, dict[str, moderngl.Buffer]]]:
@@ -254,10 +287,34 @@ class PathTracer:
                 "aux": self.ctx.buffer(reserve=3 * plane * need),
             }
             if b < len(self._batches):
-                self._batches[b], self._batch_frames[b] = bufs, need
+                self._batches[b], self._batch_frames[b], self._aux_times[b] = bufs, need, None
             else:
                 self._batches.append(bufs)
                 self._batch_frames.append(need)
+                self._aux_times.append(None)
+
+    def _fill_aux(self, b: int, times32: np.ndarray, tiles: list[tuple[int, int]], tw: int, th: int) -> None:
+        """Object ids and motion of batch ``b``'s frames (float32 ``times32``): copied from the per-time cache when
+        it holds every frame, else made by the aux pass, whose frames then enter the cache."""
+        aux_buf, size = self._batches[b]["aux"], 3 * 4 * self.width * self.height
+        keys = [t.tobytes() for t in times32]
+        if all(k in self._aux_cache for k in keys):
+            for f, k in enumerate(keys):
+                self.ctx.copy_buffer(aux_buf, self._aux_cache[k], size, write_offset=f * size)
+                self._aux_cache.move_to_end(k)
+            return
+        aux = self._program("aux")
+        for x0, y0 in tiles:
+            self._set("u_tile_origin", (x0, y0))
+            self._set("u_tile_size", (tw, th))
+            aux.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), len(keys))
+        self.ctx.memory_barrier()  # the copies read what the pass wrote
+        for f, k in enumerate(keys):
+            buf = self._aux_cache.pop(k, None) or self.ctx.buffer(reserve=size)
+            self.ctx.copy_buffer(buf, aux_buf, size, read_offset=f * size)
+            self._aux_cache[k] = buf
+        while self._aux_cache and len(self._aux_cache) * size > AUX_CACHE_BYTES:
+            self._aux_cache.popitem(last=False)[1].release()
 
     def dispatch(
         self,
@@ -305,16 +362,20 @@ class PathTracer:
             for key in _OUTPUT_BUFFERS:
                 self._batches[b][key].bind_to_storage_buffer(BINDINGS[key])
             self._set("u_frame_base", f0)
+            batch_times = times_np[f0:f0 + nb].astype(np.float32)
+            if self._aux_times[b] != batch_times.tobytes():
+                self._fill_aux(b, batch_times, tiles, tw, th)
+                self._aux_times[b] = batch_times.tobytes()
             done = 0
             while done < spp:
                 chunk = min(self.spp_per_dispatch, spp - done)
                 self._set("u_spp", chunk)
                 self._set("u_sample_start", sample_offset + done)
-                self._set("u_accumulate", int(done > 0))
+                program = self._program("accumulate" if done > 0 else "store")
                 for x0, y0 in tiles:
                     self._set("u_tile_origin", (x0, y0))
                     self._set("u_tile_size", (tw, th))
-                    self.program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
+                    program.run(math.ceil(tw / GROUP), math.ceil(th / GROUP), nb)
                     if progress:
                         self.ctx.finish()  # so the bar shows finished work, not queued work
                         bar.update()
@@ -408,9 +469,13 @@ class PathTracer:
             b.release()
         if self._times_buf is not None:
             self._times_buf.release()
-        self.program.release()
-        self.program = None
-        self._scene_bufs, self._batches, self._batch_frames, self._times_buf = {}, [], [], None
+        for prog in self._programs.values():
+            prog.release()
+        for buf in self._aux_cache.values():
+            buf.release()
+        self.program, self._programs, self._aux_cache = None, {}, OrderedDict()
+        self._scene_bufs, self._batches, self._batch_frames, self._aux_times = {}, [], [], []
+        self._times_buf = None
 
     def __enter__(self) -> "PathTracer":
         return self

@@ -15,6 +15,9 @@ layout(local_size_x = 8, local_size_y = 8, local_size_z = 1) in;
 #ifndef CONST_SCENE
 #define CONST_SCENE 0
 #endif
+// PASS (from the host, tracer.py: PASSES): PASS_STORE / PASS_ACCUMULATE trace samples and store / add their
+// sums, PASS_AUX writes the sample-free object ids and motion. Separate programs, not a branch on a uniform:
+// llvmpipe executes both sides of every branch, and the additions' loads cost as much as the stores.
 
 const float PI = 3.14159265358979;
 const float INF = 1e30;
@@ -50,7 +53,7 @@ layout(std430, binding = BIND_EMISSION) buffer OutEmission { float out_emission[
 layout(std430, binding = BIND_FEATURES) buffer OutFeat { float out_feat[]; };         // (T, D, H, W) sums
 layout(std430, binding = BIND_AUX) buffer OutAux { float out_aux[]; };           // (T, 3, H, W): id, motion x, y
 #if HAS_MESH
-layout(std430, binding = BIND_NODES) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, left|first), (bmax, count)
+layout(std430, binding = BIND_NODES) readonly buffer Nodes { vec4 nodes[]; };  // pairs (bmin, right|first), (bmax, count|-1-axis)
 layout(std430, binding = BIND_TRIS) readonly buffer Tris { vec4 tris[]; };    // triples v0, v1, v2
 #endif
 
@@ -64,7 +67,6 @@ uniform int u_n_camkeys;
 uniform int u_spp;             // samples in this dispatch
 uniform uint u_sample_start;   // global index of the first sample of this dispatch
 uniform uint u_seed;
-uniform int u_accumulate;      // 0: overwrite the sums, 1: add to them
 uniform int u_n_feat;          // D
 uniform int u_max_depth;
 uniform int u_rr_depth;
@@ -82,16 +84,19 @@ uvec4 pcg4d(uvec4 v) {
 }
 uvec4 g_key;
 uint g_dim;
-// key = (pixel x, pixel y, sample index, hash(frame time bits, seed)); each draw hashes its dimension in.
-void rng_init(uvec2 pix, uint sample_index, float frame_time) {
-    uvec4 fk = pcg4d(uvec4(floatBitsToUint(frame_time), u_seed, 0x9E3779B9u, 0x85EBCA6Bu));
-    g_key = pcg4d(uvec4(pix.x, pix.y, sample_index, fk.x));
+// key = (pixel x, pixel y, sample index, frame_key = hash(frame time bits, seed)); each draw hashes its
+// dimension in and gives four numbers (pcg4d's four outputs): one hash per four, as call sites draw in fours
+void rng_init(uvec2 pix, uint sample_index, uint frame_key) {
+    g_key = pcg4d(uvec4(pix.x, pix.y, sample_index, frame_key));
     g_dim = 0u;
 }
-float rnd() {
+uint rng_frame_key(float frame_time) {
+    return pcg4d(uvec4(floatBitsToUint(frame_time), u_seed, 0x9E3779B9u, 0x85EBCA6Bu)).x;
+}
+vec4 rnd4() {
     uvec4 h = pcg4d(uvec4(g_key.x, g_key.y, g_key.z ^ g_dim, g_key.w + g_dim * 0x68E31DA4u));
     g_dim += 1u;
-    return float(h.x >> 8u) * (1.0 / 16777216.0);
+    return vec4(h >> 8u) * (1.0 / 16777216.0);
 }
 
 // ---------------------------------------------------------------- motion
@@ -109,24 +114,21 @@ vec3 prim_offset(int i, float t) {
 }
 
 struct Camera { vec3 eye; vec3 fwd; vec3 right; vec3 up; float tan_half; float aspect; };
+// the segment of keys j, j + 1: t past it takes key j + 1, t inside it interpolates (so keys are held before the
+// first and after the last)
+#define CAM_SEGMENT(j) { \
+    vec4 a0 = camkeys[2 * (j)], a1 = camkeys[2 * (j) + 1], b0 = camkeys[2 * (j) + 2], b1 = camkeys[2 * (j) + 3]; \
+    if (t > b0.x) { eye = b0.yzw; target = b1.xyz; fov = b1.w; } \
+    else if (t > a0.x) { float s = (t - a0.x) / max(b0.x - a0.x, 1e-12); \
+        eye = mix(a0.yzw, b0.yzw, s); target = mix(a1.xyz, b1.xyz, s); fov = mix(a1.w, b1.w, s); } }
 Camera camera_at(float t) {
-    int k = 0;
-    float s = 0.0;
-    if (N_CAMKEYS > 1 && t > camkeys[0].x) {
-        k = N_CAMKEYS - 1;
-        for (int j = 0; j < N_CAMKEYS - 1; ++j) {
-            if (t <= camkeys[2 * (j + 1)].x) {
-                s = (t - camkeys[2 * j].x) / max(camkeys[2 * (j + 1)].x - camkeys[2 * j].x, 1e-12);
-                k = j;
-                break;
-            }
-        }
-    }
-    int k1 = min(k + 1, N_CAMKEYS - 1);
-    if (k1 == k) s = 0.0;
-    vec3 eye = mix(camkeys[2 * k].yzw, camkeys[2 * k1].yzw, s);
-    vec3 target = mix(camkeys[2 * k + 1].xyz, camkeys[2 * k1 + 1].xyz, s);
-    float fov = mix(camkeys[2 * k + 1].w, camkeys[2 * k1 + 1].w, s);
+    vec3 eye = camkeys[0].yzw, target = camkeys[1].xyz;
+    float fov = camkeys[1].w;
+#ifdef FOR_EACH_CAMSEG
+    FOR_EACH_CAMSEG(CAM_SEGMENT)  // constant indices: selects of constants, not per-lane reads of the key found
+#else
+    for (int j = 0; j + 1 < N_CAMKEYS; ++j) CAM_SEGMENT(j)
+#endif
     Camera c;
     c.eye = eye;
     c.fwd = normalize(target - eye);
@@ -152,31 +154,27 @@ vec2 camera_project(Camera c, vec3 p) {
 // n: geometric normal, front side (outward / u x v). The hit primitive's material and light flag are
 // copied in as it is found: with an unrolled scene these are selects of constants, not per-lane gathers.
 struct Hit { float t; int prim; vec3 n; Material m; bool light; };
+// The tests below are branch-free: llvmpipe runs every branch anyway, and an early return masks all that follows.
 
 float hit_sphere(vec3 o, vec3 d, vec3 c, float r, float tmin) {
     vec3 oc = o - c;
     float b = dot(oc, d);
     vec3 h = oc - b * d;                      // stable discriminant (no huge b*b - c cancellation)
     float disc = r * r - dot(h, h);
-    if (disc < 0.0) return INF;
-    float s = sqrt(disc);
-    float t = -b - s;
-    if (t > tmin) return t;
-    t = -b + s;
-    return t > tmin ? t : INF;
+    float s = sqrt(max(disc, 0.0));
+    float t = -b - s > tmin ? -b - s : -b + s;
+    return (disc >= 0.0 && t > tmin) ? t : INF;
 }
 
 float hit_quad(vec3 o, vec3 d, vec3 q, vec3 u, vec3 v, float tmin) {
     vec3 n = cross(u, v);
     float den = dot(n, d);
-    if (abs(den) < 1e-12) return INF;
     float t = dot(n, q - o) / den;
-    if (t <= tmin) return INF;
-    vec3 p = o + t * d - q;
+    vec3 p = (o - q) + t * d;
     vec3 w = n / dot(n, n);
-    float a = dot(w, cross(p, v));
-    float b = dot(w, cross(u, p));
-    return (a >= 0.0 && a <= 1.0 && b >= 0.0 && b <= 1.0) ? t : INF;
+    float a = dot(p, cross(v, w));  // w . (p x v) = p . (v x w): constant vectors for a baked quad
+    float b = dot(p, cross(w, u));
+    return (abs(den) >= 1e-12 && t > tmin && min(a, b) >= 0.0 && max(a, b) <= 1.0) ? t : INF;
 }
 
 #if HAS_MESH
@@ -211,23 +209,25 @@ float hit_mesh(vec3 o, vec3 d, int root, float tmin, float tmax, bool any_hit, o
     stack[sp++] = root;
     float best = tmax;
     n = vec3(0.0, 1.0, 0.0);
-    while (sp > 0) {
+    do {  // do-while, as the tracer's other loops: a loop left at its top costs one more masked pass
         int ni = stack[--sp];
         vec4 a = nodes[2 * ni], b = nodes[2 * ni + 1];
         if (!hit_box(o, inv_d, a.xyz, b.xyz, best)) continue;
         int count = floatBitsToInt(b.w), first = floatBitsToInt(a.w);
         if (count > 0) {
-            for (int j = first; j < first + count; ++j) {
+            int j = first;
+            do {
                 vec3 v0 = tris[3 * j].xyz, v1 = tris[3 * j + 1].xyz, v2 = tris[3 * j + 2].xyz;
                 float t = hit_tri(o, d, v0, v1, v2, tmin);
                 if (t < best) { best = t; n = cross(v1 - v0, v2 - v0); }
-            }
+            } while (++j < first + count);
             if (any_hit && best < tmax) break;  // shadow rays need any hit, not the nearest
-        } else if (sp < 31) {           // children: ni + 1 and `first`
-            stack[sp++] = first;
-            stack[sp++] = ni + 1;
+        } else if (sp < 31) {           // children: ni + 1 (lower along the split axis) and `first`
+            bool lower_first = d[-1 - count] >= 0.0;   // the nearer child is popped first: `best` shrinks sooner
+            stack[sp++] = lower_first ? first : ni + 1;
+            stack[sp++] = lower_first ? ni + 1 : first;
         }
-    }
+    } while (sp > 0);
     n = normalize(n);
     return best;
 }
@@ -311,13 +311,13 @@ vec3 cosine_dir(vec3 n, float u1, float u2) {
 }
 float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
 
-// next-event estimation: one light chosen uniformly; a sphere light samples the cone of directions it
-// subtends, a quad a point uniform on its area. Returns the radiance contribution (already / pdf) and the
-// unit shadow-ray direction.
-vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
+// next-event estimation: one light chosen uniformly (by u.x); a sphere light samples the cone of directions
+// it subtends, a quad a point uniform on its area (by u.yz). Returns the radiance contribution (already /
+// pdf) and the unit shadow-ray direction.
+vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, vec2 u, out vec3 sdir) {
     Prim lp = prims[li];
     vec3 off = lp.info.w > 0 ? prim_offset(li, time) : vec3(0.0);
-    float u1 = rnd(), u2 = rnd();
+    float u1 = u.x, u2 = u.y;
     float dist, inv_pdf;  // inv_pdf = 1 / (solid-angle pdf of sdir)
     sdir = vec3(0.0);
     if (lp.info.x == PRIM_SPHERE) {
@@ -353,46 +353,91 @@ vec3 sample_light_prim(int li, vec3 p, vec3 n, vec3 albedo, float time, out vec3
     return le * (albedo / PI) * cos_x * inv_pdf * float(N_LIGHTS);
 }
 
-vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, out vec3 sdir) {
-    int j = min(int(rnd() * float(N_LIGHTS)), N_LIGHTS - 1);
+vec3 sample_light(vec3 p, vec3 n, vec3 albedo, float time, vec3 u, out vec3 sdir) {
+    int j = min(int(u.x * float(N_LIGHTS)), N_LIGHTS - 1);
 #ifdef FOR_EACH_LIGHT
     // one specialised copy per light (constant index), as for FOR_EACH_PRIM
     vec3 r = vec3(0.0);
     sdir = vec3(0.0);
-#define SAMPLE_ONE_LIGHT(k) if (j == k) r = sample_light_prim(lights[k], p, n, albedo, time, sdir);
+#define SAMPLE_ONE_LIGHT(k) if (j == k) r = sample_light_prim(lights[k], p, n, albedo, time, u.yz, sdir);
     FOR_EACH_LIGHT(SAMPLE_ONE_LIGHT)
     return r;
 #else
-    return sample_light_prim(lights[j], p, n, albedo, time, sdir);
+    return sample_light_prim(lights[j], p, n, albedo, time, u.yz, sdir);
 #endif
 }
 
 // ---------------------------------------------------------------- main
-void main() {
+// this invocation's pixel and frame (index into this batch's output buffers); false outside the tile/image
+bool invocation_pixel(out ivec2 pix, out int f) {
     ivec2 local = ivec2(gl_GlobalInvocationID.xy);
-    if (local.x >= u_tile_size.x || local.y >= u_tile_size.y) return;
-    ivec2 pix = u_tile_origin + local;
-    if (pix.x >= u_size.x || pix.y >= u_size.y) return;
-    int f = int(gl_GlobalInvocationID.z);
-    float ftime = frame_times[u_frame_base + f];  // f indexes this batch's output buffers
-    int W = u_size.x, H = u_size.y;
-    int plane = W * H, pidx = pix.y * W + pix.x;
+    pix = u_tile_origin + local;
+    f = int(gl_GlobalInvocationID.z);
+    return all(lessThan(local, u_tile_size)) && all(lessThan(pix, u_size));
+}
+
+#if PASS == PASS_AUX
+// object id and screen-space motion of the pixel-centre first hit at the frame time: sample-free, so the
+// host runs this pass only for frame times it has not kept (tracer.py: AUX_CACHE_BYTES), not per render
+void main() {
+    ivec2 pix;
+    int f;
+    if (!invocation_pixel(pix, f)) return;
+    float ftime = frame_times[u_frame_base + f];
+    int plane = u_size.x * u_size.y, base3 = f * 3 * plane + pix.y * u_size.x + pix.x;
+    Camera c0 = camera_at(ftime), c1 = camera_at(ftime + 1.0);
+    vec2 centre = vec2(pix) + 0.5;
+    vec3 d0 = camera_dir(c0, centre);
+    Hit h;
+    float id = -1.0;
+    vec3 p1;
+    if (intersect(c0.eye, d0, 0.0, INF, ftime, h)) {
+        id = float(h.prim);
+        p1 = c0.eye + h.t * d0 + prim_offset(h.prim, ftime + 1.0) - prim_offset(h.prim, ftime);
+    } else {
+        p1 = c1.eye + d0 * 1e6;                         // direction at infinity: camera rotation only
+    }
+    vec2 mv = camera_project(c1, p1) - centre;
+    out_aux[base3] = id;
+    out_aux[base3 + plane] = mv.x;
+    out_aux[base3 + 2 * plane] = mv.y;
+}
+#else
+void main() {
+    ivec2 pix;
+    int f;
+    if (!invocation_pixel(pix, f)) return;
+    float ftime = frame_times[u_frame_base + f];
+    int plane = u_size.x * u_size.y, pidx = pix.y * u_size.x + pix.x;
 
     vec3 sum_c = vec3(0.0), sum_e = vec3(0.0);
     float feat[N_FEAT];
     for (int k = 0; k < N_FEAT; ++k) feat[k] = 0.0;
 
-    for (int s = 0; s < u_spp; ++s) {
-        rng_init(uvec2(pix), u_sample_start + uint(s), ftime);
-        float time = ftime + (rnd() - 0.5) * u_shutter;
-        vec2 jitter = vec2(rnd(), rnd());
+    uint frame_key = rng_frame_key(ftime);
+    // do-while loops (u_spp, u_max_depth >= 1): a loop that exits at its top runs one more, fully masked pass
+    // of its body on llvmpipe (it only leaves a loop when no lane is left at the bottom)
+    int s = 0;
+    do {
+        rng_init(uvec2(pix), u_sample_start + uint(s), frame_key);
+        vec4 r = rnd4();  // time, jitter x, y
+        float time = ftime + (r.x - 0.5) * u_shutter;
+        vec2 jitter = r.yz;
         Camera cam = camera_at(time);
         vec3 o = cam.eye;
         vec3 d = camera_dir(cam, vec2(pix) + jitter);
         vec3 L = vec3(0.0), beta = vec3(1.0);
         bool count_light = true;  // emission of sampled lights counts unless NEE already did
         feat[FEAT_T] += time;
-        for (int depth = 0; depth < u_max_depth; ++depth) {
+        // the first vertex's features, added to the sums after the path: accumulating them inside the bounce
+        // loop would cost at every vertex (llvmpipe executes the depth == 0 branches at every one)
+        float z1 = 0.0;
+        vec3 albedo1 = vec3(0.0), emission1 = vec3(0.0), le1 = vec3(0.0), n1 = vec3(0.0), s1 = vec3(0.0), d1 = vec3(0.0);
+        int depth = 0;
+        do {
+            // this vertex's numbers, drawn whatever it needs: light choice and point, BSDF direction, glass
+            // reflect-or-refract, Russian roulette
+            vec4 ra = rnd4(), rb = rnd4();
             Hit h;
             if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
             Material m = h.m;
@@ -402,22 +447,15 @@ void main() {
             if (count_light || !h.light) L += beta * le;
             int mtype = int(m.color_type.w);
             vec3 albedo = m.color_type.rgb;
-            if (depth == 0) {
-                sum_e += le;
-                vec3 a = albedo;
-                vec3 e = m.emission_ior.rgb;
-                if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
-                feat[FEAT_Z] += h.t; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
-                feat[FEAT_NX] += nf.x; feat[FEAT_NY] += nf.y; feat[FEAT_NZ] += nf.z;
-            }
+            if (depth == 0) { z1 = h.t; albedo1 = albedo; emission1 = m.emission_ior.rgb; le1 = le; n1 = nf; }
             vec3 nd;
             if (mtype == MAT_DIFFUSE) {
                 if (N_LIGHTS > 0) {
                     vec3 sdir;
-                    L += beta * sample_light(x, nf, albedo, time, sdir);
-                    if (depth == 0) { feat[FEAT_SX] += sdir.x; feat[FEAT_SY] += sdir.y; feat[FEAT_SZ] += sdir.z; }
+                    L += beta * sample_light(x, nf, albedo, time, vec3(rb.x, ra.xy), sdir);
+                    if (depth == 0) s1 = sdir;
                 }
-                nd = cosine_dir(nf, rnd(), rnd());
+                nd = cosine_dir(nf, ra.z, ra.w);
                 beta *= albedo;
                 count_light = false;
             } else if (mtype == MAT_MIRROR) {
@@ -430,66 +468,46 @@ void main() {
                 float eta = entering ? 1.0 / ior : ior;
                 float ci = -dot(d, nf);
                 float s2 = eta * eta * (1.0 - ci * ci);
-                float fr = 1.0;
-                float ct = 0.0;
-                if (s2 < 1.0) {
-                    ct = sqrt(1.0 - s2);
-                    float rs = (eta * ci - ct) / (eta * ci + ct);
-                    float rp = (ci - eta * ct) / (ci + eta * ct);
-                    fr = 0.5 * (rs * rs + rp * rp);
-                }
-                if (rnd() < fr) nd = reflect(d, nf);
+                float ct = sqrt(max(1.0 - s2, 0.0));       // branch-free: total internal reflection is fr = 1
+                float rs = (eta * ci - ct) / (eta * ci + ct);
+                float rp = (ci - eta * ct) / (ci + eta * ct);
+                float fr = s2 < 1.0 ? 0.5 * (rs * rs + rp * rp) : 1.0;
+                if (rb.y < fr) nd = reflect(d, nf);
                 else nd = normalize(eta * d + (eta * ci - ct) * nf);
                 beta *= albedo;
                 count_light = true;
             }
-            if (depth == 0) { feat[FEAT_DX] += nd.x; feat[FEAT_DY] += nd.y; feat[FEAT_DZ] += nd.z; }
+            if (depth == 0) d1 = nd;
             o = x + (dot(nd, nf) > 0.0 ? nf : -nf) * ray_eps(x);
             d = nd;
             if (depth + 1 >= u_rr_depth) {                 // Russian roulette
                 float q = min(0.95, max(beta.r, max(beta.g, beta.b)));
-                if (q <= 0.0 || rnd() >= q) break;
+                if (q <= 0.0 || rb.z >= q) break;
                 beta /= q;
             }
-        }
+        } while (++depth < u_max_depth);
         sum_c += L;
-    }
+        sum_e += le1;
+        vec3 a = albedo1, e = emission1;  // emitters with black colour: emission / max as albedo
+        if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
+        feat[FEAT_Z] += z1; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
+        feat[FEAT_NX] += n1.x; feat[FEAT_NY] += n1.y; feat[FEAT_NZ] += n1.z;
+        feat[FEAT_SX] += s1.x; feat[FEAT_SY] += s1.y; feat[FEAT_SZ] += s1.z;
+        feat[FEAT_DX] += d1.x; feat[FEAT_DY] += d1.y; feat[FEAT_DZ] += d1.z;
+    } while (++s < u_spp);
 
-    // sums: the first chunk of samples stores, later ones add (a uniform branch, so the first reads nothing)
+    // sums: the first chunk of samples stores them, later chunks add to them
     int base3 = f * 3 * plane + pidx, basef = f * u_n_feat * plane + pidx;
-    if (u_accumulate != 0) {
-        for (int c = 0; c < 3; ++c) {
-            out_color[base3 + c * plane] += sum_c[c];
-            out_emission[base3 + c * plane] += sum_e[c];
-        }
-        for (int k = 0; k < N_FEAT; ++k)
-            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] += feat[k];
-    } else {
-        for (int c = 0; c < 3; ++c) {
-            out_color[base3 + c * plane] = sum_c[c];
-            out_emission[base3 + c * plane] = sum_e[c];
-        }
-        for (int k = 0; k < N_FEAT; ++k)
-            if (feat_slot[k] >= 0) out_feat[basef + feat_slot[k] * plane] = feat[k];
+#if PASS == PASS_ACCUMULATE
+#define OUT(buf, i, v) buf[i] += v
+#else
+#define OUT(buf, i, v) buf[i] = v
+#endif
+    for (int c = 0; c < 3; ++c) {
+        OUT(out_color, base3 + c * plane, sum_c[c]);
+        OUT(out_emission, base3 + c * plane, sum_e[c]);
     }
-
-    // object id and screen-space motion of the pixel-centre first hit at the frame time (sample-free)
-    if (u_accumulate == 0) {
-        Camera c0 = camera_at(ftime), c1 = camera_at(ftime + 1.0);
-        vec2 centre = vec2(pix) + 0.5;
-        vec3 d0 = camera_dir(c0, centre);
-        Hit h;
-        float id = -1.0;
-        vec3 p1;
-        if (intersect(c0.eye, d0, 0.0, INF, ftime, h)) {
-            id = float(h.prim);
-            p1 = c0.eye + h.t * d0 + prim_offset(h.prim, ftime + 1.0) - prim_offset(h.prim, ftime);
-        } else {
-            p1 = c1.eye + d0 * 1e6;                         // direction at infinity: camera rotation only
-        }
-        vec2 mv = camera_project(c1, p1) - centre;
-        out_aux[base3] = id;
-        out_aux[base3 + plane] = mv.x;
-        out_aux[base3 + 2 * plane] = mv.y;
-    }
+    for (int k = 0; k < N_FEAT; ++k)
+        if (feat_slot[k] >= 0) OUT(out_feat, basef + feat_slot[k] * plane, feat[k]);
 }
+#endif
