@@ -77,6 +77,17 @@ def test_bandwidth_selection_halves_add_up(radius, queries):
     torch.testing.assert_close(same, one, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("exposure", [1e-3, 1e3])
+def test_result_scales_with_exposure(clip, exposure):
+    """Every level the denoiser sets is relative to the frame: a brighter or darker render of the same
+    scene gives the same image, scaled (a fixed log1p pilot did not)."""
+    c, f, _ = clip
+    c, f = c[:1], f[:1]
+    base = denoise_frames(c, f, FEATURES)
+    scaled = denoise_frames(c * exposure, f, FEATURES) / exposure
+    assert float((scaled - base).abs().mean() / base.abs().mean()) < 1e-3
+
+
 def test_bad_bandwidths_named():
     for bad, err in [((), TypeError), ("wide", TypeError), ((1.0, 0.0), ValueError), ((float("nan"),), ValueError)]:
         with pytest.raises(err, match="bandwidths"):

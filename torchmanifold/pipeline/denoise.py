@@ -75,6 +75,13 @@ def luminance(x: Tensor) -> Tensor:
     return 0.2126 * x[..., 0:1, :, :] + 0.7152 * x[..., 1:2, :, :] + 0.0722 * x[..., 2:3, :, :]
 
 
+def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
+    """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
+    the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
+    scales with the exposure."""
+    return (lum * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+
+
 def footprint_blur(x: Tensor, sigma: float) -> Tensor:
     """Gaussian blur of ``(N, C, H, W)`` with a small ``sigma`` (pixels): a 1-sample image's estimate of
     the pixel-footprint average. ``sigma <= 0`` returns ``x``."""
@@ -443,7 +450,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     if level is None:
         level = frame_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     lum = luminance(level).clamp_min(0.0)
-    mean = (lum * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+    mean = _frame_mean(lum, mask)
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
     pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
     errs = torch.stack([footprint_blur((((p - e) ** 2).sum(1, keepdim=True) * weight), st.selection_blur) / pool
@@ -550,7 +557,9 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
             pe = pe.clamp_min(0.0) / alb_fp
         else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
             pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
-            pe = torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0)), mask, flat))
+            # the log domain compresses what is bright for the frame, whatever the exposure
+            level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
+            pe = level * torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0) / level), mask, flat))
         if settings.firefly == "log" and pilot is None:
             out = filt.at_queries(pe) if qt != ft else pe
             stats["firefly_energy_removed"] = 0.0
@@ -628,7 +637,7 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     if sigma <= 0:
         return x
     x = x.clamp_min(0.0)
-    k = _FOOTPRINT_KNEE * luminance(x).mean((1, 2, 3), keepdim=True).clamp_min(1e-12)
+    k = _FOOTPRINT_KNEE * luminance(x).mean((1, 2, 3), keepdim=True).clamp_min(1e-30)
     y = x / (k + x)
     ly = luminance(y)
     r = max(1, int(math.ceil(3 * sigma)))
@@ -655,8 +664,8 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
     in a corner (a Kuwahara filter), so a pixel on the edge of a light still reads as the light.
     """
     L = luminance(e).clamp_min(0.0)
-    mean = (L * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
-    lg = torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-12))
+    mean = _frame_mean(L, mask)
+    lg = torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))
     H, W = lg.shape[-2:]
     moments = torch.nn.functional.pad(torch.cat([lg, lg * lg], 1), (2, 2, 2, 2), mode="replicate")
     moments = torch.nn.functional.avg_pool2d(moments, 3, 1)
@@ -716,8 +725,8 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     if rs <= 0:
         return guide, sigmas
     L = luminance(pilot).clamp_min(0.0)
-    mean = (L * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
-    guide = torch.cat([guide[:, :-1], torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-12))], 1)
+    mean = _frame_mean(L, mask)
+    guide = torch.cat([guide[:, :-1], torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))], 1)
     sigmas = sigmas.clone()
     sigmas[:, -1] = rs
     return guide, sigmas
@@ -728,7 +737,7 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     energy removed goes to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark
     regions next to noise-free black do not clamp every lit sample (measured on shared/data)."""
     lp = luminance(pe).clamp_min(0.0)
-    floor = _FIREFLY_FLOOR * (lp * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+    floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
     thr = k * (lp + floor)
     L = luminance(e)
     scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
