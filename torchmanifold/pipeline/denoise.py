@@ -565,7 +565,8 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
             stats["firefly_energy_removed"] = 0.0
         else:
             ec = _clamp_fireflies(e, alb, pe, mask, k_ff, stats)
-            guide, sig = _radiance_from_pilot(guide, sig, pe, mask, settings)
+            if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
+                guide, sig = _radiance_from_pilot(guide, sig, pe, mask, settings)
             out = smooth(ec, pe)
     out = _footprint_average(out * filt.at_queries(alb), settings.footprint_sigma)
     if em is not None:  # the renderer's emission is added back exactly as rendered
