@@ -203,7 +203,9 @@ def main(argv=None) -> int:
                 f = res["final"]
                 print(f"after {args.iterations} iterations (PSNR dB): raw {f['raw']['psnr']:.2f}  "
                       f"gaussian {f['gaussian']['psnr']:.2f}  ours {f['ours']['psnr']:.2f}; plain path tracing "
-                      f"needs ~{res['spp_plain_to_match_ours_final']:.0f} spp to match ours")
+                      f"needs at least ~{res['spp_plain_to_match_ours_final']:.0f} spp to match ours (MSE ~ 1/spp "
+                      "extrapolated from the raw curve: a lower bound; benchmarks/bench_progressive_schemes.py "
+                      "measures it)")
             print(f"wrote {args.out}")
         else:
             from torchmanifold.pipeline.denoise_files import denoise_files
