@@ -120,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
     from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
-    from torchmanifold.pipeline.progressive import SCHEMES
+    from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER, SCHEMES
 
     p = argparse.ArgumentParser(prog="torchmanifold", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -149,8 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--overwrite", action="store_true", help="reuse a non-empty --out")
     r.add_argument("--quiet", action="store_true", help="no progress bars")
     _add_threads_arg(r)
-    # render filters the progressive estimate every iteration: the cheaper height
-    _add_filter_args(r, temporal_radius=1, mode="spacetime", tree_height=2)
+    _add_filter_args(r, **PROGRESSIVE_FILTER)
     _add_engine_args(r)
 
     d = sub.add_parser("denoise", help="denoise EXR frames rendered elsewhere",

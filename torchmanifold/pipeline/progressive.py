@@ -42,6 +42,9 @@ __all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline", "ESTI
 
 #: the running estimates the engine keeps per query time, in this order
 ESTIMATES = ("ours", "raw", "gaussian")
+#: the loop's filter where it differs from :class:`DenoiseSettings`' defaults: neighbour frames join in
+#: space-time, and the cheaper tree height, since the estimate is filtered every iteration
+PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")
@@ -140,7 +143,7 @@ class ProgressiveRenderer:
         self._query_times = list(times) if query_times is None else [float(q) for q in query_times]
         if not self._query_times or any(not math.isfinite(q) for q in self._query_times):
             raise ValueError("query_times must be a non-empty sequence of finite numbers")
-        self._settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
+        self._settings = (settings or DenoiseSettings(**PROGRESSIVE_FILTER)).check()
         self._schedule = BandwidthSchedule(self._settings.sigma_s, range_scale, alpha)
         self.gaussian_sigma = 1.0 if gaussian_sigma is None else _finite("gaussian_sigma", gaussian_sigma, 0.0)
         self.firefly_growth = _finite("firefly_growth", firefly_growth, 0.0)

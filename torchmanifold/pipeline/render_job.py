@@ -15,7 +15,7 @@ from torchmanifold.io.files import prepare_out, write_text
 from torchmanifold.pipeline.charts import write_chart
 from torchmanifold.pipeline.convergence import spp_to_match
 from torchmanifold.pipeline.denoise import DenoiseSettings
-from torchmanifold.pipeline.progressive import ProgressiveRenderer, gaussian_baseline
+from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER, ProgressiveRenderer, gaussian_baseline
 
 __all__ = ["render_job", "moving_mask", "RENDER_DEFAULTS", "METHODS"]
 
@@ -205,7 +205,7 @@ def render_job(out, scene=None, frames: int = RENDER_DEFAULTS["frames"],
     alpha = DEFAULT_ALPHA if alpha is None else alpha
     scene_obj, scene_name = _resolve_scene(scene)
     out = prepare_out(out, overwrite)
-    settings = settings or DenoiseSettings(temporal_radius=1, mode="spacetime")
+    settings = settings or DenoiseSettings(**PROGRESSIVE_FILTER)
 
     tracer = PathTracer(scene_obj, width, height)
     times, query = render_query_times(frames, inbetween)

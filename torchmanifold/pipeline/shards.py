@@ -609,6 +609,7 @@ def shard_render(out, scene=None, frames: int = 8, iterations: int = 16, width: 
     Raises:
         ValueError: bad arguments (named). ImportError, ConnectionError: as :func:`shard_denoise`.
     """
+    from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER
     from torchmanifold.pipeline.render_job import _check_job_ints, _resolve_scene, render_query_times
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
 
@@ -618,7 +619,7 @@ def shard_render(out, scene=None, frames: int = 8, iterations: int = 16, width: 
                     reference_spp=reference_spp, inbetween=inbetween, seed=seed)
     alpha = DEFAULT_ALPHA if alpha is None else alpha
     scene_obj, _ = _resolve_scene(scene)
-    settings = (settings or DenoiseSettings(temporal_radius=1, mode="spacetime")).check()
+    settings = (settings or DenoiseSettings(**PROGRESSIVE_FILTER)).check()
     times, query = render_query_times(frames, inbetween)
     ray, started = connect(address)
     try:
