@@ -43,6 +43,7 @@ from torch import Tensor, nn
 
 from torchmanifold import features as feature_table
 from torchmanifold._checks import check_choice, check_int, check_nonnegative, check_positive, check_tree_height
+from torchmanifold.pipeline import _fast
 from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 
 __all__ = [
@@ -329,9 +330,20 @@ class _Filter:
     def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor) -> Tensor:
         """``num / den`` at the queries; where no valid sample lies under the kernel, the interpolated
         (masked) input; guarded (see :meth:`_guard`)."""
+        if self._per_frame() and _fast.enabled(num, den, values, mask):
+            return _fast.normalise_guard(num, den, values, mask, 0 if values.dtype == torch.float64 else
+                                         self._guard_radius())
         ok = den > 1e-8
         out = torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
         return self._guard(out, values, mask)
+
+    def _per_frame(self) -> bool:
+        """Every query is a frame and mixes that frame alone (at_queries and at_queries_max are identities)."""
+        return self.qt == self.ft and (self.st.temporal_radius == 0 or all(
+            self._window(q) == [k] for k, q in enumerate(self.qt)))
+
+    def _guard_radius(self) -> int:
+        return max(1, int(math.ceil(_GUARD_RADIUS * self.sigma_s)))
 
     def __call__(self, values: Tensor, mask: Tensor) -> Tensor:
         y = self.apply(torch.cat([values * mask, mask], 1))
@@ -356,7 +368,7 @@ class _Filter:
         as garbage; this bounds it (float64 needs no guard)."""
         if values.dtype == torch.float64:
             return out
-        r = max(1, int(math.ceil(_GUARD_RADIUS * self.sigma_s)))
+        r = self._guard_radius()
         big = torch.finfo(values.dtype).max
         hi = torch.where(mask > 0, values, -big)
         lo = torch.where(mask > 0, -values, -big)
@@ -454,6 +466,9 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     mean = _frame_mean(lum, mask)
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
     pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
+    if list(qt) == list(ft) and st.selection_softness > 0 and st.selection_blur > 0 and \
+            _fast.enabled(e, weight, mask, *preds, *fulls):
+        return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness)
     errs = torch.stack([footprint_blur((((p - e) ** 2).sum(1, keepdim=True) * weight), st.selection_blur) / pool
                         for p in preds])  # (K, T, 1, H, W)
     errs = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in errs])
@@ -638,6 +653,8 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     """
     if sigma <= 0:
         return x
+    if _fast.enabled(x):
+        return _fast.footprint_average(x, sigma, _FOOTPRINT_KNEE, _FOOTPRINT_RANGE)
     x = x.clamp_min(0.0)
     k = _FOOTPRINT_KNEE * luminance(x).mean((1, 2, 3), keepdim=True).clamp_min(1e-30)
     y = x / (k + x)
@@ -668,6 +685,8 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
     L = luminance(e).clamp_min(0.0)
     mean = _frame_mean(L, mask)
     lg = torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))
+    if _fast.enabled(lg):
+        return _fast.kuwahara3(lg)
     H, W = lg.shape[-2:]
     moments = torch.nn.functional.pad(torch.cat([lg, lg * lg], 1), (2, 2, 2, 2), mode="replicate")
     moments = torch.nn.functional.avg_pool2d(moments, 3, 1)

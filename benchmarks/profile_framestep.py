@@ -1,0 +1,86 @@
+"""Per-stage time of one ``denoise_frames`` call on a 256x256 frame (default settings), at 1 and 2 threads.
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_framestep.py [--rounds 15] [--threads 1 2]
+
+Each stage function of :mod:`torchmanifold.pipeline.denoise` is wrapped with a timer (inclusive times:
+a stage that calls another counts it too); thread counts are interleaved round by round and medians
+reported, so a busy machine shifts both columns alike.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+import torchmanifold  # noqa: F401  (before torch: sets OMP_WAIT_POLICY, as the CLI does)
+import torch
+
+DATA = Path("/work/shared/data/mitsuba/cbox_glossy_tex")
+FEATURES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z", "P.X", "P.Y", "P.Z"]
+
+
+def load_frame():
+    from torchmanifold.io import read_exr
+
+    d = read_exr(DATA / "frame_0000.exr")
+    c = torch.from_numpy(np.stack([d[k] for k in "RGB"]))[None]
+    f = torch.from_numpy(np.stack([d[k] for k in FEATURES]))[None]
+    return c, f
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--rounds", type=int, default=15)
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    a = ap.parse_args(argv)
+    from torchmanifold.pipeline import denoise as D
+
+    clock = defaultdict(float)
+
+    def wrap(owner, name, label):
+        fn = getattr(owner, name)
+
+        def timed(*args, **kw):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kw)
+            finally:
+                clock[label] += time.perf_counter() - t
+        setattr(owner, name, timed)
+
+    for name in ("_sanitize", "_demodulation_albedo", "_footprint_albedo", "_guide", "_extent", "_log_radiance",
+                 "_clamp_fireflies", "_radiance_from_pilot", "_select_bandwidth", "_footprint_average"):
+        wrap(D, name, name)
+    wrap(D._Filter, "apply", "op calls (_Filter.apply)")
+    wrap(D._Filter, "_guard", "_guard (in normalise)")
+    wrap(D._Filter, "normalise", "normalise (incl. guard)")
+    wrap(D._Filter, "by_class", "pilot (_Filter.by_class)")
+    c, f = load_frame()
+    rows = defaultdict(lambda: defaultdict(list))
+    for th in a.threads:  # warm-up
+        torch.set_num_threads(th)
+        D.denoise_frames(c, f, FEATURES)
+    for _ in range(a.rounds):
+        for th in a.threads:
+            torch.set_num_threads(th)
+            clock.clear()
+            t = time.perf_counter()
+            D.denoise_frames(c, f, FEATURES)
+            total = time.perf_counter() - t
+            rows["TOTAL"][th].append(total)
+            for k, v in clock.items():
+                rows[k][th].append(v)
+    print(f"{'stage (inclusive)':36s}" + "".join(f"{f'{t} thr ms':>12s}" for t in a.threads))
+    for k, v in rows.items():
+        print(f"{k:36s}" + "".join(f"{1e3 * statistics.median(v[t]):12.2f}" for t in a.threads))
+    sel = {t: statistics.median(rows["_select_bandwidth"][t]) for t in a.threads}
+    return rows
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

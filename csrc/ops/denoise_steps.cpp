@@ -1,0 +1,22 @@
+// Schemas of the denoiser's fused frame-step kernels (torchmanifold/pipeline/_fast.py dispatches to them;
+// torchmanifold/pipeline/denoise.py's PyTorch stages are the reference each one matches and the fallback
+// on other devices). Private ops: the pipeline's internals, not a public API. All tensors are
+// contiguous-or-made-so, float32 or float64, one device.
+#include <torch/library.h>
+
+TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
+  // _Filter.normalise at frame queries: out = den > 1e-8 ? num / den : values * mask, then (radius > 0)
+  // clamped to the range of the valid (mask > 0) values in the (2 radius + 1)^2 box around each pixel
+  // (_Filter._guard). num/values (N, C, H, W), den/mask (N, 1, H, W) -> (N, C, H, W).
+  m.def("_normalise_guard(Tensor num, Tensor den, Tensor values, Tensor mask, int radius) -> Tensor");
+  // denoise._footprint_average: x (T, 3, H, W) -> (T, 3, H, W).
+  m.def("_footprint_average(Tensor x, float sigma, float knee, float range_sigma) -> Tensor");
+  // denoise._log_radiance's 3x3 Kuwahara filter (replicate borders) of x (N, C, H, W) -> (N, C, H, W).
+  m.def("_kuwahara3(Tensor x) -> Tensor");
+  // The end of denoise._select_bandwidth at frame queries: errors of the K predictions preds (K, T, 3, H, W)
+  // against e (T, 3, H, W), weighted by weight (T, 1, H, W), pooled by a Gaussian of blur_sigma normalised
+  // by the blurred mask (T, 1, H, W), turned into softmax weights (softness > 0) that blend fulls
+  // (K, T, 3, H, W) -> (T, 3, H, W).
+  m.def("_cv_blend(Tensor preds, Tensor fulls, Tensor e, Tensor weight, Tensor mask, float blur_sigma, "
+        "float softness) -> Tensor");
+}

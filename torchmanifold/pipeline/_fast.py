@@ -1,0 +1,79 @@
+"""Fused C++ kernels of the denoiser's frame step, and when each may run.
+
+:mod:`torchmanifold.pipeline.denoise` keeps every stage in PyTorch: that code is the reference and the
+path on other devices and dtypes. A stage calls :func:`enabled` with its tensors and, when it holds,
+the ``torchmanifold::_<stage>`` op (``csrc/ops/denoise_steps.cpp``, CPU kernels in
+``csrc/ops/cpu/denoise_steps_kernel.cpp``), which mirrors the stage's float operations and agrees with
+it to float rounding, with the same bytes for any thread count.
+
+Use :func:`reference` to run the PyTorch stages instead (tests compare the two; benchmarks time both).
+"""
+from __future__ import annotations
+
+import contextlib
+import threading
+
+import torch
+from torch import Tensor
+
+__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend"]
+
+_FLOATS = (torch.float32, torch.float64)
+_state = threading.local()
+_HAVE_OPS: bool | None = None
+
+
+def _have_ops() -> bool:
+    try:
+        return hasattr(torch.ops.torchmanifold, "_cv_blend")
+    except (AttributeError, RuntimeError):  # pragma: no cover - no extension
+        return False
+
+
+def enabled(*tensors: Tensor) -> bool:
+    """True when the fused kernels may run on ``tensors``: the ops are built, every tensor is a CPU
+    float32/float64 tensor of one dtype, and :func:`reference` is not active."""
+    global _HAVE_OPS
+    if getattr(_state, "reference", False):
+        return False
+    if _HAVE_OPS is None:  # first call: torchmanifold._C is loaded by then (torchmanifold/__init__)
+        _HAVE_OPS = _have_ops()
+    if not _HAVE_OPS:
+        return False
+    dt = tensors[0].dtype
+    return dt in _FLOATS and all(t.device.type == "cpu" and t.dtype == dt for t in tensors)
+
+
+@contextlib.contextmanager
+def reference():
+    """Within this block (this thread) the denoiser runs its pure-PyTorch stages."""
+    old = getattr(_state, "reference", False)
+    _state.reference = True
+    try:
+        yield
+    finally:
+        _state.reference = old
+
+
+def normalise_guard(num: Tensor, den: Tensor, values: Tensor, mask: Tensor, radius: int) -> Tensor:
+    """``_Filter.normalise`` at frame queries: num ``(N, C, H, W)``, den ``(N, 1, H, W)``, values
+    ``(N, C, H, W)``, mask ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0 skips the guard."""
+    return torch.ops.torchmanifold._normalise_guard(num, den, values, mask, int(radius))
+
+
+def footprint_average(x: Tensor, sigma: float, knee: float, range_sigma: float) -> Tensor:
+    """``denoise._footprint_average``: ``(T, 3, H, W)`` -> ``(T, 3, H, W)``."""
+    return torch.ops.torchmanifold._footprint_average(x, float(sigma), float(knee), float(range_sigma))
+
+
+def kuwahara3(x: Tensor) -> Tensor:
+    """``denoise._log_radiance``'s 3x3 Kuwahara filter: ``(N, C, H, W)`` -> ``(N, C, H, W)``."""
+    return torch.ops.torchmanifold._kuwahara3(x)
+
+
+def cv_blend(preds: list[Tensor], fulls: list[Tensor], e: Tensor, weight: Tensor, mask: Tensor,
+             blur_sigma: float, softness: float) -> Tensor:
+    """The end of ``denoise._select_bandwidth`` at frame queries: K predictions and outputs
+    ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``."""
+    return torch.ops.torchmanifold._cv_blend(torch.stack(preds), torch.stack(fulls), e, weight, mask,
+                                             float(blur_sigma), float(softness))
