@@ -2,13 +2,15 @@
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/profile_framestep.py [--rounds 15] [--threads 1 2]
 
-Each stage function of :mod:`torchmanifold.pipeline.denoise` is wrapped with a timer (inclusive times:
+Both paths run in the same rounds: the fused C++ kernels (``fast``) and the pure-PyTorch stages
+(``torch``, :func:`torchmanifold.pipeline._fast.reference`). Each stage function of :mod:`torchmanifold.pipeline.denoise` is wrapped with a timer (inclusive times:
 a stage that calls another counts it too); thread counts are interleaved round by round and medians
 reported, so a busy machine shifts both columns alike.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import sys
 import time
@@ -60,25 +62,31 @@ def main(argv=None):
     wrap(D._Filter, "_guard", "_guard (in normalise)")
     wrap(D._Filter, "normalise", "normalise (incl. guard)")
     wrap(D._Filter, "by_class", "pilot (_Filter.by_class)")
+    from torchmanifold.pipeline import _fast
+
     c, f = load_frame()
     rows = defaultdict(lambda: defaultdict(list))
-    for th in a.threads:  # warm-up
+    cols = [(th, path) for th in a.threads for path in ("torch", "fast")]
+
+    def run(th, path):
         torch.set_num_threads(th)
-        D.denoise_frames(c, f, FEATURES)
-    for _ in range(a.rounds):
-        for th in a.threads:
-            torch.set_num_threads(th)
+        ctx = _fast.reference() if path == "torch" else contextlib.nullcontext()
+        with ctx:
             clock.clear()
             t = time.perf_counter()
             D.denoise_frames(c, f, FEATURES)
-            total = time.perf_counter() - t
-            rows["TOTAL"][th].append(total)
+            return time.perf_counter() - t
+
+    for col in cols:  # warm-up
+        run(*col)
+    for _ in range(a.rounds):
+        for col in cols:
+            rows["TOTAL"][col].append(run(*col))
             for k, v in clock.items():
-                rows[k][th].append(v)
-    print(f"{'stage (inclusive)':36s}" + "".join(f"{f'{t} thr ms':>12s}" for t in a.threads))
+                rows[k][col].append(v)
+    print(f"{'stage (inclusive), median ms':36s}" + "".join(f"{f'{p} {t}thr':>12s}" for t, p in cols))
     for k, v in rows.items():
-        print(f"{k:36s}" + "".join(f"{1e3 * statistics.median(v[t]):12.2f}" for t in a.threads))
-    sel = {t: statistics.median(rows["_select_bandwidth"][t]) for t in a.threads}
+        print(f"{k:36s}" + "".join(f"{1e3 * statistics.median(v[col]) if v[col] else 0:12.2f}" for col in cols))
     return rows
 
 

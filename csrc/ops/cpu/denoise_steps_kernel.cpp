@@ -13,8 +13,11 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <vector>
+
+#include "ops/cpu/workspace.h"
 
 // No fused multiply-adds: the PyTorch stages round every product before the sum, and a 3x3 variance
 // that rounds differently can pick another Kuwahara window.
@@ -33,7 +36,7 @@ inline T lum(T r, T g, T b) {
 // max that propagates NaN from either side, as torch.maximum does
 template <typename T>
 inline T nan_max(T a, T b) {
-  return (a != a || a > b) ? a : b;
+  return ((a > b) | (a != a)) ? a : b;
 }
 
 inline int64_t clampi(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
@@ -52,31 +55,33 @@ void check_shape(const at::Tensor& x, const char* name, const char* op, int64_t 
 }
 
 // ------------------------------------------------------------------------------ box max (the guard)
-// Max over a window of 2r + 1 samples (-inf beyond the ends) of every position of a row, by van Herk /
-// Gil-Werman: running maxima from each block start (g) and to each block end (h) of the padded row; a
-// window is the suffix of one block and the prefix of the next. Exact, so it equals the sparse table of
-// denoise._window_max bit for bit. Rows are vectors of `width` lanes (a column pass moves whole rows).
+// Max over a window of 2r + 1 rows (-inf beyond the ends) at every row of an (n, width) array, by van
+// Herk / Gil-Werman: running maxima from each block start (g) and to each block end (h) of the padded
+// rows; a window is the suffix of one block and the prefix of the next. Whole rows at a time, so the
+// lanes vectorise. Exact, so it equals the sparse table of denoise._window_max bit for bit.
 template <typename T>
-void window_max_rows(const T* src, int64_t n, int64_t r, int64_t width, T* dst, T* g, T* h) {
+void window_max_rows(const T* __restrict src, int64_t n, int64_t r, int64_t width, T* __restrict dst,
+                     T* __restrict g, T* __restrict h, const T* __restrict ninf) {
   const int64_t len = n + 2 * r, w = 2 * r + 1;
-  const T ninf = -std::numeric_limits<T>::infinity();
-  auto p = [&](int64_t i, int64_t x) { return (i < r || i >= r + n) ? ninf : src[(i - r) * width + x]; };
-  for (int64_t i = 0; i < len; ++i) {
+  auto row = [&](int64_t i) { return (i < r || i >= r + n) ? ninf : src + (i - r) * width; };
+  for (int64_t i = 0, pos = 0; i < len; ++i, pos = (pos + 1 == w) ? 0 : pos + 1) {
     T* gi = g + i * width;
-    if (i % w == 0) {
-      for (int64_t x = 0; x < width; ++x) gi[x] = p(i, x);
+    const T* p = row(i);
+    if (pos == 0) {
+      std::copy(p, p + width, gi);
     } else {
       const T* gp = gi - width;
-      for (int64_t x = 0; x < width; ++x) gi[x] = nan_max(gp[x], p(i, x));
+      for (int64_t x = 0; x < width; ++x) gi[x] = nan_max(gp[x], p[x]);
     }
   }
   for (int64_t i = len - 1; i >= 0; --i) {
     T* hi = h + i * width;
+    const T* p = row(i);
     if (i % w == w - 1 || i == len - 1) {
-      for (int64_t x = 0; x < width; ++x) hi[x] = p(i, x);
+      std::copy(p, p + width, hi);
     } else {
       const T* hn = hi + width;
-      for (int64_t x = 0; x < width; ++x) hi[x] = nan_max(hn[x], p(i, x));
+      for (int64_t x = 0; x < width; ++x) hi[x] = nan_max(hn[x], p[x]);
     }
   }
   for (int64_t j = 0; j < n; ++j) {
@@ -87,13 +92,53 @@ void window_max_rows(const T* src, int64_t n, int64_t r, int64_t width, T* dst, 
   }
 }
 
-// (2r+1)^2 box max of an (H, W) plane: rows (dim 3) first, then columns, as denoise._box_max.
 template <typename T>
-void box_max_plane(const T* src, int64_t H, int64_t W, int64_t r, T* dst) {
-  std::vector<T> tmp(H * W), g((std::max(H, W) + 2 * r) * W), h(g.size());
-  for (int64_t y = 0; y < H; ++y)  // a row is a column of one lane
-    window_max_rows(src + y * W, W, r, 1, tmp.data() + y * W, g.data(), h.data());
-  window_max_rows(tmp.data(), H, r, W, dst, g.data(), h.data());
+void transpose(const T* src, int64_t H, int64_t W, T* dst) {
+  constexpr int64_t B = 32;
+  for (int64_t y0 = 0; y0 < H; y0 += B)
+    for (int64_t x0 = 0; x0 < W; x0 += B)
+      for (int64_t y = y0; y < std::min(H, y0 + B); ++y)
+        for (int64_t x = x0; x < std::min(W, x0 + B); ++x) dst[x * H + y] = src[y * W + x];
+}
+
+// (2r+1)^2 box max of an (H, W) plane (separable; max is exact, so the order of the passes is free).
+// Scratch: 4 HW + 2 (M + 2r) M + M values, M = max(H, W), pooled (fresh pages cost more than the work).
+template <typename T>
+void box_max_plane(const T* src, int64_t H, int64_t W, int64_t r, T* dst, Scratch<T>& scratch) {
+  const int64_t M = std::max(H, W), HW = H * W, G = (M + 2 * r) * M;
+  scratch.resize(2 * HW + 2 * G + M);
+  T *a = scratch.data(), *b = a + HW, *g = b + HW, *h = g + G, *ninf = h + G;
+  std::fill(ninf, ninf + M, -std::numeric_limits<T>::infinity());
+  window_max_rows(src, H, r, W, a, g, h, ninf);  // along y
+  transpose(a, H, W, b);
+  window_max_rows(b, W, r, H, a, g, h, ninf);  // along x
+  transpose(a, W, H, dst);
+}
+
+// Row helpers with restrict parameters (GCC vectorises only when told the rows are apart).
+template <typename T>
+void masked_row(const T* __restrict v, const T* __restrict m, T sign, T fill, int64_t n, T* __restrict out) {
+  for (int64_t i = 0; i < n; ++i) out[i] = m[i] > T(0) ? sign * v[i] : fill;
+}
+
+template <typename T>
+void normalise_row(const T* __restrict a, const T* __restrict d, const T* __restrict v, const T* __restrict m,
+                   int64_t W, T* __restrict o) {
+  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > T(1e-8) ? a[x] / d[x] : v[x] * m[x];
+}
+
+// out = min(max(out, lo), hi) where the box held a valid sample (hi > -max/2), as torch.maximum /
+// minimum do it: a NaN out stays NaN (the comparisons fail); NaN bounds come only from a NaN value in the
+// box, which makes hi NaN too, and then the pixel is not guarded (PyTorch's `ok` is false as well)
+template <typename T>
+void clamp_row(const T* __restrict hi, const T* __restrict nlo, int64_t W, T* __restrict o) {
+  const T half_big = -std::numeric_limits<T>::max() / T(2);
+  for (int64_t x = 0; x < W; ++x) {
+    const T z = o[x], lo = -nlo[x], h = hi[x];
+    const T z1 = z < lo ? lo : z;
+    const T z2 = z1 > h ? h : z1;
+    o[x] = h > half_big ? z2 : z;
+  }
 }
 
 at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, const at::Tensor& values_,
@@ -124,14 +169,15 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
       pb = bounds.data_ptr<T>();
       const T big = std::numeric_limits<T>::max();
       at::parallel_for(0, N * C * 2, 1, [&](int64_t b0, int64_t b1) {
-        std::vector<T> src(HW);
+        Scratch<T> src, scratch;
+        src.resize(HW);
         for (int64_t b = b0; b < b1; ++b) {
           const int64_t n = b / (2 * C), c = (b / 2) % C;
           const T sign = (b % 2) ? T(-1) : T(1);
           const T* v = pv + (n * C + c) * HW;
           const T* m = pm + n * HW;
-          for (int64_t i = 0; i < HW; ++i) src[i] = m[i] > T(0) ? sign * v[i] : -big;
-          box_max_plane(src.data(), H, W, radius, pb + b * HW);
+          masked_row(v, m, sign, -big, HW, src.data());
+          box_max_plane(src.data(), H, W, radius, pb + b * HW, scratch);
         }
       });
     }
@@ -145,19 +191,10 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
           const T* a = pn + off;
           const T* v = pv + off;
           T* o = po + off;
-          for (int64_t x = 0; x < W; ++x) o[x] = d[x] > T(1e-8) ? a[x] / d[x] : v[x] * m[x];
+          normalise_row(a, d, v, m, W, o);
           if (pb) {
             const T* hi = pb + ((n * C + c) * 2) * HW + y * W;
-            const T* nlo = hi + HW;
-            const T half_big = -std::numeric_limits<T>::max() / T(2);
-            for (int64_t x = 0; x < W; ++x) {
-              if (!(hi[x] > half_big)) continue;  // no valid sample in the box: unguarded
-              T z = o[x];
-              const T lo = -nlo[x];
-              z = (z != z || z > lo) ? z : lo;         // torch.maximum(out, lo)
-              z = (z != z || z < hi[x]) ? z : hi[x];   // torch.minimum(., hi)
-              o[x] = z;
-            }
+            clamp_row(hi, hi + HW, W, o);
           }
         }
       }
@@ -167,6 +204,42 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
 }
 
 // ------------------------------------------------------------------------- footprint average
+// exp in plain arithmetic, so loops over it vectorise (std::exp does not): Cephes' expf (range reduction
+// by ln 2 in two parts, degree-6 polynomial, 2^n from the exponent bits), within 2 ulp of the libm /
+// SLEEF exp PyTorch uses, for x <= 88 (the footprint's range weights: x <= 0). NaN gives NaN; below
+// -87.3 gives 0 (PyTorch: a denormal or 0). float64 uses std::exp.
+inline float exp_lanes(float x) {
+  const float xc = x < -87.3f ? -87.3f : (x > 88.0f ? 88.0f : x);
+  const float n = std::floor(xc * 1.44269504088896341f + 0.5f);
+  const float r = (xc - n * 0.693359375f) - n * -2.12194440e-4f;
+  float p = 1.9875691500e-4f;
+  p = p * r + 1.3981999507e-3f;
+  p = p * r + 8.3334519073e-3f;
+  p = p * r + 4.1665795894e-2f;
+  p = p * r + 1.6666665459e-1f;
+  p = p * r + 5.0000001201e-1f;
+  const float e = p * (r * r) + r + 1.0f;
+  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+  float scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  const float out = x < -87.3f ? 0.0f : e * scale;
+  return x != x ? x : out;
+}
+inline double exp_lanes(double x) { return std::exp(x); }
+
+// a_c += w * n_c, den += w over a row (restrict parameters: GCC vectorises only when told the rows are apart)
+template <typename T>
+void accumulate_weighted(T* __restrict a0, T* __restrict a1, T* __restrict a2, T* __restrict den,
+                         const T* __restrict w, const T* __restrict n0, const T* __restrict n1,
+                         const T* __restrict n2, int64_t W) {
+  for (int64_t x = 0; x < W; ++x) {
+    a0[x] += w[x] * n0[x];
+    a1[x] += w[x] * n1[x];
+    a2[x] += w[x] * n2[x];
+    den[x] += w[x];
+  }
+}
+
 // Per frame, the sum of f(pixel) over its rows: per-row double partials added in row order.
 template <typename T, typename F>
 double frame_sum(int64_t H, int64_t W, const F& f) {
@@ -202,7 +275,11 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, double sigma, double knee
         ws[(dy + r) * (2 * r + 1) + dx + r] =
             static_cast<T>(std::exp(-static_cast<double>(dx * dx + dy * dy) / (2 * sigma * sigma)));
     const T inv_den = static_cast<T>(2 * (range_sigma * range_sigma));
-    std::vector<T> yb(4 * HW);  // y (3 planes) and its luminance
+    const int64_t Hp = H + 2 * r, Wp = W + 2 * r;
+    Scratch<T> yb, ypb;  // y (3 planes) and its luminance; the same padded by r
+    yb.resize(4 * HW);
+    ypb.resize(4 * Hp * Wp);
+    T* yp = ypb.data();
     for (int64_t t = 0; t < Tn; ++t) {
       const T* px = x.data_ptr<T>() + t * 3 * HW;
       T* po = out.data_ptr<T>() + t * 3 * HW;
@@ -223,25 +300,38 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, double sigma, double knee
           y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
         }
       });
+      // replicate-padded copy of y and its luminance, so the window loops run without clamping
+      for (int64_t c = 0; c < 4; ++c)
+        for (int64_t i = 0; i < Hp; ++i) {
+          const T* srow = y + c * HW + clampi(i - r, H) * W;
+          T* prow = yp + (c * Hp + i) * Wp;
+          for (int64_t j = 0; j < Wp; ++j) prow[j] = srow[clampi(j - r, W)];
+        }
       at::parallel_for(0, H, row_grain(W * (2 * r + 1) * (2 * r + 1) / 4), [&](int64_t y0, int64_t y1) {
-        std::vector<T> num(3 * W), den(W);
+        Scratch<T> acc;
+        acc.resize(5 * W);
+        T* num = acc.data();
+        T* __restrict a0 = num;
+        T* __restrict a1 = num + W;
+        T* __restrict a2 = num + 2 * W;
+        T* __restrict den = num + 3 * W;
+        T* __restrict wt = num + 4 * W;
         for (int64_t row = y0; row < y1; ++row) {
-          std::fill(num.begin(), num.end(), T(0));
-          std::fill(den.begin(), den.end(), T(0));
-          const T* ly = y + 3 * HW + row * W;
+          std::fill(num, num + 4 * W, T(0));
+          const T* ly = yp + (3 * Hp + row + r) * Wp + r;
           for (int64_t dy = -r; dy <= r; ++dy) {
-            const int64_t sy = clampi(row + dy, H) * W;
             for (int64_t dx = -r; dx <= r; ++dx) {
               const T wsp = ws[(dy + r) * (2 * r + 1) + dx + r];
+              const int64_t o = (row + r + dy) * Wp + r + dx;
+              const T* __restrict n0 = yp + o;
+              const T* __restrict n1 = n0 + Hp * Wp;
+              const T* __restrict n2 = n1 + Hp * Wp;
+              const T* __restrict nl = n2 + Hp * Wp;
               for (int64_t xx = 0; xx < W; ++xx) {
-                const int64_t j = sy + clampi(xx + dx, W);
-                const T d = y[3 * HW + j] - ly[xx];
-                const T w = wsp * std::exp(-(d * d) / inv_den);
-                num[xx] += w * y[j];
-                num[W + xx] += w * y[HW + j];
-                num[2 * W + xx] += w * y[2 * HW + j];
-                den[xx] += w;
+                const T d = nl[xx] - ly[xx];
+                wt[xx] = wsp * exp_lanes(-(d * d) / inv_den);
               }
+              accumulate_weighted(a0, a1, a2, den, wt, n0, n1, n2, W);
             }
           }
           for (int64_t c = 0; c < 3; ++c) {
@@ -319,7 +409,48 @@ at::Tensor kuwahara3_cpu(const at::Tensor& x_) {
 }
 
 // -------------------------------------------------------------------------- cross-validated blend
-constexpr int64_t kMaxBandwidths = 64;  // the per-pixel softmax weights live on the stack
+// Row helpers with restrict parameters, so the loops vectorise.
+template <typename T>
+void sq_error_row(const T* __restrict q0, const T* __restrict q1, const T* __restrict q2, const T* __restrict e0,
+                  const T* __restrict e1, const T* __restrict e2, const T* __restrict w, int64_t W, T* __restrict out) {
+  for (int64_t x = 0; x < W; ++x) {
+    const T d0 = q0[x] - e0[x], d1 = q1[x] - e1[x], d2 = q2[x] - e2[x];
+    out[x] = (d0 * d0 + d1 * d1 + d2 * d2) * w[x];
+  }
+}
+template <typename T>
+void axpy(T a, const T* __restrict x, int64_t n, T* __restrict y) {
+  for (int64_t i = 0; i < n; ++i) y[i] += a * x[i];
+}
+template <typename T>
+void divide_row(const T* __restrict d, int64_t n, T* __restrict y) {
+  for (int64_t i = 0; i < n; ++i) y[i] = y[i] / d[i];
+}
+template <typename T>
+void min_row(const T* __restrict x, int64_t n, T* __restrict y) {
+  for (int64_t i = 0; i < n; ++i) y[i] = x[i] < y[i] ? x[i] : y[i];
+}
+template <typename T>
+void softmax_max_row(const T* __restrict err, const T* __restrict scale, int64_t n, T* __restrict zmax) {
+  for (int64_t i = 0; i < n; ++i) {
+    const T z = -err[i] / scale[i];
+    zmax[i] = z > zmax[i] ? z : zmax[i];
+  }
+}
+// err <- exp(-err / scale - zmax); wsum += it
+template <typename T>
+void softmax_exp_row(const T* __restrict scale, const T* __restrict zmax, int64_t n, T* __restrict err,
+                     T* __restrict wsum) {
+  for (int64_t i = 0; i < n; ++i) {
+    const T v = exp_lanes(-err[i] / scale[i] - zmax[i]);
+    err[i] = v;
+    wsum[i] += v;
+  }
+}
+template <typename T>
+void fma_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __restrict y) {
+  for (int64_t i = 0; i < n; ++i) y[i] += a[i] * b[i];
+}
 
 at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, const at::Tensor& e_,
                         const at::Tensor& weight_, const at::Tensor& mask_, double blur_sigma, double softness) {
@@ -336,7 +467,6 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
                     ": weight and mask must be (T, 1, H, W), got ", weight_.sizes(), " and ", mask_.sizes());
   for (auto* p : {&preds_, &fulls_, &weight_, &mask_})
     TORCH_CHECK_VALUE(p->scalar_type() == e_.scalar_type(), op, ": inputs must share e's dtype");
-  TORCH_CHECK_VALUE(K <= kMaxBandwidths, op, ": at most ", kMaxBandwidths, " bandwidths, got ", K);
   TORCH_CHECK_VALUE(blur_sigma > 0 && softness > 0, op, ": blur_sigma and softness must be > 0");
   const at::Tensor preds = preds_.contiguous(), fulls = fulls_.contiguous(), e = e_.contiguous(),
                    weight = weight_.contiguous(), mask = mask_.contiguous();
@@ -363,70 +493,66 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
     T* po = out.data_ptr<T>();
     // pass 1: the rows of the K error planes and the mask plane of every frame, blurred along x
     const int64_t P = (K + 1) * Tn;  // plane p < K*T: error of prediction p / T at frame p % T; then masks
-    std::vector<T> hb(P * HW);
+    Scratch<T> hbuf;
+    hbuf.resize(P * HW);
+    T* hb = hbuf.data();
     at::parallel_for(0, P * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
-      std::vector<T> src(W);
+      Scratch<T> srcb;
+      srcb.resize(W + 2 * r);
+      T* src = srcb.data();  // the row, replicate-padded by r
       for (int64_t pr = r0; pr < r1; ++pr) {
         const int64_t p = pr / H, y = pr % H;
         if (p < K * Tn) {
           const int64_t kk = p / Tn, t = p % Tn;
           const T* q = pp + (kk * Tn + t) * 3 * HW + y * W;
-          const T* v = pe + t * 3 * HW + y * W;
-          const T* w = pw + t * HW + y * W;
-          for (int64_t x = 0; x < W; ++x) {
-            const T d0 = q[x] - v[x], d1 = q[HW + x] - v[HW + x], d2 = q[2 * HW + x] - v[2 * HW + x];
-            src[x] = (d0 * d0 + d1 * d1 + d2 * d2) * w[x];
-          }
+          sq_error_row(q, q + HW, q + 2 * HW, pe + t * 3 * HW + y * W, pe + t * 3 * HW + HW + y * W,
+                       pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, src + r);
         } else {
-          std::copy(pm + (p - K * Tn) * HW + y * W, pm + (p - K * Tn) * HW + (y + 1) * W, src.begin());
+          std::copy(pm + (p - K * Tn) * HW + y * W, pm + (p - K * Tn) * HW + (y + 1) * W, src + r);
         }
-        T* o = hb.data() + p * HW + y * W;
-        for (int64_t x = 0; x < W; ++x) {
-          T s = 0;
-          for (int64_t i = -r; i <= r; ++i) s += taps[i + r] * src[clampi(x + i, W)];
-          o[x] = s;
-        }
+        std::fill(src, src + r, src[r]);
+        std::fill(src + r + W, src + 2 * r + W, src[r + W - 1]);
+        T* o = hb + p * HW + y * W;
+        std::fill(o, o + W, T(0));
+        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], src + r + i, W, o);
       }
     });
     // pass 2: blur along y, normalise by the pooled mask, softmax over the K bandwidths, blend
     at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * (K + 1)), [&](int64_t r0, int64_t r1) {
-      std::vector<T> err(K * W), pool(W);
+      Scratch<T> buf;
+      buf.resize((K + 4) * W);
+      T* err = buf.data();  // (K, W), then the softmax weights
+      T* pool = err + K * W;
+      T* zmax = pool + W;
+      T* wsum = zmax + W;
+      T* scale = wsum + W;
       auto vblur = [&](int64_t p, int64_t y, T* dst) {
         std::fill(dst, dst + W, T(0));
-        for (int64_t i = -r; i <= r; ++i) {
-          const T* s = hb.data() + p * HW + clampi(y + i, H) * W;
-          const T tap = taps[i + r];
-          for (int64_t x = 0; x < W; ++x) dst[x] += tap * s[x];
-        }
+        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + p * HW + clampi(y + i, H) * W, W, dst);
       };
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H;
-        vblur(K * Tn + t, y, pool.data());
-        for (int64_t x = 0; x < W; ++x) pool[x] = (pool[x] != pool[x] || pool[x] > T(1e-6)) ? pool[x] : T(1e-6);
+        vblur(K * Tn + t, y, pool);
+        for (int64_t x = 0; x < W; ++x) pool[x] = pool[x] < T(1e-6) ? T(1e-6) : pool[x];
         for (int64_t kk = 0; kk < K; ++kk) {
-          T* ek = err.data() + kk * W;
+          T* ek = err + kk * W;
           vblur(kk * Tn + t, y, ek);
-          for (int64_t x = 0; x < W; ++x) ek[x] = ek[x] / pool[x];
+          divide_row(pool, W, ek);
         }
-        for (int64_t x = 0; x < W; ++x) {
-          T least = err[x];
-          for (int64_t kk = 1; kk < K; ++kk) least = std::min(least, err[kk * W + x]);
-          least = (least != least || least > T(1e-30)) ? least : T(1e-30);
-          const T scale = static_cast<T>(softness) * least;
-          T zmax = -std::numeric_limits<T>::infinity();
-          for (int64_t kk = 0; kk < K; ++kk) zmax = std::max(zmax, -err[kk * W + x] / scale);
-          T wsum = 0;
-          T wk[kMaxBandwidths];
-          for (int64_t kk = 0; kk < K; ++kk) {
-            wk[kk] = std::exp(-err[kk * W + x] / scale - zmax);
-            wsum += wk[kk];
-          }
-          const int64_t i = y * W + x;
-          for (int64_t c = 0; c < 3; ++c) {
-            T s = 0;
-            for (int64_t kk = 0; kk < K; ++kk) s += pf[((kk * Tn + t) * 3 + c) * HW + i] * (wk[kk] / wsum);
-            po[(t * 3 + c) * HW + i] = s;
-          }
+        // least error (clamped), the softmax's scale and its max of -err / scale
+        std::copy(err, err + W, scale);
+        for (int64_t kk = 1; kk < K; ++kk) min_row(err + kk * W, W, scale);
+        const T soft = static_cast<T>(softness);
+        for (int64_t x = 0; x < W; ++x) scale[x] = soft * (scale[x] < T(1e-30) ? T(1e-30) : scale[x]);
+        std::fill(zmax, zmax + W, -std::numeric_limits<T>::infinity());
+        for (int64_t kk = 0; kk < K; ++kk) softmax_max_row(err + kk * W, scale, W, zmax);
+        std::fill(wsum, wsum + W, T(0));
+        for (int64_t kk = 0; kk < K; ++kk) softmax_exp_row(scale, zmax, W, err + kk * W, wsum);
+        for (int64_t kk = 0; kk < K; ++kk) divide_row(wsum, W, err + kk * W);
+        for (int64_t c = 0; c < 3; ++c) {
+          T* o = po + (t * 3 + c) * HW + y * W;
+          std::fill(o, o + W, T(0));
+          for (int64_t kk = 0; kk < K; ++kk) fma_row(pf + ((kk * Tn + t) * 3 + c) * HW + y * W, err + kk * W, W, o);
         }
       }
     });
