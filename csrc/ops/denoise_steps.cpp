@@ -19,4 +19,6 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // (K, T, 3, H, W) -> (T, 3, H, W).
   m.def("_cv_blend(Tensor preds, Tensor fulls, Tensor e, Tensor weight, Tensor mask, float blur_sigma, "
         "float softness) -> Tensor");
+  // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.
+  m.def("_quantiles(Tensor v, float[] q) -> Tensor");
 }

@@ -16,7 +16,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend"]
+__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -77,3 +77,9 @@ def cv_blend(preds: list[Tensor], fulls: list[Tensor], e: Tensor, weight: Tensor
     ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``."""
     return torch.ops.torchmanifold._cv_blend(torch.stack(preds), torch.stack(fulls), e, weight, mask,
                                              float(blur_sigma), float(softness))
+
+
+def quantiles(v: Tensor, q: list[float]) -> Tensor:
+    """``torch.quantile(v.double(), q, dim=1)`` (linear) by selection: v ``(R, N)`` -> ``(len(q), R)``
+    float64, the same bits."""
+    return torch.ops.torchmanifold._quantiles(v, [float(x) for x in q]).t()

@@ -111,7 +111,10 @@ def _extent(x: Tensor, valid: Tensor) -> Tensor:
         if v.shape[1] >= 2:
             if v.shape[1] > 200_000:  # quantile of a deterministic subsample is plenty
                 v = v[:, :: v.shape[1] // 100_000]
-            lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64), dim=1)
+            if _fast.enabled(v):
+                lo, hi = _fast.quantiles(v, [0.01, 0.99])
+            else:
+                lo, hi = torch.quantile(v.double(), torch.tensor([0.01, 0.99], dtype=torch.float64), dim=1)
             s = float((hi - lo).max())
         out.append(s if s > 0 and math.isfinite(s) else 1.0)
     return torch.tensor(out, dtype=torch.float64)

@@ -560,6 +560,48 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
   return out;
 }
 
+// ------------------------------------------------------------------------------ quantiles
+// torch.quantile(v.double(), q, dim=1) (linear interpolation) by selection instead of a sort: the same
+// order statistics, ranks and lerp, so the same float64 bits. A row with a NaN gives NaN (as torch).
+at::Tensor quantiles_cpu(const at::Tensor& v_, at::ArrayRef<double> q) {
+  const char* op = "_quantiles";
+  check_float(v_, "v", op);
+  check_shape(v_, "v", op, 2);
+  TORCH_CHECK_VALUE(v_.size(1) >= 1, op, ": v must have at least one column, got ", v_.sizes());
+  for (double x : q) TORCH_CHECK_VALUE(x >= 0 && x <= 1, op, ": q must lie in [0, 1], got ", x);
+  const at::Tensor v = v_.contiguous();
+  const int64_t R = v.size(0), N = v.size(1), Q = static_cast<int64_t>(q.size());
+  at::Tensor out = at::empty({R, Q}, v.options().dtype(at::kDouble));
+  double* po = out.data_ptr<double>();
+  AT_DISPATCH_FLOATING_TYPES(v.scalar_type(), "quantiles_cpu", [&] {
+    const scalar_t* pv = v.data_ptr<scalar_t>();
+    at::parallel_for(0, R, 1, [&](int64_t r0, int64_t r1) {
+      std::vector<double> buf(N);
+      for (int64_t r = r0; r < r1; ++r) {
+        bool nan = false;
+        for (int64_t i = 0; i < N; ++i) {
+          buf[i] = static_cast<double>(pv[r * N + i]);
+          nan |= buf[i] != buf[i];
+        }
+        for (int64_t k = 0; k < Q; ++k) {
+          if (nan) {
+            po[r * Q + k] = std::numeric_limits<double>::quiet_NaN();
+            continue;
+          }
+          const double rank = q[k] * static_cast<double>(N - 1);
+          const int64_t below = static_cast<int64_t>(rank), above = static_cast<int64_t>(std::ceil(rank));
+          std::nth_element(buf.begin(), buf.begin() + below, buf.end());
+          const double lo = buf[below];
+          const double hi = above == below ? lo : *std::min_element(buf.begin() + below + 1, buf.end());
+          const double w = rank - static_cast<double>(below);
+          po[r * Q + k] = std::abs(w) < 0.5 ? lo + w * (hi - lo) : hi - (hi - lo) * (1 - w);  // at::lerp
+        }
+      }
+    });
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -567,6 +609,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_footprint_average", &footprint_average_cpu);
   m.impl("_kuwahara3", &kuwahara3_cpu);
   m.impl("_cv_blend", &cv_blend_cpu);
+  m.impl("_quantiles", &quantiles_cpu);
 }
 
 }  // namespace cpu
