@@ -1,6 +1,7 @@
 """Pipeline benchmarks: the ``denoise`` score on the Mitsuba clip and the built-in scene's progressive curves.
 
-Run: ``.venv/bin/python -m pytest benchmarks/bench_pipeline.py`` (``--quick`` for a smoke run).
+Run: ``.venv/bin/python -m pytest benchmarks/bench_pipeline.py`` (``--quick`` for a smoke run); the frame
+step against OIDN alone: ``PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_pipeline.py [rounds]``.
 Results go to ``benchmarks/results/pipeline_*.json`` (and a chart); times are ratios against a kornia
 Gaussian blur measured in the same run, never asserted.
 """
@@ -12,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+import torchmanifold  # noqa: F401  (before torch: OMP_WAIT_POLICY, as the CLI sets it)
 import torch
 
 from torchmanifold import metrics as M
@@ -114,3 +117,71 @@ def test_progressive_builtin(benchmark, quick):
                 f"built-in scene {W}x{H}, {len(times)} frames")
     _save("pipeline_progressive_quick.json" if quick else "pipeline_progressive.json", data)
     print(json.dumps({k: v for k, v in data.items() if k != "per_iteration"}, indent=1, default=float))
+
+
+def frame_step_vs_oidn(threads=(1, 2), rounds: int = 9, frame: int = 0) -> dict:
+    """ms per 256x256 frame of ``denoise_frames`` (default settings) with the fused C++ stages and with the
+    pure-PyTorch stages (``_fast.reference()``), and of Intel OIDN (RT filter, hdr, albedo + normal, its
+    own device with the same thread count: ``baselines._oidn_run``), on one frame of the shared clip.
+
+    Every round runs every method at every thread count (interleaved), so a busy machine slows them alike;
+    medians over rounds and their ratios are reported."""
+    import statistics
+
+    from baselines import _oidn_run, _to_hwc
+    from torchmanifold.pipeline import _fast
+
+    c, f = _load("frame", [frame])
+    alb = _to_hwc(f[0, 0:3].clamp(0, 1))
+    nrm = _to_hwc(f[0, 3:6].clamp(-1, 1))
+    col = _to_hwc(c[0])
+
+    def ours():
+        denoise_frames(c, f, FEATURES)
+
+    def ours_torch():
+        with _fast.reference():
+            denoise_frames(c, f, FEATURES)
+
+    methods = {"ours": ours, "ours_pytorch_stages": ours_torch, "oidn": lambda: _oidn_run(col, alb, nrm)}
+    old = torch.get_num_threads()
+    times = {(m, t): [] for m in methods for t in threads}
+    try:
+        for t in threads:  # warm-up: OIDN builds its device and filter, ours its scratch pools
+            torch.set_num_threads(t)
+            for fn in methods.values():
+                fn()
+        for _ in range(rounds):
+            for t in threads:
+                torch.set_num_threads(t)
+                for m, fn in methods.items():
+                    t0 = time.perf_counter()
+                    fn()
+                    times[(m, t)].append(time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(old)
+    ms = {t: {m: 1e3 * statistics.median(times[(m, t)]) for m in methods} for t in threads}
+    out = {"size": list(c.shape[-2:]), "rounds": rounds, "ms_per_frame": ms,
+           "ours_vs_oidn": {t: ms[t]["ours"] / ms[t]["oidn"] for t in threads},
+           "pytorch_stages_vs_ours": {t: ms[t]["ours_pytorch_stages"] / ms[t]["ours"] for t in threads}}
+    if len(threads) > 1:
+        t1, t2 = threads[0], threads[1]
+        out[f"ours_{t1}thr_vs_{t2}thr"] = ms[t1]["ours"] / ms[t2]["ours"]
+    return out
+
+
+def test_frame_step_vs_oidn(benchmark, quick):
+    """The frame step's speed: ours (fused C++ stages and the PyTorch ones) against OIDN, 1 and 2 threads."""
+    data = frame_step_vs_oidn(rounds=2 if quick else 15)
+    benchmark.pedantic(lambda: None, rounds=1, iterations=1)
+    _save("pipeline_frame_step_quick.json" if quick else "pipeline_frame_step.json", data)
+    print(json.dumps(data, indent=1, default=float))
+
+
+if __name__ == "__main__":  # PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_pipeline.py [rounds]
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    r = frame_step_vs_oidn(rounds=int(sys.argv[1]) if len(sys.argv) > 1 else 15)
+    _save("pipeline_frame_step.json", r)
+    print(json.dumps(r, indent=1, default=float))

@@ -21,4 +21,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
         "float softness) -> Tensor");
   // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.
   m.def("_quantiles(Tensor v, float[] q) -> Tensor");
+  // denoise._select_bandwidth's stack for one op call: e (T, 3, H, W), mask (T, 1, H, W), flat (T, 1, H, W)
+  // bool, classes (0: not flat, 1: flat) -> (T, 8 len(classes), H, W): per class and checkerboard half
+  // [e * m, m], m = mask * class * half.
+  m.def("_cv_halves(Tensor e, Tensor mask, Tensor flat, int[] classes) -> Tensor");
+  // The op's output on that stack, y (T, 8 K, H, W) -> per class: the prediction from the other half
+  // (T, K, 3, H, W), and both halves' sums num (T, K, 3, H, W), den (T, K, 1, H, W).
+  m.def("_cv_split(Tensor y) -> (Tensor, Tensor, Tensor)");
 }

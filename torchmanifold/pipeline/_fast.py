@@ -16,7 +16,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles"]
+__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -83,3 +83,15 @@ def quantiles(v: Tensor, q: list[float]) -> Tensor:
     """``torch.quantile(v.double(), q, dim=1)`` (linear) by selection: v ``(R, N)`` -> ``(len(q), R)``
     float64, the same bits."""
     return torch.ops.torchmanifold._quantiles(v, [float(x) for x in q]).t()
+
+
+def cv_halves(e: Tensor, mask: Tensor, flat: Tensor, classes: list[int]) -> Tensor:
+    """``_select_bandwidth``'s op input: per class (0 not flat, 1 flat) and checkerboard half ``[e * m, m]``:
+    e ``(T, 3, H, W)``, mask ``(T, 1, H, W)``, flat ``(T, 1, H, W)`` bool -> ``(T, 8 K, H, W)``."""
+    return torch.ops.torchmanifold._cv_halves(e, mask, flat, [int(k) for k in classes])
+
+
+def cv_split(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The op's output on :func:`cv_halves` ``(T, 8 K, H, W)`` -> per class the other half's prediction
+    ``(T, K, 3, H, W)``, and the halves' sums num ``(T, K, 3, H, W)`` and den ``(T, K, 1, H, W)``."""
+    return torch.ops.torchmanifold._cv_split(y)

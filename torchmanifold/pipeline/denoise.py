@@ -432,24 +432,29 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     """
     T, _, H, W = e.shape
     st = settings
-    classes = [c.to(e.dtype) for c in (~flat, flat) if bool(c.any())]
+    class_ids = [k for k, c in enumerate((~flat, flat)) if bool(c.any())]  # 0: demodulated, 1: flat
+    classes = [(~flat, flat)[k].to(e.dtype) for k in class_ids]
     half = _halves(e.shape, e.device).to(e.dtype)
     at_frames = list(qt) == list(ft)
     preds, fulls, frame_outs = [], [], []
     for b in st.bandwidths:
         filt = _Filter(guide, sigmas, st, ft, ft, sigma_s * float(b), range_scale)
-        parts = []
-        for c in classes:
-            for h in (half, 1 - half):
-                parts += [e * (mask * c * h), mask * c * h]
-        y = filt.apply(torch.cat(parts, 1)).view(T, len(classes), 2, 4, H, W)
-        num, den = y[:, :, :, :3], y[:, :, :, 3:]
-        # a pixel of the first half is predicted from the second half's samples and the other way round
-        other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
-        other_den = torch.where(half > 0, den[:, :, 1], den[:, :, 0])
-        ok = other_den > 1e-8
-        pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), 0.0)
-        full = torch.stack([filt.normalise(num[:, k].sum(1), den[:, k].sum(1), e, mask * c)
+        if _fast.enabled(e, mask):  # the same stack, prediction and sums in two C++ passes
+            pred, num, den = _fast.cv_split(filt.apply(_fast.cv_halves(e, mask, flat, class_ids)))
+        else:
+            parts = []
+            for c in classes:
+                for h in (half, 1 - half):
+                    parts += [e * (mask * c * h), mask * c * h]
+            y = filt.apply(torch.cat(parts, 1)).view(T, len(classes), 2, 4, H, W)
+            num, den = y[:, :, :, :3], y[:, :, :, 3:]
+            # a pixel of the first half is predicted from the second half's samples and the other way round
+            other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
+            other_den = torch.where(half > 0, den[:, :, 1], den[:, :, 0])
+            ok = other_den > 1e-8
+            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), 0.0)
+            num, den = num.sum(2), den.sum(2)
+        full = torch.stack([filt.normalise(num[:, k], den[:, k], e, mask * c)
                             for k, c in enumerate(classes)], 1)
         if len(classes) == 2:
             pred = torch.where(flat, pred[:, 1], pred[:, 0])

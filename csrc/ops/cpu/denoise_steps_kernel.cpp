@@ -15,6 +15,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <tuple>
 #include <vector>
 
 #include "ops/cpu/workspace.h"
@@ -602,6 +603,100 @@ at::Tensor quantiles_cpu(const at::Tensor& v_, at::ArrayRef<double> q) {
   return out;
 }
 
+// ------------------------------------------------------------------ cross-validation halves and split
+// denoise._select_bandwidth's channel stack for one op call: per class (0: demodulated pixels, ~flat; 1:
+// flat ones) and per checkerboard half h ((y + x) even, then odd), [e * m, m] with m = (mask * class) * h,
+// the same float products as the PyTorch stack.
+at::Tensor cv_halves_cpu(const at::Tensor& e_, const at::Tensor& mask_, const at::Tensor& flat_,
+                         at::IntArrayRef classes) {
+  const char* op = "_cv_halves";
+  check_float(e_, "e", op);
+  check_shape(e_, "e", op, 4);
+  const int64_t Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W, K = static_cast<int64_t>(classes.size());
+  TORCH_CHECK_VALUE(e_.size(1) == 3, op, ": e must be (T, 3, H, W), got ", e_.sizes());
+  TORCH_CHECK_VALUE(mask_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && mask_.scalar_type() == e_.scalar_type(), op,
+                    ": mask must be (T, 1, H, W) of e's dtype, got ", mask_.sizes());
+  TORCH_CHECK_VALUE(flat_.sizes() == mask_.sizes() && flat_.scalar_type() == at::kBool, op,
+                    ": flat must be a (T, 1, H, W) bool tensor, got ", flat_.sizes(), " ", flat_.scalar_type());
+  for (int64_t k : classes) TORCH_CHECK_VALUE(k == 0 || k == 1, op, ": classes must be 0 or 1, got ", k);
+  const at::Tensor e = e_.contiguous(), mask = mask_.contiguous(), flat = flat_.contiguous();
+  at::Tensor out = at::empty({Tn, 8 * K, H, W}, e.options());
+  if (out.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_halves_cpu", [&] {
+    using T = scalar_t;
+    const T* pe = e.data_ptr<T>();
+    const T* pm = mask.data_ptr<T>();
+    const bool* pf = flat.data_ptr<bool>();
+    T* po = out.data_ptr<T>();
+    at::parallel_for(0, Tn * H, row_grain(W * 8 * K), [&](int64_t r0, int64_t r1) {
+      for (int64_t row = r0; row < r1; ++row) {
+        const int64_t t = row / H, y = row % H, i0 = y * W;
+        for (int64_t k = 0; k < K; ++k)
+          for (int64_t j = 0; j < 2; ++j) {
+            T* o = po + (t * 8 * K + k * 8 + j * 4) * HW + i0;
+            for (int64_t x = 0; x < W; ++x) {
+              const int64_t i = t * HW + i0 + x;
+              const T c = (pf[i] == (classes[k] == 1)) ? T(1) : T(0);
+              const T h0 = ((y + x) % 2 == 0) ? T(1) : T(0);
+              const T h = j == 0 ? h0 : T(1) - h0;
+              const T m = (pm[i] * c) * h;
+              o[x] = pe[t * 3 * HW + i0 + x] * m;
+              o[HW + x] = pe[t * 3 * HW + HW + i0 + x] * m;
+              o[2 * HW + x] = pe[t * 3 * HW + 2 * HW + i0 + x] * m;
+              o[3 * HW + x] = m;
+            }
+          }
+      }
+    });
+  });
+  return out;
+}
+
+// The op's output y (T, 8 K, H, W) on that stack -> each class's prediction of every pixel from the other
+// half (T, K, 3, H, W) (0 where the other half has no weight), and the sums of both halves: num
+// (T, K, 3, H, W), den (T, K, 1, H, W).
+std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_) {
+  const char* op = "_cv_split";
+  check_float(y_, "y", op);
+  check_shape(y_, "y", op, 4);
+  TORCH_CHECK_VALUE(y_.size(1) % 8 == 0 && y_.size(1) > 0, op, ": y must be (T, 8 K, H, W), got ", y_.sizes());
+  const at::Tensor y = y_.contiguous();
+  const int64_t Tn = y.size(0), K = y.size(1) / 8, H = y.size(2), W = y.size(3), HW = H * W;
+  at::Tensor pred = at::empty({Tn, K, 3, H, W}, y.options());
+  at::Tensor num = at::empty({Tn, K, 3, H, W}, y.options());
+  at::Tensor den = at::empty({Tn, K, 1, H, W}, y.options());
+  if (y.numel() == 0) return {pred, num, den};
+  AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "cv_split_cpu", [&] {
+    using T = scalar_t;
+    const T* py = y.data_ptr<T>();
+    T *pp = pred.data_ptr<T>(), *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>();
+    at::parallel_for(0, Tn * K * H, row_grain(W * 8), [&](int64_t r0, int64_t r1) {
+      for (int64_t row = r0; row < r1; ++row) {
+        const int64_t tk = row / H, yy = row % H, i0 = yy * W;
+        const T* a = py + tk * 8 * HW + i0;  // half 0: num 0..2, den 3; half 1: num 4..6, den 7
+        const T* da = a + 3 * HW;
+        const T* db = a + 7 * HW;
+        T* d = pd + tk * HW + i0;
+        for (int64_t x = 0; x < W; ++x) d[x] = da[x] + db[x];
+        for (int64_t c = 0; c < 3; ++c) {
+          const T* na = a + c * HW;
+          const T* nb = a + (4 + c) * HW;
+          T* n = pn + (tk * 3 + c) * HW + i0;
+          T* p = pp + (tk * 3 + c) * HW + i0;
+          for (int64_t x = 0; x < W; ++x) {
+            n[x] = na[x] + nb[x];
+            const bool first_half = (yy + x) % 2 == 0;  // predicted from the second half, and the other way round
+            const T on = first_half ? nb[x] : na[x];
+            const T od = first_half ? db[x] : da[x];
+            p[x] = od > T(1e-8) ? on / od : T(0);
+          }
+        }
+      }
+    });
+  });
+  return {pred, num, den};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -610,6 +705,8 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_kuwahara3", &kuwahara3_cpu);
   m.impl("_cv_blend", &cv_blend_cpu);
   m.impl("_quantiles", &quantiles_cpu);
+  m.impl("_cv_halves", &cv_halves_cpu);
+  m.impl("_cv_split", &cv_split_cpu);
 }
 
 }  // namespace cpu

@@ -1,0 +1,187 @@
+"""The denoiser's fused C++ frame-step kernels (torchmanifold/pipeline/_fast.py) against the PyTorch
+stages they replace (the reference, run under ``_fast.reference()``): stage by stage on random, rendered
+and hazard inputs, the whole frame step, thread-count invariance, and the ops' argument errors."""
+import math
+
+import pytest
+import torch
+
+from _pipeline_data import FEATURES, load_clip
+from torchmanifold.pipeline import DenoiseSettings, denoise_frames
+from torchmanifold.pipeline import _fast
+from torchmanifold.pipeline import denoise as D
+
+pytestmark = pytest.mark.skipif(not _fast.enabled(torch.zeros(1)), reason="fused kernels not built")
+
+
+def _both(fn, *args, **kw):
+    out = fn(*args, **kw)
+    with _fast.reference():
+        ref = fn(*args, **kw)
+    return out, ref
+
+
+def _same(a, b):
+    torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.fixture(scope="module")
+def frame(mitsuba_dir):
+    """One rendered 1-spp frame (128x128 crop) with its features, and the stage inputs derived from it."""
+    c, f = load_clip(mitsuba_dir, "frame", [0], crop=(slice(64, 192), slice(64, 192)))
+    cc, ff, mask, _, _ = D._sanitize(c, f, None)
+    alb, flat = D._demodulation_albedo(ff, FEATURES, DenoiseSettings())
+    return {"c": c, "f": f, "e": cc / alb, "mask": mask, "flat": flat}
+
+
+def _hazards(seed=0):
+    """(name, e, mask) inputs that break naive kernels: non-finite and masked samples, flat and black
+    frames, fireflies, images smaller than any window."""
+    g = torch.Generator().manual_seed(seed)
+    e = torch.rand(2, 3, 20, 23, generator=g) * 2
+    m = (torch.rand(2, 1, 20, 23, generator=g) > 0.3).float()
+    fire = e.clone()
+    fire[:, :, 5, 7] = 1e6
+    one = torch.zeros_like(m)
+    one[:, :, 3, 4] = 1.0
+    return [("random", e, m), ("all_masked", e, torch.zeros_like(m)), ("one_valid", e, one),
+            ("constant", torch.full_like(e, 0.7), m), ("black", torch.zeros_like(e), m), ("fireflies", fire, m),
+            ("tiny", e[:1, :, :2, :3].contiguous(), m[:1, :, :2, :3].contiguous()),
+            ("pixel", e[:1, :, :1, :1].contiguous(), torch.ones(1, 1, 1, 1))]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_normalise_guard_equals_reference_bitwise(frame, dtype):
+    cases = _hazards() + [("rendered", frame["e"], frame["mask"])]
+    for name, e, m in cases:
+        e, m = e.to(dtype), m.to(dtype)
+        g = torch.Generator().manual_seed(1)
+        num = torch.rand(e.shape, generator=g, dtype=dtype) * e
+        den = torch.rand(m.shape, generator=g, dtype=dtype) * m  # some below the 1e-8 threshold
+        num[..., 0, 0] = math.nan  # a NaN result stays NaN through the guard
+        for sigma_s in (0.5, 2.0, 8.0, 40.0):  # radius 1 to wider than the image
+            filt = D._Filter(torch.zeros(e.shape[0], 1, *e.shape[2:], dtype=dtype), torch.ones(e.shape[0], 1),
+                             DenoiseSettings(), list(range(e.shape[0])), list(range(e.shape[0])), sigma_s)
+            out, ref = _both(filt.normalise, num, den, e, m)
+            _same(out, ref)
+
+
+def test_kuwahara_log_radiance_equals_reference_bitwise(frame):
+    for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
+        for dtype in (torch.float32, torch.float64):
+            out, ref = _both(D._log_radiance, e.to(dtype), m.to(dtype))
+            _same(out, ref)
+
+
+def test_footprint_average_equals_reference(frame):
+    for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
+        for sigma in (0.5, 1.2):
+            out, ref = _both(D._footprint_average, e * m, sigma)
+            torch.testing.assert_close(out, ref, rtol=2e-5, atol=1e-7, equal_nan=True, msg=name)
+    out, ref = _both(D._footprint_average, frame["e"].double(), 0.5)
+    torch.testing.assert_close(out, ref, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("with_level", [False, True])
+def test_bandwidth_selection_blend_equals_reference(frame, with_level):
+    """_select_bandwidth with its cross-validated errors, pooling and softmax blend in C++."""
+    st = DenoiseSettings()
+    e, m, flat = frame["e"], frame["mask"], frame["flat"].clone()
+    flat[..., :20, :20] = True  # both classes
+    guide, sig = D._guide(frame["f"], FEATURES, e, m, st)
+    level = e.clamp_min(0) if with_level else None
+    out, ref = _both(D._select_bandwidth, e, m, flat, guide, sig, st, [0.0], [0.0], st.sigma_s, 1.0, level)
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().mean()))
+
+
+def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
+    e, m, flat = frame["e"], frame["mask"], frame["flat"].clone()
+    flat[..., :20, :20] = True
+    half = D._halves(e.shape, e.device).to(e.dtype)
+    classes = [(~flat).to(e.dtype), flat.to(e.dtype)]
+    parts = [p for c in classes for h in (half, 1 - half) for p in (e * (m * c * h), m * c * h)]
+    _same(_fast.cv_halves(e, m, flat, [0, 1]), torch.cat(parts, 1))
+    _same(_fast.cv_halves(e, m, flat, [1]), torch.cat(parts[4:], 1))
+    T, H, W = e.shape[0], *e.shape[2:]
+    y = torch.rand(T, 16, H, W, generator=torch.Generator().manual_seed(3)) * (torch.rand(T, 16, H, W) > 0.1)
+    pred, num, den = _fast.cv_split(y)
+    y = y.view(T, 2, 2, 4, H, W)
+    n, d = y[:, :, :, :3], y[:, :, :, 3:]
+    on, od = torch.where(half > 0, n[:, :, 1], n[:, :, 0]), torch.where(half > 0, d[:, :, 1], d[:, :, 0])
+    _same(pred, torch.where(od > 1e-8, on / torch.where(od > 1e-8, od, 1.0), 0.0))
+    _same(num, n.sum(2))
+    _same(den, d.sum(2))
+
+
+def test_quantiles_equal_torch_bitwise():
+    g = torch.Generator().manual_seed(2)
+    for v in (torch.randn(3, 2, generator=g), torch.randn(3, 1001, generator=g), torch.zeros(2, 50),
+              torch.randint(0, 4, (3, 999), generator=g).float()):  # many ties
+        q = [0.0, 0.01, 0.5, 0.99, 1.0]
+        _same(_fast.quantiles(v, q), torch.quantile(v.double(), torch.tensor(q, dtype=torch.float64), dim=1))
+    v = torch.randn(2, 30, generator=g)
+    v[1, 4] = math.nan
+    _same(_fast.quantiles(v, [0.5]), torch.quantile(v.double(), torch.tensor([0.5], dtype=torch.float64), dim=1))
+
+
+@pytest.mark.parametrize("name", ["rendered", "hazards"])
+def test_frame_step_equals_reference(frame, name):
+    """The whole denoise_frames call; on the rendered frame and one with NaN/inf samples, black and flat
+    (not demodulated) regions, fireflies."""
+    c, f = frame["c"], frame["f"]
+    if name == "hazards":
+        c, f = c.clone(), f.clone()
+        c[0, :, 10:20, 10:20] = 0.0
+        c[0, 0, 30, 30], c[0, 1, 31, 40], c[0, 2, 50, 50] = math.nan, math.inf, -math.inf
+        c[0, :, 60, 60] = 500.0
+        f[0, 3, 70, 70] = math.nan
+        f[0, :3, 80:100, 80:100] = 0.0  # albedo 0: flat pixels, filtered among themselves
+    out, ref = _both(denoise_frames, c, f, FEATURES)
+    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-4 * float(ref.abs().mean()))
+
+
+def test_kernels_thread_count_invariant(frame):
+    e, m = frame["e"], frame["mask"]
+    calls = [
+        lambda: _fast.normalise_guard(e, m + 0.5, e, m, 8),
+        lambda: _fast.footprint_average(e, 0.5, 3.0, 0.3),
+        lambda: _fast.kuwahara3(e),
+        lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5),
+        lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
+        lambda: _fast.cv_halves(e, m, frame["flat"], [0, 1]),
+        lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
+    ]
+    old = torch.get_num_threads()
+    try:
+        for call in calls:
+            torch.set_num_threads(1)
+            a = call()
+            torch.set_num_threads(3)
+            b = call()
+            for x, y in zip(a if isinstance(a, tuple) else [a], b if isinstance(b, tuple) else [b]):
+                _same(x, y)
+    finally:
+        torch.set_num_threads(old)
+
+
+def test_dispatch_only_for_cpu_float():
+    x = torch.zeros(1, 3, 4, 4)
+    assert _fast.enabled(x) and _fast.enabled(x.double())
+    assert not _fast.enabled(x.half()) and not _fast.enabled(x, x.double())
+    with _fast.reference():
+        assert not _fast.enabled(x)
+    assert _fast.enabled(x)
+
+
+def test_op_argument_errors():
+    x = torch.zeros(1, 3, 4, 4)
+    with pytest.raises(ValueError, match="den and mask must be"):
+        torch.ops.torchmanifold._normalise_guard(x, x, x, x[:, :1], 2)
+    with pytest.raises(ValueError, match="x must be .T, 3, H, W."):
+        torch.ops.torchmanifold._footprint_average(x[:, :2], 0.5, 3.0, 0.3)
+    with pytest.raises(ValueError, match="preds and fulls must be"):
+        torch.ops.torchmanifold._cv_blend(x[None], x, x, x[:, :1], x[:, :1], 4.0, 0.5)
+    with pytest.raises(ValueError, match="q must lie in"):
+        torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
+    with pytest.raises(ValueError, match="float32 or float64"):
+        torch.ops.torchmanifold._kuwahara3(x.half())
