@@ -28,4 +28,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // The op's output on that stack, y (T, 8 K, H, W) -> per class: the prediction from the other half
   // (T, K, 3, H, W), and both halves' sums num (T, K, 3, H, W), den (T, K, 1, H, W).
   m.def("_cv_split(Tensor y) -> (Tensor, Tensor, Tensor)");
+  // denoise._sanitize's finite check: c (T, C, H, W), f (T, D, H, W) -> c and f with non-finite values 0,
+  // mask (T, 1, H, W) (1 where all of a pixel's values are finite), counts int64 (3,): non-finite colour
+  // values, non-finite feature values, masked pixels.
+  m.def("_sanitize(Tensor c, Tensor f) -> (Tensor, Tensor, Tensor, Tensor)");
 }

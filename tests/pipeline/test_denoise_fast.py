@@ -113,6 +113,18 @@ def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
     _same(den, d.sum(2))
 
 
+def test_sanitize_equals_reference_bitwise(frame):
+    c, f = frame["c"].clone(), frame["f"].clone()
+    c[0, 0, 3, 4], c[0, 1, 5, 5], c[0, 2, 7, 1], f[0, 4, 9, 9], f[0, 0, 3, 4] = \
+        math.nan, math.inf, -math.inf, math.nan, math.inf
+    for args in ((c, f, None), (c.double(), f.double(), 0.1 * c.double()), (c, f[:, :0], None)):
+        out, ref = _both(D._sanitize, *args)
+        for a, b in zip(out[:4], ref[:4]):
+            if a is not None:
+                _same(a, b)
+        assert out[4] == ref[4] and out[4]["nonfinite_color"] == 3
+
+
 def test_quantiles_equal_torch_bitwise():
     g = torch.Generator().manual_seed(2)
     for v in (torch.randn(3, 2, generator=g), torch.randn(3, 1001, generator=g), torch.zeros(2, 50),
@@ -150,6 +162,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
         lambda: _fast.cv_halves(e, m, frame["flat"], [0, 1]),
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
+        lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
     ]
     old = torch.get_num_threads()
     try:

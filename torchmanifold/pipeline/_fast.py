@@ -16,7 +16,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split"]
+__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -95,3 +95,11 @@ def cv_split(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The op's output on :func:`cv_halves` ``(T, 8 K, H, W)`` -> per class the other half's prediction
     ``(T, K, 3, H, W)``, and the halves' sums num ``(T, K, 3, H, W)`` and den ``(T, K, 1, H, W)``."""
     return torch.ops.torchmanifold._cv_split(y)
+
+
+def sanitize(c: Tensor, f: Tensor) -> tuple[Tensor, Tensor, Tensor, dict]:
+    """``denoise._sanitize``'s finite check: c ``(T, C, H, W)``, f ``(T, D, H, W)`` -> c and f with non-finite
+    values 0, the mask ``(T, 1, H, W)`` and the stats dict (same keys and counts)."""
+    c, f, mask, n = torch.ops.torchmanifold._sanitize(c, f)
+    n = n.tolist()
+    return c, f, mask, {"nonfinite_color": n[0], "nonfinite_features": n[1], "masked_pixels": n[2]}

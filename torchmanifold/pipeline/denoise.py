@@ -601,12 +601,15 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
 
 def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
     """Zero non-finite samples and mark them with weight 0; take emission out of the colour."""
-    mask = (torch.isfinite(c).all(1, keepdim=True) & torch.isfinite(f).all(1, keepdim=True)).to(c.dtype)
-    stats = {"nonfinite_color": int((~torch.isfinite(c)).sum()),
-             "nonfinite_features": int((~torch.isfinite(f)).sum()),
-             "masked_pixels": int((mask == 0).sum())}
-    c = torch.where(torch.isfinite(c), c, 0.0)
-    f = torch.where(torch.isfinite(f), f, 0.0)
+    if _fast.enabled(c, f):
+        c, f, mask, stats = _fast.sanitize(c, f)
+    else:
+        mask = (torch.isfinite(c).all(1, keepdim=True) & torch.isfinite(f).all(1, keepdim=True)).to(c.dtype)
+        stats = {"nonfinite_color": int((~torch.isfinite(c)).sum()),
+                 "nonfinite_features": int((~torch.isfinite(f)).sum()),
+                 "masked_pixels": int((mask == 0).sum())}
+        c = torch.where(torch.isfinite(c), c, 0.0)
+        f = torch.where(torch.isfinite(f), f, 0.0)
     if em is not None:
         em = torch.where(torch.isfinite(em), em, 0.0)
         c = (c - em).clamp_min(0.0)

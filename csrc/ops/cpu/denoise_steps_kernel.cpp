@@ -697,6 +697,60 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_
   return {pred, num, den};
 }
 
+// ------------------------------------------------------------------------------ sanitise
+// denoise._sanitize without emission: non-finite samples of c (T, C, H, W) and f (T, D, H, W) set to 0,
+// the mask (T, 1, H, W) = 1 where every channel of both is finite, and the counts (non-finite colour
+// values, non-finite feature values, masked pixels) as int64 (3,). Selections and counts only: exact.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> sanitize_cpu(const at::Tensor& c_, const at::Tensor& f_) {
+  const char* op = "_sanitize";
+  check_float(c_, "c", op);
+  check_shape(c_, "c", op, 4);
+  check_shape(f_, "f", op, 4);
+  TORCH_CHECK_VALUE(f_.scalar_type() == c_.scalar_type() && f_.size(0) == c_.size(0) && f_.size(2) == c_.size(2) &&
+                    f_.size(3) == c_.size(3), op, ": f must be (T, D, H, W) of c's dtype and sizes ", c_.sizes(),
+                    ", got ", f_.sizes());
+  const at::Tensor c = c_.contiguous(), f = f_.contiguous();
+  const int64_t Tn = c.size(0), C = c.size(1), D = f.size(1), H = c.size(2), W = c.size(3), HW = H * W;
+  at::Tensor co = at::empty_like(c, at::MemoryFormat::Contiguous), fo = at::empty_like(f, at::MemoryFormat::Contiguous);
+  at::Tensor mask = at::empty({Tn, 1, H, W}, c.options());
+  at::Tensor counts = at::zeros({3}, c.options().dtype(at::kLong));
+  if (Tn * HW == 0) return {co, fo, mask, counts};
+  AT_DISPATCH_FLOATING_TYPES(c.scalar_type(), "sanitize_cpu", [&] {
+    using T = scalar_t;
+    std::vector<int64_t> rows(3 * Tn * H, 0);
+    at::parallel_for(0, Tn * H, row_grain(W * (C + D)), [&](int64_t r0, int64_t r1) {
+      std::vector<uint8_t> ok(W);
+      for (int64_t row = r0; row < r1; ++row) {
+        const int64_t t = row / H, i0 = (row % H) * W;
+        std::fill(ok.begin(), ok.end(), uint8_t(1));
+        auto clean = [&](const T* src, T* dst, int64_t n_ch, int64_t& bad) {
+          for (int64_t ch = 0; ch < n_ch; ++ch) {
+            const T* s = src + ch * HW + i0;
+            T* d = dst + ch * HW + i0;
+            for (int64_t x = 0; x < W; ++x) {
+              const bool fin = std::isfinite(s[x]);
+              d[x] = fin ? s[x] : T(0);
+              ok[x] &= fin;
+              bad += !fin;
+            }
+          }
+        };
+        clean(c.data_ptr<T>() + t * C * HW, co.data_ptr<T>() + t * C * HW, C, rows[3 * row]);
+        clean(f.data_ptr<T>() + t * D * HW, fo.data_ptr<T>() + t * D * HW, D, rows[3 * row + 1]);
+        T* m = mask.data_ptr<T>() + t * HW + i0;
+        for (int64_t x = 0; x < W; ++x) {
+          m[x] = ok[x] ? T(1) : T(0);
+          rows[3 * row + 2] += !ok[x];
+        }
+      }
+    });
+    int64_t* pc = counts.data_ptr<int64_t>();
+    for (int64_t row = 0; row < Tn * H; ++row)
+      for (int64_t k = 0; k < 3; ++k) pc[k] += rows[3 * row + k];
+  });
+  return {co, fo, mask, counts};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -707,6 +761,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_quantiles", &quantiles_cpu);
   m.impl("_cv_halves", &cv_halves_cpu);
   m.impl("_cv_split", &cv_split_cpu);
+  m.impl("_sanitize", &sanitize_cpu);
 }
 
 }  // namespace cpu
