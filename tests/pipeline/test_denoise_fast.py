@@ -125,6 +125,16 @@ def test_sanitize_equals_reference_bitwise(frame):
         assert out[4] == ref[4] and out[4]["nonfinite_color"] == 3
 
 
+def test_footprint_albedo_equals_reference(frame):
+    alb, flat = D._demodulation_albedo(frame["f"], FEATURES, DenoiseSettings())
+    flat = flat.clone()
+    flat[..., :9, :9] = True  # a flat block at the border: its neighbours average without it
+    for a, fl in ((alb, flat), (alb, torch.ones_like(flat)), (alb[..., :3, :2], flat[..., :3, :2])):
+        for sigma in (0.5, 1.5):
+            out, ref = _both(D._footprint_albedo, a, fl, sigma)
+            torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-7)
+
+
 def test_quantiles_equal_torch_bitwise():
     g = torch.Generator().manual_seed(2)
     for v in (torch.randn(3, 2, generator=g), torch.randn(3, 1001, generator=g), torch.zeros(2, 50),
@@ -162,6 +172,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
         lambda: _fast.cv_halves(e, m, frame["flat"], [0, 1]),
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
+        lambda: _fast.footprint_albedo(e, frame["flat"], 0.5),
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
     ]
     old = torch.get_num_threads()

@@ -16,7 +16,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize"]
+__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -103,3 +103,9 @@ def sanitize(c: Tensor, f: Tensor) -> tuple[Tensor, Tensor, Tensor, dict]:
     c, f, mask, n = torch.ops.torchmanifold._sanitize(c, f)
     n = n.tolist()
     return c, f, mask, {"nonfinite_color": n[0], "nonfinite_features": n[1], "masked_pixels": n[2]}
+
+
+def footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
+    """``denoise._footprint_albedo`` (``sigma > 0``): alb ``(T, 3, H, W)``, flat ``(T, 1, H, W)`` bool ->
+    ``(T, 3, H, W)``."""
+    return torch.ops.torchmanifold._footprint_albedo(alb, flat, float(sigma))

@@ -328,7 +328,7 @@ class _Filter:
                     x[ids][None], self.g[ids][None], [self.ft[k] for k in ids], [q], self.sigma_s, 1.0,
                     sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
                     guide_sigmas=self._sigmas_at(q))[0, 0])
-        return torch.stack(outs)
+        return outs[0][None] if len(outs) == 1 else torch.stack(outs)  # one query: no copy
 
     def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor) -> Tensor:
         """``num / den`` at the queries; where no valid sample lies under the kernel, the interpolated
@@ -473,10 +473,10 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
-    pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
     if list(qt) == list(ft) and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness)
+    pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
     errs = torch.stack([footprint_blur((((p - e) ** 2).sum(1, keepdim=True) * weight), st.selection_blur) / pool
                         for p in preds])  # (K, T, 1, H, W)
     errs = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in errs])
@@ -637,6 +637,8 @@ def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
     (a normalised blur), and 1 where the colour was not demodulated."""
     if sigma <= 0:
         return alb
+    if _fast.enabled(alb) and flat.shape == (alb.shape[0], 1, *alb.shape[2:]):
+        return _fast.footprint_albedo(alb, flat, sigma)
     keep = (~flat).to(alb.dtype)
     avg = footprint_blur(alb * keep, sigma) / footprint_blur(keep, sigma).clamp_min(1e-6)
     return torch.where(flat, 1.0, avg)

@@ -410,6 +410,21 @@ at::Tensor kuwahara3_cpu(const at::Tensor& x_) {
 }
 
 // -------------------------------------------------------------------------- cross-validated blend
+// Taps of denoise.footprint_blur's Gaussian, computed as it computes them, in T.
+template <typename T>
+std::vector<T> gaussian_taps(double sigma, int64_t r) {
+  std::vector<T> taps(2 * r + 1);
+  const T two_s2 = static_cast<T>(2 * sigma * sigma);
+  T sum = 0;
+  for (int64_t i = -r; i <= r; ++i) {
+    const T f = static_cast<T>(i);
+    taps[i + r] = std::exp(-(f * f) / two_s2);
+  }
+  for (T v : taps) sum += v;
+  for (T& v : taps) v = v / sum;
+  return taps;
+}
+
 // Row helpers with restrict parameters, so the loops vectorise.
 template <typename T>
 void sq_error_row(const T* __restrict q0, const T* __restrict q1, const T* __restrict q2, const T* __restrict e0,
@@ -476,16 +491,7 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
   const int64_t r = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * blur_sigma)));
   AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_blend_cpu", [&] {
     using T = scalar_t;
-    // taps as denoise.footprint_blur builds them, in T
-    std::vector<T> taps(2 * r + 1);
-    const T two_s2 = static_cast<T>(2 * blur_sigma * blur_sigma);
-    T tsum = 0;
-    for (int64_t i = -r; i <= r; ++i) {
-      const T f = static_cast<T>(i);
-      taps[i + r] = std::exp(-(f * f) / two_s2);
-    }
-    for (T v : taps) tsum += v;
-    for (T& v : taps) v = v / tsum;
+    const std::vector<T> taps = gaussian_taps<T>(blur_sigma, r);
     const T* pp = preds.data_ptr<T>();
     const T* pf = fulls.data_ptr<T>();
     const T* pe = e.data_ptr<T>();
@@ -604,6 +610,25 @@ at::Tensor quantiles_cpu(const at::Tensor& v_, at::ArrayRef<double> q) {
 }
 
 // ------------------------------------------------------------------ cross-validation halves and split
+template <typename T>
+void class_row(const bool* __restrict flat, bool want_flat, int64_t n, T* __restrict out) {
+  for (int64_t i = 0; i < n; ++i) out[i] = flat[i] == want_flat ? T(1) : T(0);
+}
+// (mask * class) * h, h the half or 1 - half (rounded as PyTorch rounds them: exactly)
+template <typename T>
+void half_mask_row(const T* __restrict m, const T* __restrict c, const T* __restrict half, bool other, int64_t n,
+                   T* __restrict out) {
+  if (other) {
+    for (int64_t i = 0; i < n; ++i) out[i] = (m[i] * c[i]) * (T(1) - half[i]);
+  } else {
+    for (int64_t i = 0; i < n; ++i) out[i] = (m[i] * c[i]) * half[i];
+  }
+}
+template <typename T>
+void times_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __restrict out) {
+  for (int64_t i = 0; i < n; ++i) out[i] = a[i] * b[i];
+}
+
 // denoise._select_bandwidth's channel stack for one op call: per class (0: demodulated pixels, ~flat; 1:
 // flat ones) and per checkerboard half h ((y + x) even, then odd), [e * m, m] with m = (mask * class) * h,
 // the same float products as the PyTorch stack.
@@ -629,23 +654,26 @@ at::Tensor cv_halves_cpu(const at::Tensor& e_, const at::Tensor& mask_, const at
     const bool* pf = flat.data_ptr<bool>();
     T* po = out.data_ptr<T>();
     at::parallel_for(0, Tn * H, row_grain(W * 8 * K), [&](int64_t r0, int64_t r1) {
+      Scratch<T> hb;
+      hb.resize(3 * W);
+      T* half = hb.data();  // the row's checkerboard: 1 where (y + x) is even
+      T* cls = half + W;    // the row's class indicator
+      T* mch = cls + W;     // (mask * class) * half
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H, i0 = y * W;
-        for (int64_t k = 0; k < K; ++k)
+        const T* er = pe + t * 3 * HW + i0;
+        for (int64_t x = 0; x < W; ++x) half[x] = ((y + x) & 1) ? T(0) : T(1);
+        for (int64_t k = 0; k < K; ++k) {
+          class_row(pf + t * HW + i0, classes[k] == 1, W, cls);
           for (int64_t j = 0; j < 2; ++j) {
+            half_mask_row(pm + t * HW + i0, cls, half, j == 1, W, mch);
             T* o = po + (t * 8 * K + k * 8 + j * 4) * HW + i0;
-            for (int64_t x = 0; x < W; ++x) {
-              const int64_t i = t * HW + i0 + x;
-              const T c = (pf[i] == (classes[k] == 1)) ? T(1) : T(0);
-              const T h0 = ((y + x) % 2 == 0) ? T(1) : T(0);
-              const T h = j == 0 ? h0 : T(1) - h0;
-              const T m = (pm[i] * c) * h;
-              o[x] = pe[t * 3 * HW + i0 + x] * m;
-              o[HW + x] = pe[t * 3 * HW + HW + i0 + x] * m;
-              o[2 * HW + x] = pe[t * 3 * HW + 2 * HW + i0 + x] * m;
-              o[3 * HW + x] = m;
-            }
+            times_row(er, mch, W, o);
+            times_row(er + HW, mch, W, o + HW);
+            times_row(er + 2 * HW, mch, W, o + 2 * HW);
+            std::copy(mch, mch + W, o + 3 * HW);
           }
+        }
       }
     });
   });
@@ -751,6 +779,72 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> sanitize_cpu(const at
   return {co, fo, mask, counts};
 }
 
+// ------------------------------------------------------------------------- footprint albedo
+// denoise._footprint_albedo: the albedo (T, 3, H, W) blurred over demodulated pixels only (a normalised
+// Gaussian blur of sigma, footprint_blur's taps and replicate borders), 1 where flat (T, 1, H, W) bool.
+at::Tensor footprint_albedo_cpu(const at::Tensor& alb_, const at::Tensor& flat_, double sigma) {
+  const char* op = "_footprint_albedo";
+  check_float(alb_, "alb", op);
+  check_shape(alb_, "alb", op, 4);
+  TORCH_CHECK_VALUE(alb_.size(1) == 3, op, ": alb must be (T, 3, H, W), got ", alb_.sizes());
+  const int64_t Tn = alb_.size(0), H = alb_.size(2), W = alb_.size(3), HW = H * W;
+  TORCH_CHECK_VALUE(flat_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && flat_.scalar_type() == at::kBool, op,
+                    ": flat must be a (T, 1, H, W) bool tensor, got ", flat_.sizes(), " ", flat_.scalar_type());
+  TORCH_CHECK_VALUE(sigma > 0, op, ": sigma must be > 0, got ", sigma);
+  const at::Tensor alb = alb_.contiguous(), flat = flat_.contiguous();
+  at::Tensor out = at::empty_like(alb, at::MemoryFormat::Contiguous);
+  if (out.numel() == 0) return out;
+  const int64_t r = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * sigma)));
+  AT_DISPATCH_FLOATING_TYPES(alb.scalar_type(), "footprint_albedo_cpu", [&] {
+    using T = scalar_t;
+    const std::vector<T> taps = gaussian_taps<T>(sigma, r);
+    const T* pa = alb.data_ptr<T>();
+    const bool* pf = flat.data_ptr<bool>();
+    T* po = out.data_ptr<T>();
+    Scratch<T> hbuf;  // (T, 4, H, W): alb * keep (3 planes) and keep, blurred along x
+    hbuf.resize(Tn * 4 * HW);
+    T* hb = hbuf.data();
+    at::parallel_for(0, Tn * 4 * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
+      Scratch<T> srcb;
+      srcb.resize(W + 2 * r);
+      T* src = srcb.data();
+      for (int64_t pr = r0; pr < r1; ++pr) {
+        const int64_t t = pr / (4 * H), c = (pr / H) % 4, y = pr % H;
+        const bool* f = pf + t * HW + y * W;
+        const T* a = pa + (t * 3 + std::min<int64_t>(c, 2)) * HW + y * W;
+        for (int64_t x = 0; x < W; ++x) {
+          const T keep = f[x] ? T(0) : T(1);
+          src[r + x] = c < 3 ? a[x] * keep : keep;
+        }
+        std::fill(src, src + r, src[r]);
+        std::fill(src + r + W, src + 2 * r + W, src[r + W - 1]);
+        T* o = hb + (t * 4 + c) * HW + y * W;
+        std::fill(o, o + W, T(0));
+        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], src + r + i, W, o);
+      }
+    });
+    at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * 4), [&](int64_t r0, int64_t r1) {
+      Scratch<T> buf;
+      buf.resize(4 * W);
+      T* acc = buf.data();
+      for (int64_t row = r0; row < r1; ++row) {
+        const int64_t t = row / H, y = row % H;
+        std::fill(acc, acc + 4 * W, T(0));
+        for (int64_t c = 0; c < 4; ++c)
+          for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + (t * 4 + c) * HW + clampi(y + i, H) * W, W, acc + c * W);
+        T* den = acc + 3 * W;
+        for (int64_t x = 0; x < W; ++x) den[x] = den[x] < T(1e-6) ? T(1e-6) : den[x];
+        const bool* f = pf + t * HW + y * W;
+        for (int64_t c = 0; c < 3; ++c) {
+          T* o = po + (t * 3 + c) * HW + y * W;
+          for (int64_t x = 0; x < W; ++x) o[x] = f[x] ? T(1) : acc[c * W + x] / den[x];
+        }
+      }
+    });
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -762,6 +856,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_cv_halves", &cv_halves_cpu);
   m.impl("_cv_split", &cv_split_cpu);
   m.impl("_sanitize", &sanitize_cpu);
+  m.impl("_footprint_albedo", &footprint_albedo_cpu);
 }
 
 }  // namespace cpu
