@@ -93,27 +93,43 @@ void window_max_rows(const T* __restrict src, int64_t n, int64_t r, int64_t widt
   }
 }
 
+// One step of a sparse table along a row: out[i] = max(in[i], in[i + span]) for i < n.
 template <typename T>
-void transpose(const T* src, int64_t H, int64_t W, T* dst) {
-  constexpr int64_t B = 32;
-  for (int64_t y0 = 0; y0 < H; y0 += B)
-    for (int64_t x0 = 0; x0 < W; x0 += B)
-      for (int64_t y = y0; y < std::min(H, y0 + B); ++y)
-        for (int64_t x = x0; x < std::min(W, x0 + B); ++x) dst[x * H + y] = src[y * W + x];
+void span_max(const T* __restrict in, int64_t n, int64_t span, T* __restrict out) {
+  for (int64_t i = 0; i < n; ++i) out[i] = nan_max(in[i], in[i + span]);
 }
 
-// (2r+1)^2 box max of an (H, W) plane (separable; max is exact, so the order of the passes is free).
-// Scratch: 4 HW + 2 (M + 2r) M + M values, M = max(H, W), pooled (fresh pages cost more than the work).
+// The window max along one row of n values (the scans of window_max_rows are serial along a row): maxima
+// over doubling spans of the -inf-padded row, the window read as two overlapping spans, as
+// denoise._window_max does it. a, b: n + 2r values each.
+template <typename T>
+void window_max_1d(const T* __restrict src, int64_t n, int64_t r, T* __restrict dst, T* a, T* b) {
+  const int64_t w = 2 * r + 1;
+  int64_t len = n + 2 * r, span = 1;
+  const T ninf = -std::numeric_limits<T>::infinity();
+  std::fill(a, a + r, ninf);
+  std::copy(src, src + n, a + r);
+  std::fill(a + r + n, a + len, ninf);
+  while (2 * span <= w) {
+    span_max(a, len - span, span, b);
+    len -= span;
+    span *= 2;
+    std::swap(a, b);
+  }
+  span_max(a, n, w - span, dst);
+}
+
+// (2r+1)^2 box max of an (H, W) plane: rows (dim 3) first, then columns, as denoise._box_max (max is exact:
+// the same bits in any order). Scratch: HW + 2 (H + 2r) W + 2 (W + 2r) + W values, pooled (fresh pages
+// cost more than the work).
 template <typename T>
 void box_max_plane(const T* src, int64_t H, int64_t W, int64_t r, T* dst, Scratch<T>& scratch) {
-  const int64_t M = std::max(H, W), HW = H * W, G = (M + 2 * r) * M;
-  scratch.resize(2 * HW + 2 * G + M);
-  T *a = scratch.data(), *b = a + HW, *g = b + HW, *h = g + G, *ninf = h + G;
-  std::fill(ninf, ninf + M, -std::numeric_limits<T>::infinity());
-  window_max_rows(src, H, r, W, a, g, h, ninf);  // along y
-  transpose(a, H, W, b);
-  window_max_rows(b, W, r, H, a, g, h, ninf);  // along x
-  transpose(a, W, H, dst);
+  const int64_t HW = H * W, G = (H + 2 * r) * W, L = W + 2 * r;
+  scratch.resize(HW + 2 * G + 2 * L + W);
+  T *a = scratch.data(), *g = a + HW, *h = g + G, *p1 = h + G, *p2 = p1 + L, *ninf = p2 + L;
+  for (int64_t y = 0; y < H; ++y) window_max_1d(src + y * W, W, r, a + y * W, p1, p2);  // along x
+  std::fill(ninf, ninf + W, -std::numeric_limits<T>::infinity());
+  window_max_rows(a, H, r, W, dst, g, h, ninf);  // along y, whole rows at a time
 }
 
 // Row helpers with restrict parameters (GCC vectorises only when told the rows are apart).
