@@ -179,11 +179,11 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
     using T = scalar_t;
     const T *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>(), *pv = values.data_ptr<T>(), *pm = mask.data_ptr<T>();
     T* po = out.data_ptr<T>();
-    at::Tensor bounds;  // (N, C, 2, H, W): box max of valid values, box max of minus valid values
+    Scratch<T> bounds;  // (N, C, 2, H, W): box max of valid values, box max of minus valid values (pooled)
     T* pb = nullptr;
     if (radius > 0) {
-      bounds = at::empty({N, C, 2, H, W}, num.options());
-      pb = bounds.data_ptr<T>();
+      bounds.resize(N * C * 2 * HW);
+      pb = bounds.data();
       const T big = std::numeric_limits<T>::max();
       at::parallel_for(0, N * C * 2, 1, [&](int64_t b0, int64_t b1) {
         Scratch<T> src, scratch;
