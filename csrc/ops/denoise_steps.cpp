@@ -9,8 +9,9 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // clamped to the range of the valid (mask > 0) values in the (2 radius + 1)^2 box around each pixel
   // (_Filter._guard). num/values (N, C, H, W), den/mask (N, 1, H, W) -> (N, C, H, W).
   m.def("_normalise_guard(Tensor num, Tensor den, Tensor values, Tensor mask, int radius) -> Tensor");
-  // denoise._footprint_average: x (T, 3, H, W) -> (T, 3, H, W).
-  m.def("_footprint_average(Tensor x, float sigma, float knee, float range_sigma) -> Tensor");
+  // denoise._footprint_average after its knee: x (T, 3, H, W) clamped at 0 (NaN kept), k (T,) the tone-mapping
+  // knee of each frame (PyTorch computes it, so the frame means are its bits) -> (T, 3, H, W).
+  m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma) -> Tensor");
   // denoise._log_radiance's 3x3 Kuwahara filter (replicate borders) of x (N, C, H, W) -> (N, C, H, W).
   m.def("_kuwahara3(Tensor x) -> Tensor");
   // The end of denoise._select_bandwidth at frame queries: errors of the K predictions preds (K, T, 3, H, W)

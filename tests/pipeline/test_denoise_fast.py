@@ -166,7 +166,7 @@ def test_kernels_thread_count_invariant(frame):
     e, m = frame["e"], frame["mask"]
     calls = [
         lambda: _fast.normalise_guard(e, m + 0.5, e, m, 8),
-        lambda: _fast.footprint_average(e, 0.5, 3.0, 0.3),
+        lambda: _fast.footprint_average(e, torch.tensor([[[[0.3]]]]), 0.5, 0.3),
         lambda: _fast.kuwahara3(e),
         lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5),
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
@@ -202,7 +202,9 @@ def test_op_argument_errors():
     with pytest.raises(ValueError, match="den and mask must be"):
         torch.ops.torchmanifold._normalise_guard(x, x, x, x[:, :1], 2)
     with pytest.raises(ValueError, match="x must be .T, 3, H, W."):
-        torch.ops.torchmanifold._footprint_average(x[:, :2], 0.5, 3.0, 0.3)
+        torch.ops.torchmanifold._footprint_average(x[:, :2], torch.ones(1), 0.5, 0.3)
+    with pytest.raises(ValueError, match="k must be .T,."):
+        torch.ops.torchmanifold._footprint_average(x, torch.ones(2), 0.5, 0.3)
     with pytest.raises(ValueError, match="preds and fulls must be"):
         torch.ops.torchmanifold._cv_blend(x[None], x, x, x[:, :1], x[:, :1], 4.0, 0.5)
     with pytest.raises(ValueError, match="q must lie in"):

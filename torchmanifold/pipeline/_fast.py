@@ -61,9 +61,10 @@ def normalise_guard(num: Tensor, den: Tensor, values: Tensor, mask: Tensor, radi
     return torch.ops.torchmanifold._normalise_guard(num, den, values, mask, int(radius))
 
 
-def footprint_average(x: Tensor, sigma: float, knee: float, range_sigma: float) -> Tensor:
-    """``denoise._footprint_average``: ``(T, 3, H, W)`` -> ``(T, 3, H, W)``."""
-    return torch.ops.torchmanifold._footprint_average(x, float(sigma), float(knee), float(range_sigma))
+def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float) -> Tensor:
+    """``denoise._footprint_average`` after its tone-mapping knee: x ``(T, 3, H, W)`` (clamped at 0), k
+    ``(T, 1, 1, 1)`` -> ``(T, 3, H, W)``."""
+    return torch.ops.torchmanifold._footprint_average(x, k.reshape(-1), float(sigma), float(range_sigma))
 
 
 def kuwahara3(x: Tensor) -> Tensor:

@@ -666,10 +666,10 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     """
     if sigma <= 0:
         return x
-    if _fast.enabled(x):
-        return _fast.footprint_average(x, sigma, _FOOTPRINT_KNEE, _FOOTPRINT_RANGE)
     x = x.clamp_min(0.0)
     k = _FOOTPRINT_KNEE * luminance(x).mean((1, 2, 3), keepdim=True).clamp_min(1e-30)
+    if _fast.enabled(x, k):
+        return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE)
     y = x / (k + x)
     ly = luminance(y)
     r = max(1, int(math.ceil(3 * sigma)))

@@ -257,27 +257,14 @@ void accumulate_weighted(T* __restrict a0, T* __restrict a1, T* __restrict a2, T
   }
 }
 
-// Per frame, the sum of f(pixel) over its rows: per-row double partials added in row order.
-template <typename T, typename F>
-double frame_sum(int64_t H, int64_t W, const F& f) {
-  std::vector<double> rows(H);
-  at::parallel_for(0, H, row_grain(W), [&](int64_t y0, int64_t y1) {
-    for (int64_t y = y0; y < y1; ++y) {
-      double s = 0;
-      for (int64_t x = 0; x < W; ++x) s += static_cast<double>(f(y * W + x));
-      rows[y] = s;
-    }
-  });
-  double s = 0;
-  for (double r : rows) s += r;
-  return s;
-}
-
-at::Tensor footprint_average_cpu(const at::Tensor& x_, double sigma, double knee, double range_sigma) {
+at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, double sigma, double range_sigma) {
   const char* op = "_footprint_average";
   check_float(x_, "x", op);
   check_shape(x_, "x", op, 4);
   TORCH_CHECK_VALUE(x_.size(1) == 3, op, ": x must be (T, 3, H, W), got ", x_.sizes());
+  TORCH_CHECK_VALUE(k_.dim() == 1 && k_.size(0) == x_.size(0) && k_.scalar_type() == x_.scalar_type(), op,
+                    ": k must be (T,) = (", x_.size(0), ",) of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
+  const at::Tensor kt = k_.contiguous();
   TORCH_CHECK_VALUE(sigma > 0 && range_sigma > 0, op, ": sigma and range_sigma must be > 0");
   const at::Tensor x = x_.contiguous();
   const int64_t Tn = x.size(0), H = x.size(2), W = x.size(3), HW = H * W;
@@ -301,12 +288,7 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, double sigma, double knee
       const T* px = x.data_ptr<T>() + t * 3 * HW;
       T* po = out.data_ptr<T>() + t * 3 * HW;
       auto cl = [](T v) { return v < T(0) ? T(0) : v; };  // clamp_min(0), NaN kept
-      const double s = frame_sum<T>(H, W, [&](int64_t i) {
-        return lum(cl(px[i]), cl(px[HW + i]), cl(px[2 * HW + i]));
-      });
-      T mean = static_cast<T>(s / static_cast<double>(HW));
-      mean = (mean != mean || mean > T(1e-12)) ? mean : T(1e-12);
-      const T k = static_cast<T>(knee) * mean;
+      const T k = kt.data_ptr<T>()[t];
       T* y = yb.data();
       at::parallel_for(0, H, row_grain(W), [&](int64_t y0, int64_t y1) {
         for (int64_t i = y0 * W; i < y1 * W; ++i) {
