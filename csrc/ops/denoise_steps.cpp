@@ -26,6 +26,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // bool, classes (0: not flat, 1: flat) -> (T, 8 len(classes), H, W): per class and checkerboard half
   // [e * m, m], m = mask * class * half.
   m.def("_cv_halves(Tensor e, Tensor mask, Tensor flat, int[] classes) -> Tensor");
+  // The same written into out, a workspace the caller reuses across calls (fresh pages cost more than the pass).
+  m.def("_cv_halves_out(Tensor e, Tensor mask, Tensor flat, int[] classes, Tensor(a!) out) -> ()");
   // The op's output on that stack, y (T, 8 K, H, W) -> per class: the prediction from the other half
   // (T, K, 3, H, W), and both halves' sums num (T, K, 3, H, W), den (T, K, 1, H, W).
   m.def("_cv_split(Tensor y) -> (Tensor, Tensor, Tensor)");

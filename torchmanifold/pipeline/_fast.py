@@ -11,6 +11,7 @@ Use :func:`reference` to run the PyTorch stages instead (tests compare the two; 
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 
 import torch
@@ -20,6 +21,8 @@ __all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwa
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
+#: largest workspace kept between calls, in elements (64 MB of float32: a 1 MP frame's stack)
+_MAX_WORKSPACE = 1 << 24
 _HAVE_OPS: bool | None = None
 
 
@@ -32,7 +35,8 @@ def _have_ops() -> bool:
 
 def enabled(*tensors: Tensor) -> bool:
     """True when the fused kernels may run on ``tensors``: the ops are built, every tensor is a CPU
-    float32/float64 tensor of one dtype, and :func:`reference` is not active."""
+    float32/float64 tensor of one dtype that needs no gradient (the kernels have no backward), and
+    :func:`reference` is not active."""
     global _HAVE_OPS
     if getattr(_state, "reference", False):
         return False
@@ -41,7 +45,7 @@ def enabled(*tensors: Tensor) -> bool:
     if not _HAVE_OPS:
         return False
     dt = tensors[0].dtype
-    return dt in _FLOATS and all(t.device.type == "cpu" and t.dtype == dt for t in tensors)
+    return dt in _FLOATS and all(t.device.type == "cpu" and t.dtype == dt and not t.requires_grad for t in tensors)
 
 
 @contextlib.contextmanager
@@ -89,7 +93,16 @@ def quantiles(v: Tensor, q: list[float]) -> Tensor:
 def cv_halves(e: Tensor, mask: Tensor, flat: Tensor, classes: list[int]) -> Tensor:
     """``_select_bandwidth``'s op input: per class (0 not flat, 1 flat) and checkerboard half ``[e * m, m]``:
     e ``(T, 3, H, W)``, mask ``(T, 1, H, W)``, flat ``(T, 1, H, W)`` bool -> ``(T, 8 K, H, W)``."""
-    return torch.ops.torchmanifold._cv_halves(e, mask, flat, [int(k) for k in classes])
+    shape = (e.shape[0], 8 * len(classes), *e.shape[2:])
+    if math.prod(shape) > _MAX_WORKSPACE:
+        return torch.ops.torchmanifold._cv_halves(e, mask, flat, [int(k) for k in classes])
+    # one workspace per thread, reused by every bandwidth and frame: the op reads it and returns a new
+    # tensor, so the stack is dead by the next call
+    buf = getattr(_state, "halves", None)
+    if buf is None or buf.shape != shape or buf.dtype != e.dtype:
+        buf = _state.halves = torch.empty(shape, dtype=e.dtype)
+    torch.ops.torchmanifold._cv_halves_out(e, mask, flat, [int(k) for k in classes], buf)
+    return buf
 
 
 def cv_split(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -630,8 +630,8 @@ void times_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __res
 // denoise._select_bandwidth's channel stack for one op call: per class (0: demodulated pixels, ~flat; 1:
 // flat ones) and per checkerboard half h ((y + x) even, then odd), [e * m, m] with m = (mask * class) * h,
 // the same float products as the PyTorch stack.
-at::Tensor cv_halves_cpu(const at::Tensor& e_, const at::Tensor& mask_, const at::Tensor& flat_,
-                         at::IntArrayRef classes) {
+void cv_halves_into(const at::Tensor& e_, const at::Tensor& mask_, const at::Tensor& flat_, at::IntArrayRef classes,
+                    at::Tensor& out) {
   const char* op = "_cv_halves";
   check_float(e_, "e", op);
   check_shape(e_, "e", op, 4);
@@ -643,8 +643,11 @@ at::Tensor cv_halves_cpu(const at::Tensor& e_, const at::Tensor& mask_, const at
                     ": flat must be a (T, 1, H, W) bool tensor, got ", flat_.sizes(), " ", flat_.scalar_type());
   for (int64_t k : classes) TORCH_CHECK_VALUE(k == 0 || k == 1, op, ": classes must be 0 or 1, got ", k);
   const at::Tensor e = e_.contiguous(), mask = mask_.contiguous(), flat = flat_.contiguous();
-  at::Tensor out = at::empty({Tn, 8 * K, H, W}, e.options());
-  if (out.numel() == 0) return out;
+  if (!out.defined()) out = at::empty({Tn, 8 * K, H, W}, e.options());
+  TORCH_CHECK_VALUE(out.sizes() == at::IntArrayRef({Tn, 8 * K, H, W}) && out.scalar_type() == e.scalar_type() &&
+                    out.is_contiguous() && out.device().is_cpu(), op, ": out must be a contiguous (T, 8 K, H, W) = (",
+                    Tn, ", ", 8 * K, ", ", H, ", ", W, ") CPU tensor of e's dtype, got ", out.sizes());
+  if (out.numel() == 0) return;
   AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_halves_cpu", [&] {
     using T = scalar_t;
     const T* pe = e.data_ptr<T>();
@@ -675,7 +678,17 @@ at::Tensor cv_halves_cpu(const at::Tensor& e_, const at::Tensor& mask_, const at
       }
     });
   });
+}
+
+at::Tensor cv_halves_cpu(const at::Tensor& e, const at::Tensor& mask, const at::Tensor& flat, at::IntArrayRef classes) {
+  at::Tensor out;
+  cv_halves_into(e, mask, flat, classes, out);
   return out;
+}
+
+void cv_halves_out_cpu(const at::Tensor& e, const at::Tensor& mask, const at::Tensor& flat, at::IntArrayRef classes,
+                       at::Tensor out) {
+  cv_halves_into(e, mask, flat, classes, out);
 }
 
 // The op's output y (T, 8 K, H, W) on that stack -> each class's prediction of every pixel from the other
@@ -852,6 +865,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_cv_blend", &cv_blend_cpu);
   m.impl("_quantiles", &quantiles_cpu);
   m.impl("_cv_halves", &cv_halves_cpu);
+  m.impl("_cv_halves_out", &cv_halves_out_cpu);
   m.impl("_cv_split", &cv_split_cpu);
   m.impl("_sanitize", &sanitize_cpu);
   m.impl("_footprint_albedo", &footprint_albedo_cpu);
