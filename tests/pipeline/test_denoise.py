@@ -300,3 +300,17 @@ def test_black_object_beside_dark_albedo_stays_black():
     assert out[..., 18:30, 18:30].abs().max() < 0.01, out[..., 18:30, 18:30].max()
     rel = float(out[..., 36:, :].mean() / truth[..., 36:, :].mean())
     assert abs(rel - 1) < 0.05, rel
+
+
+def test_same_bytes_for_any_thread_count(clip):
+    """The whole frame step, statistics included, gives the same bytes on 1 and 2 threads."""
+    c, f, _ = clip
+    before = torch.get_num_threads()
+    try:
+        outs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            outs.append(denoise_frames(c, f, FEATURES, settings=DenoiseSettings(temporal_radius=1)))
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(outs[0], outs[1])

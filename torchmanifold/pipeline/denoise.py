@@ -80,7 +80,12 @@ def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
     the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
     scales with the exposure."""
-    return (lum * mask).sum((1, 2, 3), keepdim=True) / mask.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
+    # in float64, row by row: a one-pass sum over a whole frame splits across threads, and its last
+    # bits (hence a Kuwahara choice or a clamp decision downstream) would follow the thread count
+    def total(x):
+        return x.double().sum(-1, keepdim=True).sum(-2, keepdim=True).sum(-3, keepdim=True)
+
+    return (total(lum * mask) / total(mask).clamp_min(1.0)).to(lum.dtype)
 
 
 def footprint_blur(x: Tensor, sigma: float) -> Tensor:
@@ -667,7 +672,8 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     if sigma <= 0:
         return x
     x = x.clamp_min(0.0)
-    k = _FOOTPRINT_KNEE * luminance(x).mean((1, 2, 3), keepdim=True).clamp_min(1e-30)
+    lum = luminance(x)
+    k = _FOOTPRINT_KNEE * _frame_mean(lum, torch.ones_like(lum)).clamp_min(1e-30)
     if _fast.enabled(x, k):
         return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE)
     y = x / (k + x)
