@@ -19,8 +19,9 @@ from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER, ProgressiveRe
 
 __all__ = ["render_job", "moving_mask", "RENDER_DEFAULTS", "METHODS"]
 
-#: defaults of the render job: about two minutes on a shared 2-core CPU (reference ~75 s, 16 iterations ~25 s)
-RENDER_DEFAULTS = dict(frames=8, iterations=16, width=128, height=96, reference_spp=256, seed=0)
+#: defaults of the render job: about a minute on the shared 2-core CPU (65 s at load ~1: reference 14 s,
+#: 16 iterations 40 s, videos and files the rest)
+RENDER_DEFAULTS = dict(frames=8, iterations=16, width=256, height=256, reference_spp=256, seed=0)
 
 METHODS = ("raw", "gaussian", "ours")
 
