@@ -202,15 +202,21 @@ def _ours(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: i
 
 def _pipeline(clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings) -> torch.Tensor:
     """Our product: ``torchmanifold.pipeline.denoise_frames`` with its own preprocessing (demodulation, firefly
-    treatment, guide sigmas) on the raw colour and features; sigma_s / sigma_r of the call are not used."""
+    treatment, guide sigmas) on the raw colour and features; sigma_s / sigma_r of the call are not used. With a
+    ``temporal_radius`` the clip's frames (the harness' window around the query) join at the query's time."""
     from torchmanifold.pipeline import DenoiseSettings, denoise_frames
 
     if clip.features is None:
         raise ValueError("the pipeline needs the clip's raw features (Clip.features)")
-    q = slice(query, query + 1)  # one frame: its statistics are its own, the others' cost nothing
-    out = denoise_frames(clip.values[q], clip.features[q], clip.feature_names,
-                         None if clip.emission is None else clip.emission[q], settings=DenoiseSettings(**settings))
-    return out[0]
+    st = DenoiseSettings(**settings)
+    emission = clip.emission
+    if st.temporal_radius == 0:  # one frame: its statistics are its own, the others' cost nothing
+        q = slice(query, query + 1)
+        return denoise_frames(clip.values[q], clip.features[q], clip.feature_names,
+                              None if emission is None else emission[q], settings=st)[0]
+    times = [float(t) for t in clip.times]
+    return denoise_frames(clip.values, clip.features, clip.feature_names, emission, settings=st,
+                          frame_times=times, query_times=[times[query]])[0]
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,
@@ -282,8 +288,9 @@ def benchmark_methods(sigma_s: float = 8.0, sigma_r: float = 0.3, sigma_t: float
             for m in ("window", "spacetime")]
     pipe_ok = _probe("torchmanifold.pipeline", "denoise_frames")
     out += [_entry("ours-pipeline", "ours", _pipeline, pipe_ok, raw_input=True),
-            _entry("ours-pipeline-spacetime", "ours", _pipeline, pipe_ok, {"temporal_radius": 2}, temporal=True,
-                   raw_input=True)]
+            # the denoise command's default: +-1 frame, joint space-time
+            _entry("ours-pipeline-spacetime", "ours-spacetime", _pipeline, pipe_ok,
+                   {"temporal_radius": 1, "mode": "spacetime"}, temporal=True, raw_input=True)]
     return out
 
 

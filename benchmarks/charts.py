@@ -189,7 +189,7 @@ def key_numbers(ds: dict) -> list:
         cands = [(r["psnr"], n) for n, r in m.items() if pred(n, r)]
         return max(cands)[1] if cands else None
 
-    ours = best(lambda n, r: r["family"] == "ours")
+    ours = best(lambda n, r: r["family"].startswith("ours"))
     classic = best(lambda n, r: r["family"] in ("gaussian", "joint-bilateral", "opencv-am"))
     out = []
     if ours:
@@ -240,25 +240,27 @@ def validation_section(rel: str) -> list:
              f"![validation PSNR]({rel}/validation/psnr.png)", "",
              f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
              f"{meta.get('cpu_count')} cores, torch threads {meta.get('torch_threads')}. PSNR (dB, clamped sRGB, mean "
-             "over all frames); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
+             "over all frames); ours: each frame alone; ours +-1: the `denoise` command's default (the frames within "
+             "+-1 joined in space-time); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
              "scene, an oracle choice) and OpenCV `amFilter`; ms: median per frame of ours and OIDN in the same "
              "process, from 1 spp.", "",
-             "| scene | split | raw 1 spp | best classic | OIDN | ours | ours - OIDN | raw 4 spp | best classic | "
-             "OIDN | ours | ms ours / OIDN |", "|---" * 12 + "|"]
-    cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours")} for spp in ("1", "4")}
+             "| scene | split | raw 1 spp | best classic | OIDN | ours | ours +-1 | ours - OIDN | raw 4 spp | "
+             "best classic | OIDN | ours | ours +-1 | ms ours / OIDN |", "|---" * 14 + "|"]
+    cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours", "st")} for spp in ("1", "4")}
     for name, sc in res["scenes"].items():
         cells = []
         for spp in ("1", "4"):
             s = sc.get(spp)
             if s is None:
-                cells += ["-"] * (5 if spp == "1" else 4)
+                cells += ["-"] * (6 if spp == "1" else 5)
                 continue
             best = {f: s["methods"][m] for f, m in s["best_of_family"].items()}
             row = {"raw": best["raw"]["psnr"], "classic": max(best[f]["psnr"] for f in CLASSIC if f in best),
-                   "oidn": best["oidn"]["psnr"], "ours": best["ours"]["psnr"]}
+                   "oidn": best["oidn"]["psnr"], "ours": best["ours"]["psnr"],
+                   "st": best["ours-spacetime"]["psnr"] if "ours-spacetime" in best else float("nan")}
             for k, v in row.items():
                 cols[spp][k].append(v)
-            cells += [_f(row[k]) for k in ("raw", "classic", "oidn", "ours")]
+            cells += [_f(row[k]) for k in ("raw", "classic", "oidn", "ours", "st")]
             if spp == "1":
                 cells.append(f"{row['ours'] - row['oidn']:+.2f}")
         one = sc.get("1")
@@ -269,7 +271,8 @@ def validation_section(rel: str) -> list:
     m1, m4 = cols["1"], cols["4"]
     gap = f"{np.mean(m1['ours']) - np.mean(m1['oidn']):+.2f}" if m1["ours"] else "-"
     lines += [f"| **mean** | | {mean(m1['raw'])} | {mean(m1['classic'])} | {mean(m1['oidn'])} | **{mean(m1['ours'])}** | "
-              f"{gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | **{mean(m4['ours'])}** | |", ""]
+              f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
+              f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
     if FINDINGS.exists():
         lines += [FINDINGS.read_text().strip(), ""]
     return lines

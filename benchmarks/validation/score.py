@@ -6,7 +6,8 @@ Scenes come from ``benchmarks/validation/split.json`` (the shared Mitsuba clip i
 those of ``benchmarks/baselines.py`` run through ``benchmarks/harness.py`` exactly as ``bench_methods.py`` runs
 them: raw input; Gaussian blur (best of sigma 1/2/4/8 per scene); kornia joint bilateral and OpenCV ``amFilter``
 guided by albedo + normal + depth (demodulated colour, the harness' preprocessing); Intel OIDN (``pyoidn``,
-albedo + normal, ``hdr=True``); ours (``torchmanifold.pipeline.denoise_frames``, default settings). Scores:
+albedo + normal, ``hdr=True``); ours (``torchmanifold.pipeline.denoise_frames``, default settings, each frame
+alone) and ours-spacetime (the ``denoise`` command's default: the frames within +-1 join in space-time). Scores:
 PSNR (clamped sRGB, mean over frames), relMSE (linear, ``mean((x-r)^2/(r^2+0.01))``), FLIP (LDR sRGB), and
 ms/frame (median, this machine, this run). Where a clip has a mask of moving objects, PSNR inside and outside it;
 where it has a second reference, the PSNR of one reference against the other (a ceiling for every method).
@@ -34,7 +35,7 @@ ROOT = HERE.parents[1]
 OUT = ROOT / "benchmarks" / "results" / "validation"
 SIGMA_S, SIGMA_R = 4.0, 1.0  # bench_methods.py's settings: the harness guide is pre-scaled per feature group
 GUIDE = ("depth", "normal", "albedo")
-FAMILIES = ("raw", "gaussian", "joint-bilateral", "opencv-am", "oidn", "ours")
+FAMILIES = ("raw", "gaussian", "joint-bilateral", "opencv-am", "oidn", "ours", "ours-spacetime")
 
 
 # ---------------------------------------------------------------------------------------------------- reading
@@ -99,7 +100,7 @@ def load_scene(path: Path, spp: int) -> tuple[harness.Dataset, dict]:
 def methods() -> list:
     keep = ("gaussian", "joint-bilateral", "opencv-am", "oidn")
     out = [m for m in baselines.benchmark_methods(sigma_s=SIGMA_S, sigma_r=SIGMA_R) if m.family in keep]
-    out += [m for m in baselines.benchmark_methods() if m.name == "ours-pipeline"]
+    out += [m for m in baselines.benchmark_methods() if m.name in ("ours-pipeline", "ours-pipeline-spacetime")]
     missing = [f"{m.name}: {m.why}" for m in out if not m.available]
     if missing:
         raise RuntimeError("methods not installed: " + "; ".join(missing))
@@ -189,7 +190,7 @@ def run_scene(path: Path, spp: int, meths: list, strips: Path | None = None) -> 
         out = torch.where(finite, out, ds.color)
         r.update(score(out, ds, extra))
         res["methods"][m.name] = r
-        if m.family in ("oidn", "ours"):
+        if m.family in ("oidn", "ours"):  # the strips show the per-frame result
             outputs[m.family] = out
     # Per family, the member with the best PSNR on this scene (Gaussian: best sigma; bilateral: best sigma_r).
     best = {}
@@ -244,7 +245,8 @@ def markdown(results: dict, split: dict) -> str:
              f"torch threads {results['meta']['torch_threads']}. Produced by `benchmarks/validation/score.py`.", "",
              "PSNR: clamped sRGB, mean over frames (dB, higher is better). relMSE: linear. FLIP: LDR sRGB (lower is "
              "better). Gaussian and joint bilateral: the best of their settings on each scene (an oracle choice). "
-             "Filters other than OIDN and ours see colour / albedo with an albedo + normal + depth guide "
+             "`ours`: each frame alone; `ours-spacetime`: the `denoise` command's default, +-1 frame joined in "
+             "space-time. Filters other than OIDN and ours see colour / albedo with an albedo + normal + depth guide "
              "(`benchmarks/harness.py`). `ref agree`: PSNR of a second independent reference against the reference "
              "(a ceiling on every score) where the clip has one.", ""]
     if results.get("meta_runs"):
@@ -327,7 +329,7 @@ def chart(results: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     colours = {"raw": "#555555", "gaussian": "#1f77b4", "joint-bilateral": "#2ca02c", "opencv-am": "#ff7f0e",
-               "oidn": "#9467bd", "ours": "#d62728"}
+               "oidn": "#9467bd", "ours": "#d62728", "ours-spacetime": "#8c1c13"}
     scenes = list(results["scenes"])
     fig, axes = plt.subplots(2, 1, figsize=(max(8, 1.4 * len(scenes) + 2), 8), sharex=True)
     for ax, spp in zip(axes, ("1", "4")):
