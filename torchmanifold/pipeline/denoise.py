@@ -566,12 +566,14 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
     base = settings.sigma_s if sigma_s is None else float(sigma_s)
-    filt = _Filter(guide, sig, settings, ft, qt, base * float(settings.bandwidths[0]), range_scale)
-    alb_fp = _footprint_albedo(alb, flat, settings.footprint_sigma)  # the pilot is a pixel average
+
+    def at_queries(x: Tensor) -> Tensor:
+        return _Filter.at_frames_to_queries(x, ft, qt)
 
     def smooth(values: Tensor, level: Tensor | None) -> Tensor:  # with the guide as it is by then
         if len(settings.bandwidths) == 1:
-            return _Filter(guide, sig, settings, ft, qt, filt.sigma_s, range_scale).by_class(values, mask, flat)
+            sigma = base * float(settings.bandwidths[0])
+            return _Filter(guide, sig, settings, ft, qt, sigma, range_scale).by_class(values, mask, flat)
         return _select_bandwidth(values, mask, flat, guide, sig, settings, ft, qt, base, range_scale, level)
 
     if settings.firefly == "none":
@@ -583,23 +585,23 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
             pe = torch.where(torch.isfinite(pe), pe, 0.0)
             if em is not None:
                 pe = pe - em
-            pe = pe.clamp_min(0.0) / alb_fp
+            pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, settings.footprint_sigma)  # a pixel average
         else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
             pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
             # the log domain compresses what is bright for the frame, whatever the exposure
             level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
             pe = level * torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0) / level), mask, flat))
         if settings.firefly == "log" and pilot is None:
-            out = filt.at_queries(pe) if qt != ft else pe
+            out = at_queries(pe)
             stats["firefly_energy_removed"] = 0.0
         else:
             ec = _clamp_fireflies(e, alb, pe, mask, k_ff, stats)
             if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
                 guide, sig = _radiance_from_pilot(guide, sig, pe, mask, settings)
             out = smooth(ec, pe)
-    out = _footprint_average(out * filt.at_queries(alb), settings.footprint_sigma)
+    out = _footprint_average(out * at_queries(alb), settings.footprint_sigma)
     if em is not None:  # the renderer's emission is added back exactly as rendered
-        out = out + filt.at_queries(em)
+        out = out + at_queries(em)
     out = out.to(color.dtype)
     return (out, stats) if return_stats else out
 
