@@ -478,7 +478,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
-    if list(qt) == list(ft) and st.selection_softness > 0 and st.selection_blur > 0 and \
+    if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness)
     pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
