@@ -440,10 +440,16 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     class_ids = [k for k, c in enumerate((~flat, flat)) if bool(c.any())]  # 0: demodulated, 1: flat
     classes = [(~flat, flat)[k].to(e.dtype) for k in class_ids]
     half = _halves(e.shape, e.device).to(e.dtype)
-    at_frames = list(qt) == list(ft)
-    preds, fulls, frame_outs = [], [], []
+    # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
+    # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
+    query_frames = [frame_at(ft, q) for q in qt]
+    at_frames = all(k is not None for k in query_frames)
+    cv_times = qt if at_frames else ft
+    idx = query_frames if at_frames else list(range(T))
+    flat_cv = flat[idx]
+    preds, fulls, cv_outs = [], [], []
     for b in st.bandwidths:
-        filt = _Filter(guide, sigmas, st, ft, ft, sigma_s * float(b), range_scale)
+        filt = _Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale)
         if _fast.enabled(e, mask):  # the same stack, prediction and sums in two C++ passes
             pred, num, den = _fast.cv_split(filt.apply(_fast.cv_halves(e, mask, flat, class_ids)))
         else:
@@ -451,7 +457,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             for c in classes:
                 for h in (half, 1 - half):
                     parts += [e * (mask * c * h), mask * c * h]
-            y = filt.apply(torch.cat(parts, 1)).view(T, len(classes), 2, 4, H, W)
+            y = filt.apply(torch.cat(parts, 1)).view(len(cv_times), len(classes), 2, 4, H, W)
             num, den = y[:, :, :, :3], y[:, :, :, 3:]
             # a pixel of the first half is predicted from the second half's samples and the other way round
             other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
@@ -462,19 +468,22 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
         full = torch.stack([filt.normalise(num[:, k], den[:, k], e, mask * c)
                             for k, c in enumerate(classes)], 1)
         if len(classes) == 2:
-            pred = torch.where(flat, pred[:, 1], pred[:, 0])
-            frame_out = torch.where(flat, full[:, 1], full[:, 0])
+            pred = torch.where(flat_cv, pred[:, 1], pred[:, 0])
+            cv_out = torch.where(flat_cv, full[:, 1], full[:, 0])
         else:
-            pred, frame_out = pred[:, 0], full[:, 0]
+            pred, cv_out = pred[:, 0], full[:, 0]
         preds.append(pred)
-        frame_outs.append(frame_out)
+        cv_outs.append(cv_out)
         if at_frames:
-            fulls.append(frame_out)
+            fulls.append(cv_out)
         else:
             fq = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale)
             fulls.append(fq.by_class(e, mask, flat))
     if level is None:
-        level = frame_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
+        level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
+    else:
+        level = level[idx]
+    e, mask = e[idx], mask[idx]
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
@@ -483,8 +492,9 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness)
     pool = footprint_blur(mask, st.selection_blur).clamp_min(1e-6)
     errs = torch.stack([footprint_blur((((p - e) ** 2).sum(1, keepdim=True) * weight), st.selection_blur) / pool
-                        for p in preds])  # (K, T, 1, H, W)
-    errs = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in errs])
+                        for p in preds])  # (K, len(cv_times), 1, H, W)
+    if not at_frames:
+        errs = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in errs])
     if st.selection_softness > 0:
         least = errs.amin(0, keepdim=True).clamp_min(1e-30)
         w = torch.softmax(-errs / (st.selection_softness * least), 0)
