@@ -49,6 +49,9 @@ from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 __all__ = [
     "DenoiseSettings",
     "denoise_frames",
+    "prepare_frames",
+    "denoise_prepared",
+    "FrameState",
     "Denoiser",
     "default_guide_sigmas",
     "feature_group",
@@ -567,53 +570,122 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
         raise ValueError("frame_times and query_times must be non-empty and finite")
     if pilot is not None and (not isinstance(pilot, Tensor) or pilot.shape != color.shape):
         raise ValueError(f"pilot must be a tensor shaped like color {tuple(color.shape)}")
-    k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
+    state = prepare_frames(color, features, names, emission, settings, sigma_s, range_scale, pilot, firefly_k)
+    out = denoise_prepared(state, settings, ft, qt, sigma_s, range_scale).to(color.dtype)
+    return (out, state.stats()) if return_stats else out
 
+
+@dataclass
+class FrameState:
+    """What the frame step derives from each frame alone, made by :func:`prepare_frames`.
+
+    Every tensor holds one entry per frame, ``(T, ...)``, and no entry depends on the other frames, so a
+    streamed clip prepares each frame once and joins the states of a window with :meth:`cat`.
+
+    Attributes:
+        values: ``(T, 3, H, W)`` demodulated samples to filter (fireflies clamped).
+        level: ``(T, 3, H, W)`` demodulated radiance estimate (the pilot), or ``None`` without one.
+        mask: ``(T, 1, H, W)`` sample weights (0 where a sample was not finite).
+        flat: ``(T, 1, H, W)`` bool, pixels filtered as radiance (not demodulated).
+        albedo: ``(T, 3, H, W)`` the albedo the output is multiplied back by.
+        emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
+        guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
+        pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
+        counts: sums over the frames: non-finite samples, clamped samples, energy and energy clamped.
+    """
+
+    values: Tensor
+    level: Tensor | None
+    mask: Tensor
+    flat: Tensor
+    albedo: Tensor
+    emission: Tensor | None
+    guide: Tensor
+    sigmas: Tensor
+    pilot_only: bool
+    counts: dict
+
+    @staticmethod
+    def cat(states: Sequence["FrameState"]) -> "FrameState":
+        """The states of consecutive frames as one state."""
+        def join(name):
+            xs = [getattr(s, name) for s in states]
+            return None if xs[0] is None else torch.cat(xs)
+        counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
+        tensors = ("values", "level", "mask", "flat", "albedo", "emission", "guide", "sigmas")
+        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts)
+
+    def stats(self) -> dict:
+        """Non-finite samples, masked pixels, clamped samples and the fraction of energy clamped."""
+        c = dict(self.counts)
+        removed, total = c.pop("firefly_energy"), c.pop("energy")
+        return {**c, "firefly_energy_removed": removed / max(total, 1e-30)}
+
+
+def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str], emission: Tensor | None,
+                   settings: DenoiseSettings, sigma_s: float | None = None, range_scale: float = 1.0,
+                   pilot: Tensor | None = None, firefly_k: float | None = None) -> FrameState:
+    """Sanitise, demodulate, guide and clamp fireflies, each frame on its own (arguments as
+    :func:`denoise_frames`, already checked there)."""
+    names = list(feature_names)
     dt = settings.dtype
-    c, f, mask, em, stats = _sanitize(color.to(dt), features.to(dt),
-                                      None if emission is None else emission.to(dt))
+    k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
+    base = settings.sigma_s if sigma_s is None else float(sigma_s)
+    em = None if emission is None else emission.to(dt)
+    c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     alb, flat = _demodulation_albedo(f, names, settings)
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
+    counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
+    state = FrameState(e, None, mask, flat, alb, em, guide, sig, False, counts)
+    if settings.firefly == "none":
+        return state
+    ft = [float(t) for t in range(c.shape[0])]
+    if pilot is not None:
+        pe = pilot.to(dt)
+        pe = torch.where(torch.isfinite(pe), pe, 0.0)
+        if em is not None:
+            pe = pe - em
+        pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, settings.footprint_sigma)  # a pixel average
+    else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
+        pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
+        # the log domain compresses what is bright for the frame, whatever the exposure
+        level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
+        pe = level * torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0) / level), mask, flat))
+    state.level = pe
+    if settings.firefly == "log" and pilot is None:
+        state.pilot_only = True
+        return state
+    state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts)
+    if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
+        state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings)
+    return state
+
+
+def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: Sequence[float],
+                     query_times: Sequence[float], sigma_s: float | None = None,
+                     range_scale: float = 1.0) -> Tensor:
+    """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
+    :func:`denoise_frames`)."""
+    ft, qt = list(frame_times), list(query_times)
     base = settings.sigma_s if sigma_s is None else float(sigma_s)
+    s = state
 
     def at_queries(x: Tensor) -> Tensor:
         return _Filter.at_frames_to_queries(x, ft, qt)
 
-    def smooth(values: Tensor, level: Tensor | None) -> Tensor:  # with the guide as it is by then
-        if len(settings.bandwidths) == 1:
-            sigma = base * float(settings.bandwidths[0])
-            return _Filter(guide, sig, settings, ft, qt, sigma, range_scale).by_class(values, mask, flat)
-        return _select_bandwidth(values, mask, flat, guide, sig, settings, ft, qt, base, range_scale, level)
-
-    if settings.firefly == "none":
-        out = smooth(e, None)
-        stats["firefly_energy_removed"] = 0.0
+    if s.pilot_only:
+        out = at_queries(s.level)
+    elif len(settings.bandwidths) == 1:
+        sigma = base * float(settings.bandwidths[0])
+        out = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale).by_class(s.values, s.mask, s.flat)
     else:
-        if pilot is not None:
-            pe = pilot.to(dt)
-            pe = torch.where(torch.isfinite(pe), pe, 0.0)
-            if em is not None:
-                pe = pe - em
-            pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, settings.footprint_sigma)  # a pixel average
-        else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
-            pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
-            # the log domain compresses what is bright for the frame, whatever the exposure
-            level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
-            pe = level * torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0) / level), mask, flat))
-        if settings.firefly == "log" and pilot is None:
-            out = at_queries(pe)
-            stats["firefly_energy_removed"] = 0.0
-        else:
-            ec = _clamp_fireflies(e, alb, pe, mask, k_ff, stats)
-            if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
-                guide, sig = _radiance_from_pilot(guide, sig, pe, mask, settings)
-            out = smooth(ec, pe)
-    out = _footprint_average(out * at_queries(alb), settings.footprint_sigma)
-    if em is not None:  # the renderer's emission is added back exactly as rendered
-        out = out + at_queries(em)
-    out = out.to(color.dtype)
-    return (out, stats) if return_stats else out
+        out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                s.level)
+    out = _footprint_average(out * at_queries(s.albedo), settings.footprint_sigma)
+    if s.emission is not None:  # the renderer's emission is added back exactly as rendered
+        out = out + at_queries(s.emission)
+    return out
 
 
 def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
@@ -786,7 +858,7 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
 
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
-    energy removed goes to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark
+    energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark
     regions next to noise-free black do not clamp every lit sample (measured on shared/data)."""
     lp = luminance(pe).clamp_min(0.0)
     floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
@@ -794,9 +866,9 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     L = luminance(e)
     scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
     ec = e * scale
-    total = float(((e * alb) * mask).sum())
-    stats["firefly_energy_removed"] = float((((e - ec) * alb) * mask).sum()) / max(total, 1e-30)
-    stats["firefly_clamped_samples"] = int(((scale < 1) & (mask > 0)).sum())
+    stats["energy"] += float(((e * alb) * mask).sum())
+    stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
+    stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
     return ec
 
 

@@ -12,7 +12,7 @@ import torch
 
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
+from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
 
 __all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
@@ -47,7 +47,8 @@ def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
 
 
 class ClipWindow:
-    """The frames of a clip, read as a moving time window needs them and released behind it.
+    """The frames of a clip, read as a moving time window needs them and released behind it, with
+    what the denoiser derives from each frame alone (prepared once, released with the frame).
 
     Args:
         inputs: the frame files, in order.
@@ -62,6 +63,8 @@ class ClipWindow:
         self.reads = 0  # frames served (each is read once: windows only move on)
         self._cache: dict[int, RenderFrame] = {0: first}
         self._served: set[int] = set()
+        self._prepared: dict[int, FrameState] = {}
+        self._prepared_with: DenoiseSettings | None = None
 
     def __len__(self) -> int:
         return len(self.inputs)
@@ -79,7 +82,22 @@ class ClipWindow:
                 self.reads += 1
         for k in [k for k in self._cache if k < ids[0]]:
             del self._cache[k]
+            self._prepared.pop(k, None)
         return [self._cache[k] for k in ids]
+
+    def prepared(self, ids: Sequence[int], settings: DenoiseSettings) -> list[FrameState]:
+        """The frames ``ids`` (increasing) through :func:`~torchmanifold.pipeline.denoise.prepare_frames`,
+        each prepared once for ``settings``."""
+        frames = self.frames(ids)
+        if settings != self._prepared_with:
+            self._prepared, self._prepared_with = {}, settings
+        for k, fr in zip(ids, frames):
+            if k not in self._prepared:
+                em = None if fr.emission is None else torch.from_numpy(fr.emission)[None]
+                self._prepared[k] = prepare_frames(torch.from_numpy(fr.color)[None],
+                                                   torch.from_numpy(fr.stack(self.feature_names))[None],
+                                                   self.feature_names, em, settings)
+        return [self._prepared[k] for k in ids]
 
 
 def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[np.ndarray, dict, RenderFrame]:
@@ -92,18 +110,12 @@ def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple
     """
     r = settings.temporal_radius
     ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
-    frames = clip.frames(ids)
-    fnames = clip.feature_names
-    color = torch.from_numpy(np.stack([f.color for f in frames]))
-    feats = torch.from_numpy(np.stack([f.stack(fnames) for f in frames]))
-    ems = [f.emission for f in frames]
-    emission = torch.from_numpy(np.stack(ems)) if all(e is not None for e in ems) else None
-    y, st = denoise_frames(color, feats, fnames, emission, settings=settings, frame_times=ids,
-                           query_times=[t], return_stats=True)
-    own = ids.index(t)  # count the frame's own samples once
-    return y[0].numpy(), {"nonfinite_color": int((~torch.isfinite(color[own])).sum()),
-                          "nonfinite_features": int((~torch.isfinite(feats[own])).sum()),
-                          "firefly_energy_removed": float(st.get("firefly_energy_removed", 0.0))}, frames[own]
+    states = clip.prepared(ids, settings)
+    y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)
+    own = ids.index(t)
+    stats = states[own].stats()
+    keys = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed")
+    return y[0].numpy(), {k: stats[k] for k in keys}, clip.frames(ids)[own]
 
 
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
