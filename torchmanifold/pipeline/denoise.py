@@ -381,10 +381,10 @@ class _Filter:
             return out
         r = self._guard_radius()
         big = torch.finfo(values.dtype).max
-        hi = torch.where(mask > 0, values, -big)
-        lo = torch.where(mask > 0, -values, -big)
+        # the window's largest first, then the box (max commutes): one box per query, not per frame
+        hi = self.at_queries_max(torch.where(mask > 0, values, -big))
+        lo = self.at_queries_max(torch.where(mask > 0, -values, -big))
         hi, lo = _box_max(hi, r), -_box_max(lo, r)
-        hi, lo = self.at_queries_max(hi), -self.at_queries_max(-lo)
         ok = hi > -big / 2
         return torch.where(ok, torch.minimum(torch.maximum(out, lo), hi), out)
 
