@@ -122,9 +122,10 @@ def _dilate(m: torch.Tensor, r: int) -> torch.Tensor:
     return torch.nn.functional.max_pool2d(m.float(), 2 * r + 1, 1, r) > 0
 
 
-def energy_regions(ds: harness.Dataset) -> dict:
+def energy_regions(ds: harness.Dataset, open_caustics: bool = True) -> dict:
     """Per-frame masks ``(F, 1, H, W)`` of the rings around lights and of caustics, from the reference
-    (frames with fewer than ``MIN_REGION_PX`` pixels in a region have it empty)."""
+    (frames with fewer than ``MIN_REGION_PX`` pixels in a region have it empty). ``open_caustics``
+    keeps blobs only (against a noisy reference's sparkles); a clean reference's thin caustic needs it off."""
     from torchmanifold.pipeline.denoise import footprint_blur, luminance
 
     L = luminance(ds.reference.clamp_min(0))
@@ -139,7 +140,7 @@ def energy_regions(ds: harness.Dataset) -> dict:
         local = footprint_blur(E, 8.0) / footprint_blur(diffuse, 8.0).clamp_min(1e-6)
         mean_e = E.sum((1, 2, 3), keepdim=True) / diffuse.sum((1, 2, 3), keepdim=True).clamp_min(1.0)
         bright = (diffuse > 0) & ~light & (E > CAUSTIC_LEVEL * local) & (E > CAUSTIC_LEVEL * mean_e)
-        out["caustic"] = _dilate(~_dilate(~bright, 1), 1)  # opened: blobs, not sparkles or texture edges
+        out["caustic"] = _dilate(~_dilate(~bright, 1), 1) if open_caustics else bright  # opened: blobs only
     for k, m in out.items():
         out[k] = m & (m.sum((1, 2, 3), keepdim=True) >= MIN_REGION_PX)
     return out
