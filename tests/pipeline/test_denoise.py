@@ -314,3 +314,27 @@ def test_same_bytes_for_any_thread_count(clip):
     finally:
         torch.set_num_threads(before)
     assert torch.equal(outs[0], outs[1])
+
+
+def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
+    """The denoise command prepares each frame once and reuses it in every window that holds it; each
+    output frame has the bytes of :func:`denoise_frames` over that frame's window, computed afresh."""
+    from torchmanifold.io import read_exr, write_exr
+    from torchmanifold.pipeline.denoise_files import denoise_files
+
+    crop = (slice(96, 144), slice(64, 120))
+    c, f = load_clip(mitsuba_dir, "frame", [0, 1, 2, 3], crop)
+    c[2, :, 5, 7] = float("nan")  # a bad sample in one frame only: counted for that frame alone
+    paths = []
+    for t in range(4):
+        paths.append(tmp_path / f"f{t}.exr")
+        write_exr(paths[-1], {**{ch: c[t, k].numpy() for k, ch in enumerate("RGB")},
+                              **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}})
+    st = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=2)
+    res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
+    assert res["nonfinite_color"] == 3
+    for t in range(4):
+        ids = list(range(max(0, t - 1), min(4, t + 2)))
+        want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t])[0]
+        got = read_exr(tmp_path / "out" / f"f{t}.exr")
+        assert np.array_equal(np.stack([got[ch] for ch in "RGB"]), want.numpy()), t
