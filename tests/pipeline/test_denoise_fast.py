@@ -213,3 +213,25 @@ def test_op_argument_errors():
         torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
     with pytest.raises(ValueError, match="float32 or float64"):
         torch.ops.torchmanifold._kuwahara3(x.half())
+
+
+def _op_samples():
+    g = torch.Generator().manual_seed(5)
+    T, H, W = 2, 9, 11
+    e = torch.rand(T, 3, H, W, generator=g)
+    m = (torch.rand(T, 1, H, W, generator=g) > 0.2).float()
+    flat = torch.rand(T, 1, H, W, generator=g) > 0.7
+    y = torch.rand(T, 16, H, W, generator=g)
+    preds, fulls = torch.rand(3, T, 3, H, W, generator=g), torch.rand(3, T, 3, H, W, generator=g)
+    return [("_normalise_guard", (e, m, e, m, 2)), ("_footprint_average", (e, torch.ones(T), 0.5, 0.3)),
+            ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 0.5)),
+            ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m, flat, [0, 1])),
+            ("_cv_halves_out", (e, m, flat, [0, 1], torch.empty(T, 16, H, W))), ("_cv_split", (y,)),
+            ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_footprint_albedo", (e, flat, 0.5))]
+
+
+@pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])
+def test_opcheck(name, args):
+    """Each private op's schema, fake kernel (shapes and dtypes under fake tensors) and dispatch agree
+    with its CPU kernel."""
+    torch.library.opcheck(getattr(torch.ops.torchmanifold, name).default, args)

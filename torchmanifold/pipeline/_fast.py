@@ -123,3 +123,56 @@ def footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
     """``denoise._footprint_albedo`` (``sigma > 0``): alb ``(T, 3, H, W)``, flat ``(T, 1, H, W)`` bool ->
     ``(T, 3, H, W)``."""
     return torch.ops.torchmanifold._footprint_albedo(alb, flat, float(sigma))
+
+
+def _register_fakes() -> None:
+    """Shapes and dtypes of the private ops for fake tensors (``torch.compile``, ``opcheck``); each matches
+    its CPU kernel's outputs."""
+    lib = "torchmanifold::"
+
+    @torch.library.register_fake(lib + "_normalise_guard")
+    def _(num, den, values, mask, radius):
+        return torch.empty_like(num, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_footprint_average")
+    def _(x, k, sigma, range_sigma):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_kuwahara3")
+    def _(x):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_cv_blend")
+    def _(preds, fulls, e, weight, mask, blur_sigma, softness):
+        return torch.empty_like(e, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_quantiles")
+    def _(v, q):
+        return v.new_empty((v.shape[0], len(q)), dtype=torch.float64)
+
+    @torch.library.register_fake(lib + "_cv_halves")
+    def _(e, mask, flat, classes):
+        return e.new_empty((e.shape[0], 8 * len(classes), *e.shape[2:]))
+
+    @torch.library.register_fake(lib + "_cv_halves_out")
+    def _(e, mask, flat, classes, out):
+        return None
+
+    @torch.library.register_fake(lib + "_cv_split")
+    def _(y):
+        T, K, H, W = y.shape[0], y.shape[1] // 8, y.shape[2], y.shape[3]
+        return y.new_empty((T, K, 3, H, W)), y.new_empty((T, K, 3, H, W)), y.new_empty((T, K, 1, H, W))
+
+    @torch.library.register_fake(lib + "_sanitize")
+    def _(c, f):
+        return (torch.empty_like(c, memory_format=torch.contiguous_format),
+                torch.empty_like(f, memory_format=torch.contiguous_format),
+                c.new_empty((c.shape[0], 1, *c.shape[2:])), c.new_empty((3,), dtype=torch.int64))
+
+    @torch.library.register_fake(lib + "_footprint_albedo")
+    def _(alb, flat, sigma):
+        return torch.empty_like(alb, memory_format=torch.contiguous_format)
+
+
+if _have_ops():
+    _register_fakes()
