@@ -14,10 +14,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma) -> Tensor");
   // denoise._log_radiance's 3x3 Kuwahara filter (replicate borders) of x (N, C, H, W) -> (N, C, H, W).
   m.def("_kuwahara3(Tensor x) -> Tensor");
-  // The end of denoise._select_bandwidth at frame queries: errors of the K predictions preds (K, T, 3, H, W)
-  // against e (T, 3, H, W), weighted by weight (T, 1, H, W), pooled by a Gaussian of blur_sigma normalised
-  // by the blurred mask (T, 1, H, W), turned into softmax weights (softness > 0) that blend fulls
-  // (K, T, 3, H, W) -> (T, 3, H, W).
+  // The end of denoise._select_bandwidth at frame queries: the weighted squared residuals of the K
+  // predictions preds (K, T, 3, H, W) against e (T, 3, H, W), times weight (T, 1, H, W), pooled by a
+  // Gaussian of blur_sigma normalised by the blurred mask (T, 1, H, W); each candidate's excess over the
+  // least error, in standard errors (denoise._excess_error_z2), gives weights exp(-z^2 / 2 softness^2)
+  // (softness > 0) that blend fulls (K, T, 3, H, W) -> (T, 3, H, W).
   m.def("_cv_blend(Tensor preds, Tensor fulls, Tensor e, Tensor weight, Tensor mask, float blur_sigma, "
         "float softness) -> Tensor");
   // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.

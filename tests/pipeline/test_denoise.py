@@ -164,8 +164,9 @@ def test_firefly_clamped_and_energy_reported():
     feats = torch.cat([alb, nrm], 1)
     lin, st0 = denoise_frames(color, feats, names, settings=DenoiseSettings(firefly="none"), return_stats=True)
     ours, st = denoise_frames(color, feats, names, return_stats=True)
-    assert lin[0, :, 16, 16].max() > 1.0  # a linear filter turns it into a bright blob
-    assert ours.max() < 0.5
+    bg = 0.1  # the background: irradiance 0.2 times albedo 0.5
+    assert lin[0, :, 16, 16].max() > 4 * bg  # a linear filter turns it into a bright blob
+    assert ours.max() < 1.5 * bg
     assert st["firefly_clamped_samples"] >= 1 and st["firefly_energy_removed"] > 0.5
     assert st0["firefly_energy_removed"] == 0.0
 

@@ -441,27 +441,6 @@ void divide_row(const T* __restrict d, int64_t n, T* __restrict y) {
   for (int64_t i = 0; i < n; ++i) y[i] = y[i] / d[i];
 }
 template <typename T>
-void min_row(const T* __restrict x, int64_t n, T* __restrict y) {
-  for (int64_t i = 0; i < n; ++i) y[i] = ((x[i] < y[i]) | (x[i] != x[i])) ? x[i] : y[i];  // NaN wins, as in amin
-}
-template <typename T>
-void softmax_max_row(const T* __restrict err, const T* __restrict scale, int64_t n, T* __restrict zmax) {
-  for (int64_t i = 0; i < n; ++i) {
-    const T z = -err[i] / scale[i];
-    zmax[i] = z > zmax[i] ? z : zmax[i];
-  }
-}
-// err <- exp(-err / scale - zmax); wsum += it
-template <typename T>
-void softmax_exp_row(const T* __restrict scale, const T* __restrict zmax, int64_t n, T* __restrict err,
-                     T* __restrict wsum) {
-  for (int64_t i = 0; i < n; ++i) {
-    const T v = exp_lanes(-err[i] / scale[i] - zmax[i]);
-    err[i] = v;
-    wsum[i] += v;
-  }
-}
-template <typename T>
 void fma_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __restrict y) {
   for (int64_t i = 0; i < n; ++i) y[i] += a[i] * b[i];
 }
@@ -496,68 +475,117 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
     const T* pw = weight.data_ptr<T>();
     const T* pm = mask.data_ptr<T>();
     T* po = out.data_ptr<T>();
-    // pass 1: the rows of the K error planes and the mask plane of every frame, blurred along x
-    const int64_t P = (K + 1) * Tn;  // plane p < K*T: error of prediction p / T at frame p % T; then masks
+    // Planes per frame (z^2 of denoise._excess_error_z2): at blur_sigma the K residual planes sq and the
+    // mask; at blur_sigma / sqrt(2) (sum k^2 f = c blur2(f)) sq again, the squared differences of every
+    // pair and the mask.
+    const int64_t npairs = K * (K - 1) / 2;
+    const int64_t r2 = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * blur_sigma / std::sqrt(2.0))));
+    const std::vector<T> taps2 = gaussian_taps<T>(blur_sigma / std::sqrt(2.0), r2);
+    double c = 0;
+    {
+      std::vector<double> k1(2 * r + 1);
+      double sum = 0;
+      for (int64_t i = -r; i <= r; ++i) sum += (k1[i + r] = std::exp(-double(i * i) / (2 * blur_sigma * blur_sigma)));
+      for (double v : k1) c += (v / sum) * (v / sum);
+      c *= c;
+    }
+    std::vector<std::pair<int64_t, int64_t>> pairs;
+    for (int64_t a = 0; a < K; ++a)
+      for (int64_t b = a + 1; b < K; ++b) pairs.emplace_back(a, b);
+    const int64_t n1 = K + 1, n2 = K + npairs + 1, NP = n1 + n2;  // planes per frame
+    // pass 1: every plane of every frame, blurred along x
     Scratch<T> hbuf;
-    hbuf.resize(P * HW);
-    T* hb = hbuf.data();
-    at::parallel_for(0, P * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
-      Scratch<T> srcb;
+    hbuf.resize(Tn * NP * HW);
+    T* hb = hbuf.data();  // (T, NP, H, W)
+    at::parallel_for(0, Tn * H, row_grain(W * NP * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
+      Scratch<T> srcb, sqb;
       srcb.resize(W + 2 * r);
-      T* src = srcb.data();  // the row, replicate-padded by r
-      for (int64_t pr = r0; pr < r1; ++pr) {
-        const int64_t p = pr / H, y = pr % H;
-        if (p < K * Tn) {
-          const int64_t kk = p / Tn, t = p % Tn;
+      sqb.resize((K + 1) * W);
+      T* src = srcb.data();  // a row, replicate-padded by the taps' radius
+      T* sqr = sqb.data();   // the K residual rows, then the mask row
+      auto hblur = [&](const T* row, const std::vector<T>& tp, int64_t rr, T* o) {
+        std::copy(row, row + W, src + rr);
+        std::fill(src, src + rr, src[rr]);
+        std::fill(src + rr + W, src + 2 * rr + W, src[rr + W - 1]);
+        std::fill(o, o + W, T(0));
+        for (int64_t i = -rr; i <= rr; ++i) axpy(tp[i + rr], src + rr + i, W, o);
+      };
+      std::vector<T> d(W);
+      for (int64_t tr = r0; tr < r1; ++tr) {
+        const int64_t t = tr / H, y = tr % H;
+        for (int64_t kk = 0; kk < K; ++kk) {
           const T* q = pp + (kk * Tn + t) * 3 * HW + y * W;
           sq_error_row(q, q + HW, q + 2 * HW, pe + t * 3 * HW + y * W, pe + t * 3 * HW + HW + y * W,
-                       pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, src + r);
-        } else {
-          std::copy(pm + (p - K * Tn) * HW + y * W, pm + (p - K * Tn) * HW + (y + 1) * W, src + r);
+                       pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, sqr + kk * W);
         }
-        std::fill(src, src + r, src[r]);
-        std::fill(src + r + W, src + 2 * r + W, src[r + W - 1]);
-        T* o = hb + p * HW + y * W;
-        std::fill(o, o + W, T(0));
-        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], src + r + i, W, o);
+        std::copy(pm + t * HW + y * W, pm + t * HW + (y + 1) * W, sqr + K * W);
+        T* base = hb + t * NP * HW + y * W;
+        for (int64_t kk = 0; kk <= K; ++kk) hblur(sqr + kk * W, taps, r, base + kk * HW);
+        for (int64_t kk = 0; kk < K; ++kk) hblur(sqr + kk * W, taps2, r2, base + (n1 + kk) * HW);
+        for (int64_t k = 0; k < npairs; ++k) {
+          const T *sa = sqr + pairs[k].first * W, *sb = sqr + pairs[k].second * W;
+          for (int64_t x = 0; x < W; ++x) d[x] = (sb[x] - sa[x]) * (sb[x] - sa[x]);
+          hblur(d.data(), taps2, r2, base + (n1 + K + k) * HW);
+        }
+        hblur(sqr + K * W, taps2, r2, base + (n1 + K + npairs) * HW);
       }
     });
-    // pass 2: blur along y, normalise by the pooled mask, softmax over the K bandwidths, blend
-    at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * (K + 1)), [&](int64_t r0, int64_t r1) {
+    // pass 2: blur along y; per pixel the least-error candidate a, every other's excess D and its
+    // variance, weights exp(-z^2 / 2 softness^2) normalised (the least error has z = 0), blend
+    const T inv_two_s2 = static_cast<T>(1.0 / (2 * softness * softness));
+    at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * NP), [&](int64_t r0, int64_t r1) {
       Scratch<T> buf;
-      buf.resize((K + 4) * W);
-      T* err = buf.data();  // (K, W), then the softmax weights
-      T* pool = err + K * W;
-      T* zmax = pool + W;
-      T* wsum = zmax + W;
-      T* scale = wsum + W;
-      auto vblur = [&](int64_t p, int64_t y, T* dst) {
+      buf.resize((NP + K + 1) * W);
+      T* pl = buf.data();  // the NP planes' rows
+      T* wts = pl + NP * W;
+      T* wsum = wts + K * W;
+      auto vblur = [&](int64_t t, int64_t p, int64_t y, const std::vector<T>& tp, int64_t rr, T* dst) {
         std::fill(dst, dst + W, T(0));
-        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + p * HW + clampi(y + i, H) * W, W, dst);
+        for (int64_t i = -rr; i <= rr; ++i)
+          axpy(tp[i + rr], hb + (t * NP + p) * HW + clampi(y + i, H) * W, W, dst);
       };
+      std::vector<int64_t> pair_index(K * K, -1);
+      for (int64_t k = 0; k < npairs; ++k)
+        pair_index[pairs[k].first * K + pairs[k].second] = pair_index[pairs[k].second * K + pairs[k].first] = k;
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H;
-        vblur(K * Tn + t, y, pool);
-        for (int64_t x = 0; x < W; ++x) pool[x] = pool[x] < T(1e-6) ? T(1e-6) : pool[x];
-        for (int64_t kk = 0; kk < K; ++kk) {
-          T* ek = err + kk * W;
-          vblur(kk * Tn + t, y, ek);
-          divide_row(pool, W, ek);
-        }
-        // least error (clamped), the softmax's scale and its max of -err / scale
-        std::copy(err, err + W, scale);
-        for (int64_t kk = 1; kk < K; ++kk) min_row(err + kk * W, W, scale);
-        const T soft = static_cast<T>(softness);
-        for (int64_t x = 0; x < W; ++x) scale[x] = soft * (scale[x] < T(1e-30) ? T(1e-30) : scale[x]);
-        std::fill(zmax, zmax + W, -std::numeric_limits<T>::infinity());
-        for (int64_t kk = 0; kk < K; ++kk) softmax_max_row(err + kk * W, scale, W, zmax);
+        for (int64_t p = 0; p < NP; ++p)
+          vblur(t, p, y, p < n1 ? taps : taps2, p < n1 ? r : r2, pl + p * W);
+        const T* pool_raw = pl + K * W;
+        const T* s1 = pl + n1 * W;
+        const T* m2 = pl + (n1 + K + npairs) * W;
         std::fill(wsum, wsum + W, T(0));
-        for (int64_t kk = 0; kk < K; ++kk) softmax_exp_row(scale, zmax, W, err + kk * W, wsum);
-        for (int64_t kk = 0; kk < K; ++kk) divide_row(wsum, W, err + kk * W);
-        for (int64_t c = 0; c < 3; ++c) {
-          T* o = po + (t * 3 + c) * HW + y * W;
+        for (int64_t x = 0; x < W; ++x) {
+          const T pool = pool_raw[x] < T(1e-6) ? T(1e-6) : pool_raw[x];
+          const T inv = static_cast<T>(c) / (pool * pool);
+          int64_t a = 0;
+          T least = pl[x] / pool;
+          for (int64_t kk = 1; kk < K; ++kk) {
+            const T v = pl[kk * W + x] / pool;
+            if (v < least) least = v, a = kk;
+          }
+          for (int64_t kk = 0; kk < K; ++kk) {
+            T z2 = 0;
+            if (kk != a) {
+              const T D = pl[kk * W + x] / pool - least;
+              const T var = pl[(n1 + K + pair_index[a * K + kk]) * W + x] * inv -
+                            T(2) * D * (s1[kk * W + x] * inv - s1[a * W + x] * inv) + D * D * (m2[x] * inv);
+              const T Dp = D > T(0) ? D : T(0);
+              z2 = Dp * Dp / (var < T(1e-30) ? T(1e-30) : var);
+            }
+            wts[kk * W + x] = -z2 * inv_two_s2;
+          }
+        }
+        for (int64_t kk = 0; kk < K; ++kk) {
+          T* wk = wts + kk * W;
+          for (int64_t x = 0; x < W; ++x) wk[x] = exp_lanes(wk[x]);
+          for (int64_t x = 0; x < W; ++x) wsum[x] += wk[x];
+        }
+        for (int64_t kk = 0; kk < K; ++kk) divide_row(wsum, W, wts + kk * W);
+        for (int64_t c3 = 0; c3 < 3; ++c3) {
+          T* o = po + (t * 3 + c3) * HW + y * W;
           std::fill(o, o + W, T(0));
-          for (int64_t kk = 0; kk < K; ++kk) fma_row(pf + ((kk * Tn + t) * 3 + c) * HW + y * W, err + kk * W, W, o);
+          for (int64_t kk = 0; kk < K; ++kk) fma_row(pf + ((kk * Tn + t) * 3 + c3) * HW + y * W, wts + kk * W, W, o);
         }
       }
     });
