@@ -18,9 +18,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // predictions preds (K, T, 3, H, W) against e (T, 3, H, W), times weight (T, 1, H, W), pooled by a
   // Gaussian of blur_sigma normalised by the blurred mask (T, 1, H, W); each candidate's excess over the
   // least error, in standard errors (denoise._excess_error_z2), gives weights exp(-z^2 / 2 softness^2)
-  // (softness > 0) that blend fulls (K, T, 3, H, W) -> (T, 3, H, W).
+  // (softness > 0) that blend fulls (K, T, 3, H, W) -> (T, 3, H, W). A candidate is left out where its
+  // prediction is NaN (no support) unless every one's is, and where its error exceeds error_cut times the
+  // least.
   m.def("_cv_blend(Tensor preds, Tensor fulls, Tensor e, Tensor weight, Tensor mask, float blur_sigma, "
-        "float softness) -> Tensor");
+        "float softness, float error_cut) -> Tensor");
   // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.
   m.def("_quantiles(Tensor v, float[] q) -> Tensor");
   // denoise._select_bandwidth's stack for one op call: e (T, 3, H, W), mask (T, 1, H, W), flat (T, 1, H, W)

@@ -339,3 +339,48 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
         want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t])[0]
         got = read_exr(tmp_path / "out" / f"f{t}.exr")
         assert np.array_equal(np.stack([got[ch] for ch in "RGB"]), want.numpy()), t
+
+
+def test_excess_error_z_against_explicit_sums():
+    """z of a candidate's excess error at one pixel, against the sums written out over the kernel's
+    taps; a candidate without support and one with a catastrophic residual are left out."""
+    import math
+
+    from torchmanifold.pipeline import denoise as D
+
+    g = torch.Generator().manual_seed(2)
+    K, H, W, blur = 3, 15, 17, 1.5
+    sq = torch.rand(K, 1, 1, H, W, generator=g, dtype=torch.float64)
+    sq[1] += 0.3  # clearly worse than the first
+    sq[2] = sq[0] + 0.02 * torch.randn(1, 1, H, W, generator=g, dtype=torch.float64)  # about the same
+    mask = (torch.rand(1, 1, H, W, generator=g) > 0.2).double()
+    sq = sq * mask
+    allowed = torch.ones(K, 1, 1, H, W, dtype=torch.bool)
+    z2 = D._excess_error_z2(sq, mask, blur, allowed)
+    # brute force at the centre, with footprint_blur's replicate-padded separable taps
+    r = math.ceil(3 * blur)
+    t = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64) ** 2 / (2 * blur * blur))
+    t = t / t.sum()
+    y0, x0 = H // 2, W // 2
+    k = {(y, x): t[y - y0 + r] * t[x - x0 + r] for y in range(y0 - r, y0 + r + 1) for x in range(x0 - r, x0 + r + 1)}
+    P = sum(w * mask[0, 0, y, x] for (y, x), w in k.items())
+    err = [sum(w * sq[b, 0, 0, y, x] for (y, x), w in k.items()) / P for b in range(K)]
+    a = min(range(K), key=lambda b: err[b])
+    for b in range(K):
+        if b == a:
+            assert float(z2[b, 0, 0, y0, x0]) == 0.0
+            continue
+        d = {p: sq[b, 0, 0, p[0], p[1]] - sq[a, 0, 0, p[0], p[1]] for p in k}
+        Dx = err[b] - err[a]
+        var = sum(w * w * mask[0, 0, y, x] * (d[y, x] - Dx) ** 2 for (y, x), w in k.items()) / P ** 2
+        want = max(float(Dx), 0.0) ** 2 / float(var)
+        if err[b] > D._SELECTION_ERROR_CUT * err[a]:
+            want = D._LEFT_OUT
+        assert float(z2[b, 0, 0, y0, x0]) == pytest.approx(want, rel=1e-4), b  # k^2 as a blur at sigma/sqrt(2): its own 3-sigma cut
+    assert float(z2[1, 0, 0, y0, x0]) > 9 and float(z2[2, 0, 0, y0, x0]) < 9  # worse for sure; about the same
+    allowed[a, 0, 0, y0, x0] = False  # the best had no support there: it is out, another is best
+    z2 = D._excess_error_z2(sq, mask, blur, allowed)
+    assert float(z2[a, 0, 0, y0, x0]) == D._LEFT_OUT and float(z2[:, 0, 0, y0, x0].min()) == 0.0
+    sq[2, 0, 0, y0, x0] = 1e6  # one catastrophic residual: far over the cut, out whatever its spread
+    allowed[:] = True
+    assert float(D._excess_error_z2(sq, mask, blur, allowed)[2, 0, 0, y0, x0]) == D._LEFT_OUT

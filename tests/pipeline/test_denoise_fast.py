@@ -108,7 +108,7 @@ def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
     y = y.view(T, 2, 2, 4, H, W)
     n, d = y[:, :, :, :3], y[:, :, :, 3:]
     on, od = torch.where(half > 0, n[:, :, 1], n[:, :, 0]), torch.where(half > 0, d[:, :, 1], d[:, :, 0])
-    _same(pred, torch.where(od > 1e-8, on / torch.where(od > 1e-8, od, 1.0), 0.0))
+    _same(pred, torch.where(od > 1e-8, on / torch.where(od > 1e-8, od, 1.0), float("nan")))  # NaN: no support
     _same(num, n.sum(2))
     _same(den, d.sum(2))
 
@@ -168,7 +168,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.normalise_guard(e, m + 0.5, e, m, 8),
         lambda: _fast.footprint_average(e, torch.tensor([[[[0.3]]]]), 0.5, 0.3),
         lambda: _fast.kuwahara3(e),
-        lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5),
+        lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5, 2.0),
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
         lambda: _fast.cv_halves(e, m, frame["flat"], [0, 1]),
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
@@ -208,7 +208,7 @@ def test_op_argument_errors():
     with pytest.raises(ValueError, match="k must be .T,."):
         torch.ops.torchmanifold._footprint_average(x, torch.ones(2), 0.5, 0.3)
     with pytest.raises(ValueError, match="preds and fulls must be"):
-        torch.ops.torchmanifold._cv_blend(x[None], x, x, x[:, :1], x[:, :1], 4.0, 0.5)
+        torch.ops.torchmanifold._cv_blend(x[None], x, x, x[:, :1], x[:, :1], 4.0, 0.5, 2.0)
     with pytest.raises(ValueError, match="q must lie in"):
         torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
     with pytest.raises(ValueError, match="float32 or float64"):
@@ -224,7 +224,7 @@ def _op_samples():
     y = torch.rand(T, 16, H, W, generator=g)
     preds, fulls = torch.rand(3, T, 3, H, W, generator=g), torch.rand(3, T, 3, H, W, generator=g)
     return [("_normalise_guard", (e, m, e, m, 2)), ("_footprint_average", (e, torch.ones(T), 0.5, 0.3)),
-            ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 0.5)),
+            ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0)),
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m, flat, [0, 1])),
             ("_cv_halves_out", (e, m, flat, [0, 1], torch.empty(T, 16, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_footprint_albedo", (e, flat, 0.5))]

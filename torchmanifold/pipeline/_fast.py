@@ -77,11 +77,11 @@ def kuwahara3(x: Tensor) -> Tensor:
 
 
 def cv_blend(preds: list[Tensor], fulls: list[Tensor], e: Tensor, weight: Tensor, mask: Tensor,
-             blur_sigma: float, softness: float) -> Tensor:
+             blur_sigma: float, softness: float, error_cut: float) -> Tensor:
     """The end of ``denoise._select_bandwidth`` at frame queries: K predictions and outputs
     ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``."""
     return torch.ops.torchmanifold._cv_blend(torch.stack(preds), torch.stack(fulls), e, weight, mask,
-                                             float(blur_sigma), float(softness))
+                                             float(blur_sigma), float(softness), float(error_cut))
 
 
 def quantiles(v: Tensor, q: list[float]) -> Tensor:
@@ -143,7 +143,7 @@ def _register_fakes() -> None:
         return torch.empty_like(x, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_cv_blend")
-    def _(preds, fulls, e, weight, mask, blur_sigma, softness):
+    def _(preds, fulls, e, weight, mask, blur_sigma, softness, error_cut):
         return torch.empty_like(e, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_quantiles")

@@ -142,6 +142,13 @@ _LOG_RADIANCE_OFFSET = 0.1
 #: (validation set's tuning part: the pilot's at 0.5 with the samples' at 1.0 beat both at 1.0 by 0.14 dB
 #: from 1 spp, and 0.22 dB over the whole set from 4 spp; the pilot's at 1.0 or 0.25 lost)
 _SAMPLE_RADIANCE_WIDENING = 2.0
+#: a bandwidth whose pooled cross-validated error is over this many times the least one's is left out,
+#: whatever the evidence: one catastrophic residual (a float32 breakdown of the op far from every
+#: manifold) widens its own standard error, so z alone would keep it (frames 0-2 of the validation set:
+#: -0.01 / 0.00 dB from 1 / 4 spp; it removes 20-700x bright pixels from mi_glass_mirror)
+_SELECTION_ERROR_CUT = 2.0
+#: z^2 of a bandwidth left out (weight exp(-z^2 / 2) = 0)
+_LEFT_OUT = 1e30
 #: firefly clamp floor as a fraction of the frame's mean pilot luminance
 _FIREFLY_FLOOR = 0.25
 
@@ -471,7 +478,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
             other_den = torch.where(half > 0, den[:, :, 1], den[:, :, 0])
             ok = other_den > 1e-8
-            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), 0.0)
+            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))  # NaN: no support
             num, den = num.sum(2), den.sum(2)
         full = torch.stack([filt.normalise(num[:, k], den[:, k], e, mask * c)
                             for k, c in enumerate(classes)], 1)
@@ -497,9 +504,15 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
-        return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness)
+        return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
+                              _SELECTION_ERROR_CUT)
     sq = torch.stack([((p - e) ** 2).sum(1, keepdim=True) * weight for p in preds])  # (K, len(cv_times), 1, H, W)
-    z2 = _excess_error_z2(sq, mask, st.selection_blur)
+    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
+    # pools as the worst candidate's residual there, and its candidate is left out at that pixel
+    held = ~torch.isnan(sq)
+    worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
+    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
+    z2 = _excess_error_z2(sq, mask, st.selection_blur, held | ~held.any(0, keepdim=True))
     if not at_frames:
         z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
     if st.selection_softness > 0:
@@ -510,7 +523,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     return (torch.stack(fulls) * w).sum(0)
 
 
-def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float) -> Tensor:
+def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
     """How surely each candidate's error exceeds the least one's: ``z^2`` per candidate and pixel.
 
     ``sq`` ``(K, T, 1, H, W)`` holds each candidate's weighted squared cross-validation residuals; a pixel's
@@ -519,7 +532,9 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float) -> Tensor:
     residual differences d = sq_b - sq_a, whose standard error comes from their spread under the same
     kernel: ``var = sum k^2 m (d - D)^2 / (sum k m)^2``. The residuals of two candidates share the sample's
     own noise, so d is far less noisy than either residual; a candidate is out only where the evidence
-    says so. ``z^2 = D^2 / var``, 0 for the least-error candidate.
+    says so. ``z^2 = D^2 / var``, 0 for the least-error candidate. Candidates not ``allowed`` (bool, like
+    ``sq``) and those whose error exceeds ``_SELECTION_ERROR_CUT`` times the least are left out
+    (``_LEFT_OUT``); the least-error allowed candidate never is.
     """
     K = sq.shape[0]
     pool = footprint_blur(mask, blur).clamp_min(1e-6)
@@ -540,7 +555,8 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float) -> Tensor:
         blurred = footprint_blur(torch.cat([(sq[b] - sq[a]) ** 2 for a, b in pairs]), blur2)
         for k, (a, b) in enumerate(pairs):
             d2[a, b] = d2[b, a] = blurred[k * T:(k + 1) * T] * inv
-    best = err.argmin(0)  # (T, 1, H, W)
+    best = torch.where(allowed, err, math.inf).argmin(0)  # (T, 1, H, W)
+    least = err.gather(0, best[None])[0]
     z2 = torch.zeros_like(err)
     for b in range(K):
         for a in range(K):
@@ -548,8 +564,8 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float) -> Tensor:
                 D = err[b] - err[a]
                 var = d2[a, b] - 2 * D * (s1[b] - s1[a]) + D * D * m2
                 z2[b] = torch.where(best == a, D.clamp_min(0) ** 2 / var.clamp_min(1e-30), z2[b])
-    return z2
-
+    out = ~allowed | (err > _SELECTION_ERROR_CUT * least)
+    return torch.where(out & (torch.arange(K, device=err.device).view(-1, 1, 1, 1, 1) != best), _LEFT_OUT, z2)
 
 def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names: Sequence[str] = (),
                    emission: Tensor | None = None, settings: DenoiseSettings | None = None,

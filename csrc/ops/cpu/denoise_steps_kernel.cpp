@@ -446,7 +446,8 @@ void fma_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __restr
 }
 
 at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, const at::Tensor& e_,
-                        const at::Tensor& weight_, const at::Tensor& mask_, double blur_sigma, double softness) {
+                        const at::Tensor& weight_, const at::Tensor& mask_, double blur_sigma, double softness,
+                        double error_cut) {
   const char* op = "_cv_blend";
   check_float(e_, "e", op);
   check_shape(preds_, "preds", op, 5);
@@ -518,6 +519,15 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
           sq_error_row(q, q + HW, q + 2 * HW, pe + t * 3 * HW + y * W, pe + t * 3 * HW + HW + y * W,
                        pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, sqr + kk * W);
         }
+        // a prediction without support (NaN) pools as the worst held residual there (0 if none is held)
+        for (int64_t x = 0; x < W; ++x) {
+          T worst = -std::numeric_limits<T>::infinity();
+          for (int64_t kk = 0; kk < K; ++kk)
+            if (sqr[kk * W + x] == sqr[kk * W + x] && sqr[kk * W + x] > worst) worst = sqr[kk * W + x];
+          if (!(worst > -std::numeric_limits<T>::infinity())) worst = T(0);
+          for (int64_t kk = 0; kk < K; ++kk)
+            if (sqr[kk * W + x] != sqr[kk * W + x]) sqr[kk * W + x] = worst;
+        }
         std::copy(pm + t * HW + y * W, pm + t * HW + (y + 1) * W, sqr + K * W);
         T* base = hb + t * NP * HW + y * W;
         for (int64_t kk = 0; kk <= K; ++kk) hblur(sqr + kk * W, taps, r, base + kk * HW);
@@ -558,15 +568,30 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
         for (int64_t x = 0; x < W; ++x) {
           const T pool = pool_raw[x] < T(1e-6) ? T(1e-6) : pool_raw[x];
           const T inv = static_cast<T>(c) / (pool * pool);
-          int64_t a = 0;
-          T least = pl[x] / pool;
-          for (int64_t kk = 1; kk < K; ++kk) {
-            const T v = pl[kk * W + x] / pool;
-            if (v < least) least = v, a = kk;
+          // allowed: the candidates whose prediction had support (not NaN), or all if none had
+          bool any_held = false;
+          for (int64_t kk = 0; kk < K; ++kk) {
+            const T pv = pp[(kk * Tn + t) * 3 * HW + y * W + x];
+            any_held |= pv == pv;
           }
+          auto allowed = [&](int64_t kk) {
+            const T pv = pp[(kk * Tn + t) * 3 * HW + y * W + x];
+            return !any_held || pv == pv;
+          };
+          int64_t a = -1;
+          T least = 0;
+          for (int64_t kk = 0; kk < K; ++kk) {
+            const T v = pl[kk * W + x] / pool;
+            if (allowed(kk) && (a < 0 || v < least)) least = v, a = kk;
+          }
+          const T cut = static_cast<T>(error_cut) * least;
           for (int64_t kk = 0; kk < K; ++kk) {
             T z2 = 0;
             if (kk != a) {
+              if (!allowed(kk) || pl[kk * W + x] / pool > cut) {
+                wts[kk * W + x] = -std::numeric_limits<T>::infinity();
+                continue;
+              }
               const T D = pl[kk * W + x] / pool - least;
               const T var = pl[(n1 + K + pair_index[a * K + kk]) * W + x] * inv -
                             T(2) * D * (s1[kk * W + x] * inv - s1[a * W + x] * inv) + D * D * (m2[x] * inv);
@@ -755,7 +780,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_
             const bool first_half = (yy + x) % 2 == 0;  // predicted from the second half, and the other way round
             const T on = first_half ? nb[x] : na[x];
             const T od = first_half ? db[x] : da[x];
-            p[x] = od > T(1e-8) ? on / od : T(0);
+            p[x] = od > T(1e-8) ? on / od : std::numeric_limits<T>::quiet_NaN();  // no support
           }
         }
       }
