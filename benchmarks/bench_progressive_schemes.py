@@ -5,8 +5,8 @@ is the paper's literal scheme (the running average of independently filtered 1-s
 are measured against one converged reference; the equal-error spp of plain path tracing says what each
 is worth (issue 15's targets: >= 100 spp after 10 iterations, light rings within 5% of the reference's
 energy, caustics within 10%, never worse than raw inside the moving objects' mask; the regions are the
-validation scorer's, ``validation/score.py``): plain path tracing is rendered at 16 to 256 spp (its own seed) and scored against the same
-reference, and the equal-error spp is read off that measured curve (log-log interpolation), not
+validation scorer's, ``validation/score.py``): plain path tracing is rendered at 16 to 256 spp (its
+own seed) and scored against the same reference, and the equal-error spp is read off that measured curve (log-log interpolation), not
 extrapolated: on this scene clamped-sRGB error falls more slowly than 1/spp (about 2 dB per doubling
 between 32 and 128 spp, not 3), so extrapolating from 10 spp undercounts by about 3x. Writes
 ``results/progressive_schemes.json`` and ``.png``.
@@ -62,7 +62,8 @@ def final_energy(job_dir: Path) -> dict:
     # the caustic here is a sliver under the glass ball, thinner than the scorer's opening, and the
     # reference is clean (512 spp): not opened
     regions = score.energy_regions(ds, open_caustics=False)
-    out = {name: score.energy_ratios(img, ds, regions) for name, img in (("ours", stack("")), ("raw", ds.color))}
+    out = {name: score.energy_ratios(img, ds, regions) for name, img in (("ours", stack("")),
+                                                                          ("raw", ds.color))}
     out["region_pixels"] = {k: int(m.sum()) for k, m in regions.items()}
     return out
 

@@ -362,7 +362,8 @@ def test_excess_error_z_against_explicit_sums():
     t = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64) ** 2 / (2 * blur * blur))
     t = t / t.sum()
     y0, x0 = H // 2, W // 2
-    k = {(y, x): t[y - y0 + r] * t[x - x0 + r] for y in range(y0 - r, y0 + r + 1) for x in range(x0 - r, x0 + r + 1)}
+    box = [(y, x) for y in range(y0 - r, y0 + r + 1) for x in range(x0 - r, x0 + r + 1)]
+    k = {(y, x): t[y - y0 + r] * t[x - x0 + r] for y, x in box}
     P = sum(w * mask[0, 0, y, x] for (y, x), w in k.items())
     err = [sum(w * sq[b, 0, 0, y, x] for (y, x), w in k.items()) / P for b in range(K)]
     a = min(range(K), key=lambda b: err[b])
@@ -376,7 +377,8 @@ def test_excess_error_z_against_explicit_sums():
         want = max(float(Dx), 0.0) ** 2 / float(var)
         if err[b] > D._SELECTION_ERROR_CUT * err[a]:
             want = D._LEFT_OUT
-        assert float(z2[b, 0, 0, y0, x0]) == pytest.approx(want, rel=1e-4), b  # k^2 as a blur at sigma/sqrt(2): its own 3-sigma cut
+        # k^2 is a blur at sigma / sqrt(2) there, with its own 3-sigma truncation
+        assert float(z2[b, 0, 0, y0, x0]) == pytest.approx(want, rel=1e-4), b
     assert float(z2[1, 0, 0, y0, x0]) > 9 and float(z2[2, 0, 0, y0, x0]) < 9  # worse for sure; about the same
     allowed[a, 0, 0, y0, x0] = False  # the best had no support there: it is out, another is best
     z2 = D._excess_error_z2(sq, mask, blur, allowed)

@@ -226,7 +226,8 @@ class DenoiseSettings:
             exponentially distributed samples.
         footprint_sigma: sigma (pixels) of the pixel-footprint average of the result (see
             :func:`_footprint_average`); 0 keeps each pixel's own sample position. 0.5 measured best from
-            4 spp on the validation set's tuning part (0.6 from 1 spp, 0.2 dB more; 0.4 and 0.8 lose 1 dB).
+            4 spp on the validation set (0.3: -0.85 dB, 0.6: -0.35); from 1 spp 0.6-0.7 gains 0.4 dB
+            (``benchmarks/validation/findings.md``: the best width follows the noise, open work).
         albedo_eps: albedo luminance below which a pixel is not demodulated (delta BSDFs and black
             surfaces, whose first-hit albedo says nothing about the light there).
         radiance_sigma: range sigma of the log-radiance guide channel, which keeps lights, shadows
@@ -444,8 +445,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     weighted as relative errors (against ``level``, a radiance estimate, plus a tenth of the frame's
     mean) and pooled over ``selection_blur`` pixels; a bandwidth's weight is the likelihood that its
     excess over the least error is noise (:func:`_excess_error_z2`). Each bandwidth's own output uses
-    all samples (the two halves' sums add up). Flat pixels (see :func:`_demodulation_albedo`) are filtered among
-    themselves, as in :meth:`_Filter.by_class`.
+    all samples (the two halves' sums add up). Flat pixels (see :func:`_demodulation_albedo`) are
+    filtered among themselves, as in :meth:`_Filter.by_class`.
 
     Args:
         e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights; flat ``(T, 1, H, W)`` bool.
@@ -483,7 +484,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
             other_den = torch.where(half > 0, den[:, :, 1], den[:, :, 0])
             ok = other_den > 1e-8
-            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))  # NaN: no support
+            # NaN where the other half has no sample under the kernel: no support, no error estimate
+            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
             num, den = num.sum(2), den.sum(2)
         full = torch.stack([filt.normalise(num[:, k], den[:, k], e, mask * c)
                             for k, c in enumerate(classes)], 1)
@@ -511,7 +513,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
                               _SELECTION_ERROR_CUT)
-    sq = torch.stack([((p - e) ** 2).sum(1, keepdim=True) * weight for p in preds])  # (K, len(cv_times), 1, H, W)
+    sq = torch.stack([((p - e) ** 2).sum(1, keepdim=True) * weight for p in preds])  # (K, T', 1, H, W)
     # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
     # pools as the worst candidate's residual there, and its candidate is left out at that pixel
     held = ~torch.isnan(sq)
@@ -570,7 +572,9 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> 
                 var = d2[a, b] - 2 * D * (s1[b] - s1[a]) + D * D * m2
                 z2[b] = torch.where(best == a, D.clamp_min(0) ** 2 / var.clamp_min(1e-30), z2[b])
     out = ~allowed | (err > _SELECTION_ERROR_CUT * least)
-    return torch.where(out & (torch.arange(K, device=err.device).view(-1, 1, 1, 1, 1) != best), _LEFT_OUT, z2)
+    keep = torch.arange(K, device=err.device).view(-1, 1, 1, 1, 1) == best
+    return torch.where(out & ~keep, _LEFT_OUT, z2)
+
 
 def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names: Sequence[str] = (),
                    emission: Tensor | None = None, settings: DenoiseSettings | None = None,
@@ -743,10 +747,11 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = at_queries(s.level)
     elif len(settings.bandwidths) == 1:
         sigma = base * float(settings.bandwidths[0])
-        out = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale).by_class(s.values, s.mask, s.flat)
+        filt = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)
+        out = filt.by_class(s.values, s.mask, s.flat)
     else:
-        out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                s.level)
+        out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base,
+                                range_scale, s.level)
     out = _footprint_average(out * at_queries(s.albedo), settings.footprint_sigma)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
@@ -923,8 +928,9 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
 
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
-    energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark
-    regions next to noise-free black do not clamp every lit sample (measured on shared/data)."""
+    energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter
+    of the frame's mean pilot luminance, so dark regions next to noise-free black do not clamp every
+    lit sample (measured on shared/data)."""
     lp = luminance(pe).clamp_min(0.0)
     floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
     thr = k * (lp + floor)
