@@ -116,6 +116,24 @@ def _main_sharded(args) -> int:
     return 0
 
 
+def _reuse_freed_memory() -> None:
+    """Let glibc keep freed blocks for reuse instead of returning them to the system: each frame step
+    allocates and frees the same few-MB tensors, and fresh pages cost page faults (the +-1 space-time
+    `denoise` of the shared clip: 0.35 -> 0.31 s per frame, three interleaved runs). Process-wide, so
+    only the command line sets it; without glibc it does nothing."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3
+    mallopt(m_mmap_threshold, 64 << 20)  # blocks under 64 MB come from the reusable heap
+    mallopt(m_trim_threshold, 256 << 20)  # up to 256 MB of free heap stays mapped
+    mallopt(m_top_pad, 64 << 20)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
     from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
@@ -186,6 +204,7 @@ def main(argv=None) -> int:
         check_int("--threads", args.threads, min=1)
         check_tree_height(args.tree_height, name="--tree-height")
         torch.set_num_threads(args.threads)
+        _reuse_freed_memory()
         if args.engine == "ray":
             return _main_sharded(args)
         if args.address is not None or args.chunk is not None:
