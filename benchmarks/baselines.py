@@ -41,6 +41,7 @@ class Clip:
         features: optional (T, F, H, W) raw features named ``feature_names`` (the pipeline's input).
         emission: optional (T, 3, H, W) emitted radiance at the first hit, part of ``values`` (the pipeline
             keeps it out of the filter).
+        samples_per_pixel: the sample count of ``values`` when known (the pipeline's footprint width).
     """
 
     values: torch.Tensor
@@ -52,6 +53,7 @@ class Clip:
     features: Optional[torch.Tensor] = None
     feature_names: tuple = ()
     emission: Optional[torch.Tensor] = None
+    samples_per_pixel: Optional[int] = None
 
     def __post_init__(self):
         if self.values.dim() != 4 or self.guide.dim() != 4:
@@ -69,7 +71,8 @@ class Clip:
         lo, hi = max(0, query - radius), min(self.values.shape[0], query + radius + 1)
         pick = (lambda x: None if x is None else x[lo:hi])
         return Clip(self.values[lo:hi], self.guide[lo:hi], self.times[lo:hi], self.guide_names, pick(self.albedo),
-                    pick(self.normal), pick(self.features), self.feature_names, pick(self.emission)), query - lo
+                    pick(self.normal), pick(self.features), self.feature_names, pick(self.emission),
+                    self.samples_per_pixel), query - lo
 
 
 @dataclass
@@ -213,10 +216,11 @@ def _pipeline(clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings
     if st.temporal_radius == 0:  # one frame: its statistics are its own, the others' cost nothing
         q = slice(query, query + 1)
         return denoise_frames(clip.values[q], clip.features[q], clip.feature_names,
-                              None if emission is None else emission[q], settings=st)[0]
+                              None if emission is None else emission[q], settings=st,
+                              samples_per_pixel=clip.samples_per_pixel)[0]
     times = [float(t) for t in clip.times]
     return denoise_frames(clip.values, clip.features, clip.feature_names, emission, settings=st,
-                          frame_times=times, query_times=[times[query]])[0]
+                          frame_times=times, query_times=[times[query]], samples_per_pixel=clip.samples_per_pixel)[0]
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,

@@ -55,9 +55,11 @@ class Dataset:
     (T, 3, H, W) the part of ``color`` emitted at the first hit, where the renderer reports it.
     """
 
-    def __init__(self, name, color, features, names, reference, times, spp_frames, emission=None):
+    def __init__(self, name, color, features, names, reference, times, spp_frames, emission=None,
+                 samples_per_pixel=None):
         self.name, self.color, self.features, self.names = name, color, features, tuple(names)
         self.reference, self.times, self.spp_frames, self.emission = reference, times, spp_frames, emission
+        self.samples_per_pixel = samples_per_pixel  # what the renderer's header says, as the CLI reads it
 
     @property
     def trace_ms(self) -> float:
@@ -210,7 +212,8 @@ def clip_for(ds: Dataset, use=DEFAULT_FEATURES, sigmas=None, demod: bool = True)
     values, alb = demodulate(ds) if demod else (ds.color, None)
     clip = Clip(values.contiguous(), guide, ds.times, names,
                 albedo=None if ds.albedo is None else ds.albedo.clamp(0, 1), normal=ds.normal,
-                features=ds.features, feature_names=ds.names, emission=ds.emission)
+                features=ds.features, feature_names=ds.names, emission=ds.emission,
+                samples_per_pixel=ds.samples_per_pixel)
     return clip, alb
 
 
@@ -221,7 +224,7 @@ def prepare(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor]
     if method.raw_input:
         # OIDN and our pipeline take the renderer's colour and do their own preprocessing.
         clip = Clip(ds.color, clip.guide, clip.times, clip.guide_names, clip.albedo, clip.normal, clip.features,
-                    clip.feature_names, clip.emission)
+                    clip.feature_names, clip.emission, clip.samples_per_pixel)
         alb = None
 
     def one(q):

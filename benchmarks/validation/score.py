@@ -79,8 +79,11 @@ def load_scene(path: Path, spp: int) -> tuple[harness.Dataset, dict]:
     color = _stack(frames, "RGB")
     feats = _stack(frames, feat_names)
     ref = _stack([read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
+    from torchmanifold.io.exr import exr_samples_per_pixel
+
+    # the sample count as the denoise command reads it, from the renderer's header
     ds = harness.Dataset(path.name, color, feats, feat_names, ref, torch.tensor(idx, dtype=torch.float32),
-                         {spp: (color, None)})
+                         {spp: (color, None)}, samples_per_pixel=exr_samples_per_pixel(files[0]))
     extra = {}
     masks = [path / f"mask_{i:04d}.exr" for i in idx]
     if all(m.exists() for m in masks):

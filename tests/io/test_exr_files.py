@@ -81,3 +81,18 @@ def test_staged_dir_moves_all_or_nothing(tmp_path):
         for n in ("a.txt", "b.txt"):
             (stage / n).write_text(n)
     assert sorted(p.name for p in out.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_samples_per_pixel_from_the_header(tmp_path):
+    """The sample count a renderer records: ``spp`` (the shared Mitsuba clips), Blender's
+    ``cycles.<layer>.samples``; nothing, or something not a positive count, gives None."""
+    import numpy as np
+
+    from torchmanifold.io.exr import exr_samples_per_pixel, write_exr
+
+    px = {"R": np.zeros((2, 3), np.float32)}
+    cases = {"mitsuba": ({"spp": "4"}, 4), "blender": ({"cycles.ViewLayer.samples": "16"}, 16),
+             "none": ({}, None), "text": ({"spp": "many"}, None), "zero": ({"spp": "0"}, None)}
+    for name, (attrs, want) in cases.items():
+        assert exr_samples_per_pixel(write_exr(tmp_path / f"{name}.exr", px, attributes=attrs)) == want, name
+    assert exr_samples_per_pixel(tmp_path / "missing.exr") is None

@@ -319,7 +319,8 @@ def test_same_bytes_for_any_thread_count(clip):
 
 def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
     """The denoise command prepares each frame once and reuses it in every window that holds it; each
-    output frame has the bytes of :func:`denoise_frames` over that frame's window, computed afresh."""
+    output frame has the bytes of :func:`denoise_frames` over that frame's window, computed afresh with
+    the sample count the files' header gives."""
     from torchmanifold.io import read_exr, write_exr
     from torchmanifold.pipeline.denoise_files import denoise_files
 
@@ -330,15 +331,20 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
     for t in range(4):
         paths.append(tmp_path / f"f{t}.exr")
         write_exr(paths[-1], {**{ch: c[t, k].numpy() for k, ch in enumerate("RGB")},
-                              **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}})
+                              **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}}, attributes={"spp": "1"})
     st = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=2)
     res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
     assert res["nonfinite_color"] == 3
+    assert res["samples_per_pixel"] == 1 and res["footprint_sigma"] == pytest.approx(0.7)  # from the header
     for t in range(4):
         ids = list(range(max(0, t - 1), min(4, t + 2)))
-        want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t])[0]
+        want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
+                              samples_per_pixel=1)[0]
         got = read_exr(tmp_path / "out" / f"f{t}.exr")
         assert np.array_equal(np.stack([got[ch] for ch in "RGB"]), want.numpy()), t
+    # the header mattered: without a sample count the footprint is 0.5 px
+    assert not torch.equal(want, denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids,
+                                                query_times=[3])[0])
 
 
 def test_excess_error_z_against_explicit_sums():
@@ -386,3 +392,15 @@ def test_excess_error_z_against_explicit_sums():
     sq[2, 0, 0, y0, x0] = 1e6  # one catastrophic residual: far over the cut, out whatever its spread
     allowed[:] = True
     assert float(D._excess_error_z2(sq, mask, blur, allowed)[2, 0, 0, y0, x0]) == D._LEFT_OUT
+
+
+def test_footprint_width_from_the_sample_count():
+    from torchmanifold.pipeline.denoise import footprint_width
+
+    st = DenoiseSettings()
+    assert footprint_width(st, 1) == pytest.approx(0.7) and footprint_width(st, 4) == pytest.approx(0.5)
+    assert footprint_width(st, 64) < footprint_width(st, 16) < footprint_width(st, 4)  # fewer unseen parts
+    assert footprint_width(st, None) == 0.5 and footprint_width(st, 0) == 0.5  # unknown: the 4-spp width
+    assert footprint_width(DenoiseSettings(footprint_sigma=0.3), 1) == 0.3  # an explicit width wins
+    with pytest.raises(ValueError, match="footprint_sigma"):
+        DenoiseSettings(footprint_sigma=-1.0).check()

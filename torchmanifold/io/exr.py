@@ -17,6 +17,27 @@ import OpenEXR
 from torchmanifold.io.files import atomic_path
 
 
+def exr_samples_per_pixel(path: str | os.PathLike) -> int | None:
+    """Samples per pixel the file's header records: ``spp`` (as the shared Mitsuba clips carry it) or
+    Blender Cycles' ``cycles.<view layer>.samples``; ``None`` when no part says, or says something else
+    than a positive integer."""
+    try:
+        with OpenEXR.File(str(path), header_only=True) as exr:  # headers are views: copy them inside
+            headers = [dict(p.header.items()) for p in exr.parts]
+    except Exception:  # read_exr reports unreadable files; this only looks for a hint
+        return None
+    for h in headers:
+        for key, value in h.items():
+            if key == "spp" or (key.startswith("cycles.") and key.endswith(".samples")):
+                try:
+                    n = int(value.decode() if isinstance(value, bytes) else value)
+                except (TypeError, ValueError):
+                    continue
+                if n > 0:
+                    return n
+    return None
+
+
 def read_exr(path: str | os.PathLike, channels: Iterable[str] | None = None) -> dict[str, np.ndarray]:
     """Read the channels of a scanline or tiled, single- or multi-part EXR file as float32 ``(H, W)`` arrays.
 

@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from torchmanifold import features as F
-from torchmanifold.io.exr import read_exr, write_exr
+from torchmanifold.io.exr import exr_samples_per_pixel, read_exr, write_exr
 
 __all__ = ["RenderFrame", "read_render_frame", "write_color", "LAYOUTS"]
 
@@ -56,6 +56,8 @@ class RenderFrame:
         emission: ``(3, H, W)`` float32 radiance emitted at the first hit (our tracer's
             ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
+        samples_per_pixel: the sample count the header records (see
+            :func:`~torchmanifold.io.exr.exr_samples_per_pixel`), or ``None``.
     """
 
     path: Path
@@ -67,6 +69,7 @@ class RenderFrame:
     alpha: np.ndarray | None = None
     emission: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
+    samples_per_pixel: int | None = None
 
     @property
     def feature_names(self) -> list[str]:
@@ -245,7 +248,8 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
     """
     path = Path(path)
     chans = read_exr(path)
-    frame = RenderFrame(path, np.zeros((3, 0, 0), np.float32), {}, "flat")
+    frame = RenderFrame(path, np.zeros((3, 0, 0), np.float32), {}, "flat",
+                        samples_per_pixel=exr_samples_per_pixel(path))
     layers = _blender_layers(list(chans))
     if layers:
         _read_blender(path, chans, layers, layer, frame, color_channels)

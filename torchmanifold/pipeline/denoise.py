@@ -52,6 +52,7 @@ __all__ = [
     "prepare_frames",
     "denoise_prepared",
     "FrameState",
+    "footprint_width",
     "Denoiser",
     "default_guide_sigmas",
     "feature_group",
@@ -225,9 +226,8 @@ class DenoiseSettings:
             no more on the caustic scene and lose more elsewhere). 2 removed 8% of the energy of
             exponentially distributed samples.
         footprint_sigma: sigma (pixels) of the pixel-footprint average of the result (see
-            :func:`_footprint_average`); 0 keeps each pixel's own sample position. 0.5 measured best from
-            4 spp on the validation set (0.3: -0.85 dB, 0.6: -0.35); from 1 spp 0.6-0.7 gains 0.4 dB
-            (``benchmarks/validation/findings.md``: the best width follows the noise, open work).
+            :func:`_footprint_average`); 0 keeps each pixel's own sample position; ``None`` (default)
+            takes it from the samples per pixel when the caller knows them (:func:`footprint_width`).
         albedo_eps: albedo luminance below which a pixel is not demodulated (delta BSDFs and black
             surfaces, whose first-hit albedo says nothing about the light there).
         radiance_sigma: range sigma of the log-radiance guide channel, which keeps lights, shadows
@@ -251,7 +251,7 @@ class DenoiseSettings:
     tree_height: int = 3
     firefly: str = "clamp"
     firefly_k: float = 5.0
-    footprint_sigma: float = 0.5
+    footprint_sigma: float | None = None
     albedo_eps: float = 0.02
     radiance_sigma: float = 0.5
     demodulate: bool = True
@@ -271,8 +271,10 @@ class DenoiseSettings:
             raise TypeError(f"bandwidths must be a non-empty sequence of numbers, got {self.bandwidths!r}")
         for k, b in enumerate(self.bandwidths):
             check_positive(f"bandwidths[{k}]", b)
-        for name in ("footprint_sigma", "radiance_sigma", "selection_blur", "selection_softness"):
+        for name in ("radiance_sigma", "selection_blur", "selection_softness"):
             check_nonnegative(name, getattr(self, name))
+        if self.footprint_sigma is not None:
+            check_nonnegative("footprint_sigma", self.footprint_sigma)
         check_choice("firefly", self.firefly, FIREFLY_MODES)
         check_choice("mode", self.mode, MODES)
         check_int("temporal_radius", self.temporal_radius, min=0)
@@ -280,6 +282,25 @@ class DenoiseSettings:
         for k, v in dict(self.guide_sigmas).items():
             check_positive(f"guide_sigmas[{k!r}]", v)
         return self
+
+
+#: the footprint width's square is ``a + b / spp``: the part of a pixel's area its samples leave
+#: unseen shrinks as 1/spp. Fitted to the validation set's best widths, the same on every scene's
+#: frames 0-2 but two (findings.md): 0.7 px from 1 spp (+0.41 dB over 0.5), 0.5 from 4 spp (0.6: -0.35)
+_FOOTPRINT_A, _FOOTPRINT_B = 0.17, 0.32
+#: the width when the sample count is unknown: the 4-spp best, the safe side (0.7 from 4 spp: -1 dB)
+_FOOTPRINT_UNKNOWN = 0.5
+
+
+def footprint_width(settings: DenoiseSettings, samples_per_pixel: float | None) -> float:
+    """The footprint average's sigma (pixels): ``settings.footprint_sigma`` when set, else from the
+    samples per pixel, ``sqrt(0.17 + 0.32 / spp)`` (0.7 from 1 spp, 0.5 from 4, 0.41 in the limit),
+    else 0.5."""
+    if settings.footprint_sigma is not None:
+        return float(settings.footprint_sigma)
+    if samples_per_pixel is None or not samples_per_pixel > 0:
+        return _FOOTPRINT_UNKNOWN
+    return math.sqrt(_FOOTPRINT_A + _FOOTPRINT_B / float(samples_per_pixel))
 
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
@@ -581,7 +602,7 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
                    sigma_s: float | None = None, range_scale: float = 1.0,
                    frame_times: Sequence[float] | None = None, query_times: Sequence[float] | None = None,
                    pilot: Tensor | None = None, firefly_k: float | None = None,
-                   return_stats: bool = False):
+                   samples_per_pixel: float | None = None, return_stats: bool = False):
     """Denoise a clip of Monte Carlo frames guided by their per-sample features.
 
     Args:
@@ -598,6 +619,9 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
         pilot: optional ``(T, 3, H, W)`` radiance estimate of the frames (e.g. the progressive running
             average) used for firefly clamping instead of the log-domain pilot filter.
         firefly_k: overrides ``settings.firefly_k``.
+        samples_per_pixel: how many samples each pixel of ``color`` averages (a renderer's EXR header
+            says; :func:`~torchmanifold.io.exr.exr_samples_per_pixel`): sets the footprint width when
+            ``settings.footprint_sigma`` is ``None`` (see :func:`footprint_width`).
         return_stats: also return a dict of counts (non-finite samples, firefly energy removed).
 
     Returns:
@@ -639,7 +663,8 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
         raise ValueError("frame_times and query_times must be non-empty and finite")
     if pilot is not None and (not isinstance(pilot, Tensor) or pilot.shape != color.shape):
         raise ValueError(f"pilot must be a tensor shaped like color {tuple(color.shape)}")
-    state = prepare_frames(color, features, names, emission, settings, sigma_s, range_scale, pilot, firefly_k)
+    state = prepare_frames(color, features, names, emission, settings, sigma_s, range_scale, pilot, firefly_k,
+                           samples_per_pixel)
     out = denoise_prepared(state, settings, ft, qt, sigma_s, range_scale).to(color.dtype)
     return (out, state.stats()) if return_stats else out
 
@@ -661,6 +686,7 @@ class FrameState:
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         counts: sums over the frames: non-finite samples, clamped samples, energy and energy clamped.
+        footprint: the footprint average's sigma (pixels), from the settings and the sample count.
     """
 
     values: Tensor
@@ -673,6 +699,7 @@ class FrameState:
     sigmas: Tensor
     pilot_only: bool
     counts: dict
+    footprint: float
 
     @staticmethod
     def cat(states: Sequence["FrameState"]) -> "FrameState":
@@ -682,7 +709,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "emission", "guide", "sigmas")
-        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts)
+        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts, states[0].footprint)
 
     def stats(self) -> dict:
         """Non-finite samples, masked pixels, clamped samples and the fraction of energy clamped."""
@@ -693,7 +720,8 @@ class FrameState:
 
 def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str], emission: Tensor | None,
                    settings: DenoiseSettings, sigma_s: float | None = None, range_scale: float = 1.0,
-                   pilot: Tensor | None = None, firefly_k: float | None = None) -> FrameState:
+                   pilot: Tensor | None = None, firefly_k: float | None = None,
+                   samples_per_pixel: float | None = None) -> FrameState:
     """Sanitise, demodulate, guide and clamp fireflies, each frame on its own (arguments as
     :func:`denoise_frames`, already checked there)."""
     names = list(feature_names)
@@ -706,7 +734,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
-    state = FrameState(e, None, mask, flat, alb, em, guide, sig, False, counts)
+    fp = footprint_width(settings, samples_per_pixel)
+    state = FrameState(e, None, mask, flat, alb, em, guide, sig, False, counts, fp)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -715,7 +744,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         pe = torch.where(torch.isfinite(pe), pe, 0.0)
         if em is not None:
             pe = pe - em
-        pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, settings.footprint_sigma)  # a pixel average
+        pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, fp)  # a pixel average
     else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
         pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
         # the log domain compresses what is bright for the frame, whatever the exposure
@@ -752,7 +781,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     else:
         out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base,
                                 range_scale, s.level)
-    out = _footprint_average(out * at_queries(s.albedo), settings.footprint_sigma)
+    out = _footprint_average(out * at_queries(s.albedo), s.footprint)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out

@@ -12,7 +12,8 @@ import torch
 
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
-from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
+from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
+                                            prepare_frames)
 
 __all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
@@ -96,7 +97,8 @@ class ClipWindow:
                 em = None if fr.emission is None else torch.from_numpy(fr.emission)[None]
                 self._prepared[k] = prepare_frames(torch.from_numpy(fr.color)[None],
                                                    torch.from_numpy(fr.stack(self.feature_names))[None],
-                                                   self.feature_names, em, settings)
+                                                   self.feature_names, em, settings,
+                                                   samples_per_pixel=self.first.samples_per_pixel)
         return [self._prepared[k] for k in ids]
 
 
@@ -147,7 +149,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     Returns:
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
         [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
-        "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "seconds_per_frame": s,
+        "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "samples_per_pixel":
+        n or None (the first frame's header), "footprint_sigma": s (the footprint width used), "seconds_per_frame": s,
         "outputs": [...]}``; ``notes`` lists what the reader changed or found missing (deduplicated).
 
     Raises:
@@ -181,4 +184,6 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             "nonfinite_color": stats_sum["nonfinite_color"],
             "nonfinite_features": stats_sum["nonfinite_features"],
             "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
+            "samples_per_pixel": first.samples_per_pixel,
+            "footprint_sigma": footprint_width(settings, first.samples_per_pixel),
             "seconds_per_frame": (time.perf_counter() - t0) / n, "outputs": outputs}

@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
+from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.timewindow import frame_at, interpolate, window
 
@@ -305,7 +305,8 @@ class ProgressiveRenderer:
         # spatial factor, since neighbour frames are most of the samples early on (built-in scene, 10
         # iterations: 0.6 dB better than the spatial rate, 0.2 dB short of not shrinking at all)
         shrink = self._schedule.factor(i)
-        settings = replace(self._settings, sigma_s=sig_s, footprint_sigma=self._settings.footprint_sigma * shrink,
+        settings = replace(self._settings, sigma_s=sig_s,
+                           footprint_sigma=footprint_width(self._settings, None) * shrink,
                            sigma_t=self._settings.sigma_t * shrink ** 0.5)
         k_ff = self._settings.firefly_k * i ** self.firefly_growth
         qt = self._query_times

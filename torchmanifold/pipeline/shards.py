@@ -41,7 +41,7 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames
+from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.timewindow import frame_at, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
@@ -576,7 +576,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ff += x["firefly_energy_removed"]
     return {"frames": n, "size": list(first.size), "feature_channels": first.feature_names,
             "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
-            "firefly_energy_removed": ff / n,
+            "firefly_energy_removed": ff / n, "samples_per_pixel": first.samples_per_pixel,
+            "footprint_sigma": footprint_width(settings, first.samples_per_pixel),
             "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
 
