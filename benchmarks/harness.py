@@ -106,7 +106,8 @@ def load_mitsuba(frames=None, crop: Optional[int] = None) -> Dataset:
         y0, x0 = (h - crop) // 2, (w - crop) // 2
         out = [x[..., y0 : y0 + crop, x0 : x0 + crop].contiguous() for x in out]
     return Dataset("mitsuba", out[0], out[1], list(_MITSUBA_NAMES.values()), out[2],
-                   torch.tensor(frames, dtype=torch.float32), {1: (out[0], None), 4: (out[3], None)})
+                   torch.tensor(frames, dtype=torch.float32), {1: (out[0], None), 4: (out[3], None)},
+                   samples_per_pixel=exr.exr_samples_per_pixel(DATA / f"frame_{frames[0]:04d}.exr"))
 
 
 def tracer_available() -> tuple[bool, str]:
