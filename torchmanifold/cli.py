@@ -108,7 +108,7 @@ def _main_sharded(args) -> int:
         else:
             res = shards.shard_denoise(args.frames, args.out, settings=_settings(args), color_channels=args.color,
                                        feature_channels=args.features, layer=args.layer,
-                                       output_layout=args.output_layout, **common)
+                                       output_layout=args.output_layout, samples_per_pixel=args.spp, **common)
     except (FileNotFoundError, FileExistsError, ValueError, TypeError, ImportError, ConnectionError) as exc:
         print(f"torchmanifold {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -188,6 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--output-layout", choices=OUTPUT_LAYOUTS, default="input",
                    help="input: colour under the channels it was read from (Blender: <layer>.Combined); "
                         "plain: R,G,B (%(default)s)")
+    d.add_argument("--spp", type=int, default=None, metavar="N",
+                   help="samples per pixel of the frames, where their header does not say (it sets the "
+                        "footprint width; default: the header's)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_threads_arg(d)
     # denoise filters each frame once and can afford one more level: against the brute-force filter
@@ -230,7 +233,8 @@ def main(argv=None) -> int:
 
             res = denoise_files(args.frames, args.out, settings=_settings(args), color_channels=args.color,
                                 feature_channels=args.features, overwrite=args.overwrite,
-                                progress=not args.quiet, layer=args.layer, output_layout=args.output_layout)
+                                progress=not args.quiet, layer=args.layer, output_layout=args.output_layout,
+                                samples_per_pixel=args.spp)
             if res["nonfinite_samples"]:
                 print(f"warning: {res['nonfinite_samples']} non-finite samples (colour {res['nonfinite_color']}, "
                       f"features {res['nonfinite_features']}) were kept out of the filter", file=sys.stderr)

@@ -4,6 +4,7 @@ import math
 import shutil
 
 import numpy as np
+import pytest
 
 from torchmanifold.cli import main
 from torchmanifold.io import read_exr, write_exr
@@ -159,3 +160,20 @@ def test_tree_height_is_checked_and_its_default_shown(tmp_path, capsys):
     for command, height in (("render", 2), ("denoise", 3)):
         assert sub[command].parse_args((["x"] if command == "denoise" else []) + ["--out", "o"]).tree_height == height
         assert f"(1 to 30; default {height})" in " ".join(sub[command].format_help().split())
+
+
+def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir):
+    """The shared clip's header says 1 spp (footprint 0.7 px); --spp overrides it; a bad count is named."""
+    paths = _link_frames(tmp_path, mitsuba_dir)
+    outs = {}
+    for name, extra in (("header", []), ("flag", ["--spp", "4"])):
+        rc = main(["denoise", *map(str, paths), "--out", str(tmp_path / name), "--temporal-radius", "0",
+                   "--tree-height", "2", "--quiet", *extra])
+        assert rc == 0, capsys.readouterr().err
+        outs[name] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert outs["header"]["samples_per_pixel"] == 1 and outs["header"]["footprint_sigma"] == pytest.approx(0.7)
+    assert outs["flag"]["samples_per_pixel"] == 4 and outs["flag"]["footprint_sigma"] == pytest.approx(0.5)
+    a, b = (read_exr(tmp_path / n / paths[0].name)["R"] for n in ("header", "flag"))
+    assert not np.array_equal(a, b)
+    rc = main(["denoise", *map(str, paths), "--out", str(tmp_path / "bad"), "--spp", "0", "--quiet"])
+    assert rc == 2 and "samples_per_pixel" in capsys.readouterr().err

@@ -10,6 +10,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from torchmanifold._checks import check_int
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
@@ -55,10 +56,13 @@ class ClipWindow:
         inputs: the frame files, in order.
         first: the first frame, already read (it fixes size, layout, layer and feature channels).
         color_channels: as :func:`~torchmanifold.io.frames.read_render_frame`.
+        samples_per_pixel: the frames' sample count (``None``: what the first frame's header says).
     """
 
-    def __init__(self, inputs: Sequence[Path], first: RenderFrame, color_channels: Sequence[str] | None):
+    def __init__(self, inputs: Sequence[Path], first: RenderFrame, color_channels: Sequence[str] | None,
+                 samples_per_pixel: int | None = None):
         self.inputs, self.first, self.color_channels = list(inputs), first, color_channels
+        self.samples_per_pixel = samples_per_pixel or first.samples_per_pixel
         self.feature_names = first.feature_names
         self.notes = list(first.notes)
         self.reads = 0  # frames served (each is read once: windows only move on)
@@ -98,7 +102,7 @@ class ClipWindow:
                 self._prepared[k] = prepare_frames(torch.from_numpy(fr.color)[None],
                                                    torch.from_numpy(fr.stack(self.feature_names))[None],
                                                    self.feature_names, em, settings,
-                                                   samples_per_pixel=self.first.samples_per_pixel)
+                                                   samples_per_pixel=self.samples_per_pixel)
         return [self._prepared[k] for k in ids]
 
 
@@ -123,7 +127,7 @@ def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
                   color_channels: Sequence[str] | None = None, feature_channels: Sequence[str] | None = None,
                   overwrite: bool = False, progress: bool = True, layer: str | None = None,
-                  output_layout: str = "input") -> dict:
+                  output_layout: str = "input", samples_per_pixel: int | None = None) -> dict:
     """Denoise a sequence of multi-channel EXR frames (one file per frame, in frame order).
 
     Frames are read by :func:`~torchmanifold.io.frames.read_render_frame` (our tracer's, Mitsuba's and
@@ -145,6 +149,9 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         layer: Blender view layer (only needed when a file has several).
         output_layout: ``"input"`` (colour under the channels it came from; Blender files keep
             ``<layer>.Combined.R/G/B`` and the input's ``A``) or ``"plain"`` (``R, G, B``).
+        samples_per_pixel: the frames' sample count, for a renderer whose header does not record it
+            (``None``: the first frame's header; it sets the footprint width, see
+            :func:`~torchmanifold.pipeline.denoise.footprint_width`).
 
     Returns:
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
@@ -166,7 +173,9 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     fnames = first.feature_names
     outp = prepare_out(outp, overwrite)
 
-    clip = ClipWindow(inputs, first, color_channels)
+    if samples_per_pixel is not None:
+        check_int("samples_per_pixel", samples_per_pixel, min=1)
+    clip = ClipWindow(inputs, first, color_channels, samples_per_pixel)
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
     with staged_dir(outp) as stage:
@@ -184,6 +193,6 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             "nonfinite_color": stats_sum["nonfinite_color"],
             "nonfinite_features": stats_sum["nonfinite_features"],
             "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
-            "samples_per_pixel": first.samples_per_pixel,
-            "footprint_sigma": footprint_width(settings, first.samples_per_pixel),
+            "samples_per_pixel": clip.samples_per_pixel,
+            "footprint_sigma": footprint_width(settings, clip.samples_per_pixel),
             "seconds_per_frame": (time.perf_counter() - t0) / n, "outputs": outputs}

@@ -41,6 +41,7 @@ from typing import Sequence
 
 import torch
 
+from torchmanifold._checks import check_int
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.timewindow import frame_at, window
 
@@ -298,7 +299,7 @@ def _denoise_chunk(job, chunk: Chunk, todo, events, counts):
 
     inputs = [Path(p) for p in job["inputs"]]
     first = read_render_frame(inputs[0], job["color"], job["feature_channels"], job["layer"])
-    clip = ClipWindow(inputs, first, job["color"])
+    clip = ClipWindow(inputs, first, job["color"], job["samples_per_pixel"])
     for t in todo:
         y, record, frame = denoise_window(clip, t, job["settings"])
         write_color(Path(job["out"]) / inputs[t].name, y, frame, job["output_layout"])
@@ -511,14 +512,14 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
                   color_channels: Sequence[str] | None = None, feature_channels: Sequence[str] | None = None,
                   overwrite: bool = False, progress: bool = True, chunk: int | None = None,
                   address: str | None = None, threads: int = 1, layer: str | None = None,
-                  output_layout: str = "input") -> dict:
+                  output_layout: str = "input", samples_per_pixel: int | None = None) -> dict:
     """:func:`~torchmanifold.pipeline.denoise_files.denoise_files` on a Ray cluster, in chunks of frames.
 
     The outputs are the same files with the same bytes; each is written by the worker that computes
     it. A re-run into the same ``out`` skips the frames the manifest lists.
 
     Args:
-        inputs, out, settings, color_channels, feature_channels, overwrite, progress: as
+        inputs, out, settings, color_channels, feature_channels, overwrite, progress, samples_per_pixel: as
             :func:`~torchmanifold.pipeline.denoise_files.denoise_files` (paths must be visible to every worker).
         chunk: frames a task writes (default: ``8 * max(r, 1)`` frames, at most an even share per worker).
         address: Ray cluster (``HOST:PORT``); ``None`` = the running one or a new local one.
@@ -546,12 +547,15 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     inputs = [p.resolve() for p in inputs]
     settings = (settings or DenoiseSettings(temporal_radius=1)).check()
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
+    if samples_per_pixel is not None:
+        check_int("samples_per_pixel", samples_per_pixel, min=1)
+    spp = samples_per_pixel or first.samples_per_pixel
     ray, started = connect(address)  # before anything is written: a dead address writes nothing
     try:
         n, r = len(inputs), settings.temporal_radius
         key = {"kind": "denoise", "inputs": [str(p) for p in inputs], "settings": _jsonable(settings),
                "color": color_channels and list(color_channels), "features": first.feature_names,
-               "layer": first.layer, "output_layout": output_layout}
+               "layer": first.layer, "output_layout": output_layout, "samples_per_pixel": spp}
         outp, manifest = _open_out(out, overwrite, key, n)
         finished = _finished(outp, manifest)
         manifest["done"] = {k: v for k, v in manifest["done"].items() if int(k) in finished}
@@ -562,7 +566,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         job = {"inputs": [str(p) for p in inputs], "out": str(outp), "settings": settings,
                "color": color_channels and list(color_channels), "feature_channels": first.feature_names,
                "layer": first.layer, "output_layout": output_layout, "size": list(first.size),
-               "threads": threads}
+               "threads": threads, "samples_per_pixel": spp}
         shards = _drive("denoise", job, chunks, manifest, n - len(finished), progress, "denoise")
     finally:
         if started:
@@ -576,8 +580,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ff += x["firefly_energy_removed"]
     return {"frames": n, "size": list(first.size), "feature_channels": first.feature_names,
             "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
-            "firefly_energy_removed": ff / n, "samples_per_pixel": first.samples_per_pixel,
-            "footprint_sigma": footprint_width(settings, first.samples_per_pixel),
+            "firefly_energy_removed": ff / n, "samples_per_pixel": spp,
+            "footprint_sigma": footprint_width(settings, spp),
             "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
 
