@@ -92,15 +92,21 @@ def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     return (total(lum * mask) / total(mask).clamp_min(1.0)).to(lum.dtype)
 
 
+def _gaussian_taps(sigma: float, dtype: torch.dtype, device=None) -> Tensor:
+    """The normalised 1-D taps of :func:`footprint_blur`'s Gaussian (radius three sigmas, at least 1)."""
+    r = max(1, int(math.ceil(3 * sigma)))
+    k = torch.arange(-r, r + 1, dtype=dtype, device=device)
+    k = torch.exp(-(k * k) / (2 * sigma * sigma))
+    return k / k.sum()
+
+
 def footprint_blur(x: Tensor, sigma: float) -> Tensor:
     """Gaussian blur of ``(N, C, H, W)`` with a small ``sigma`` (pixels): a 1-sample image's estimate of
     the pixel-footprint average. ``sigma <= 0`` returns ``x``."""
     if sigma <= 0:
         return x
-    r = max(1, int(math.ceil(3 * sigma)))
-    k = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-    k = torch.exp(-(k * k) / (2 * sigma * sigma))
-    k = k / k.sum()
+    k = _gaussian_taps(sigma, x.dtype, x.device)
+    r = (k.numel() - 1) // 2
     c = x.shape[1]
     xp = torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
     xp = torch.nn.functional.conv2d(xp, k.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
@@ -568,9 +574,7 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> 
     pool = footprint_blur(mask, blur).clamp_min(1e-6)
     err = footprint_blur(sq.flatten(0, 1), blur).view_as(sq) / pool
     if blur > 0:  # sum_j k_j^2 f_j = (sum_i k1_i^2)^2 times the blur of f at sigma / sqrt(2)
-        r = max(1, int(math.ceil(3 * blur)))
-        k1 = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64) ** 2 / (2 * blur * blur))
-        c, blur2 = float(((k1 / k1.sum()) ** 2).sum()) ** 2, blur / math.sqrt(2)
+        c, blur2 = float((_gaussian_taps(blur, torch.float64) ** 2).sum()) ** 2, blur / math.sqrt(2)
     else:
         c, blur2 = 1.0, 0.0
     inv = c / pool ** 2

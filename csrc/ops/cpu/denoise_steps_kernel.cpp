@@ -220,6 +220,27 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
   return out;
 }
 
+// --------------------------------------------------------------------------------- Gaussian taps
+// Radius of denoise.footprint_blur's Gaussian (three sigmas, at least one pixel).
+inline int64_t gaussian_radius(double sigma) {
+  return std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * sigma)));
+}
+
+// Taps of denoise.footprint_blur's Gaussian, computed as it computes them, in T.
+template <typename T>
+std::vector<T> gaussian_taps(double sigma, int64_t r) {
+  std::vector<T> taps(2 * r + 1);
+  const T two_s2 = static_cast<T>(2 * sigma * sigma);
+  T sum = 0;
+  for (int64_t i = -r; i <= r; ++i) {
+    const T f = static_cast<T>(i);
+    taps[i + r] = std::exp(-(f * f) / two_s2);
+  }
+  for (T v : taps) sum += v;
+  for (T& v : taps) v = v / sum;
+  return taps;
+}
+
 // ------------------------------------------------------------------------- footprint average
 // exp in plain arithmetic, so loops over it vectorise (std::exp does not): Cephes' expf (range reduction
 // by ln 2 in two parts, degree-6 polynomial, 2^n from the exponent bits): within 1 ulp of the exact exp
@@ -270,7 +291,7 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
   const int64_t Tn = x.size(0), H = x.size(2), W = x.size(3), HW = H * W;
   at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
   if (out.numel() == 0) return out;
-  const int64_t r = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * sigma)));
+  const int64_t r = gaussian_radius(sigma);
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "footprint_average_cpu", [&] {
     using T = scalar_t;
     std::vector<T> ws((2 * r + 1) * (2 * r + 1));
@@ -408,21 +429,6 @@ at::Tensor kuwahara3_cpu(const at::Tensor& x_) {
 }
 
 // -------------------------------------------------------------------------- cross-validated blend
-// Taps of denoise.footprint_blur's Gaussian, computed as it computes them, in T.
-template <typename T>
-std::vector<T> gaussian_taps(double sigma, int64_t r) {
-  std::vector<T> taps(2 * r + 1);
-  const T two_s2 = static_cast<T>(2 * sigma * sigma);
-  T sum = 0;
-  for (int64_t i = -r; i <= r; ++i) {
-    const T f = static_cast<T>(i);
-    taps[i + r] = std::exp(-(f * f) / two_s2);
-  }
-  for (T v : taps) sum += v;
-  for (T& v : taps) v = v / sum;
-  return taps;
-}
-
 // Row helpers with restrict parameters, so the loops vectorise.
 template <typename T>
 void sq_error_row(const T* __restrict q0, const T* __restrict q1, const T* __restrict q2, const T* __restrict e0,
@@ -466,7 +472,7 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
                    weight = weight_.contiguous(), mask = mask_.contiguous();
   at::Tensor out = at::empty_like(e, at::MemoryFormat::Contiguous);
   if (out.numel() == 0) return out;
-  const int64_t r = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * blur_sigma)));
+  const int64_t r = gaussian_radius(blur_sigma);
   AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_blend_cpu", [&] {
     using T = scalar_t;
     const std::vector<T> taps = gaussian_taps<T>(blur_sigma, r);
@@ -480,16 +486,11 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
     // mask; at blur_sigma / sqrt(2) (sum k^2 f = c blur2(f)) sq again, the squared differences of every
     // pair and the mask.
     const int64_t npairs = K * (K - 1) / 2;
-    const int64_t r2 = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * blur_sigma / std::sqrt(2.0))));
+    const int64_t r2 = gaussian_radius(blur_sigma / std::sqrt(2.0));
     const std::vector<T> taps2 = gaussian_taps<T>(blur_sigma / std::sqrt(2.0), r2);
-    double c = 0;
-    {
-      std::vector<double> k1(2 * r + 1);
-      double sum = 0;
-      for (int64_t i = -r; i <= r; ++i) sum += (k1[i + r] = std::exp(-double(i * i) / (2 * blur_sigma * blur_sigma)));
-      for (double v : k1) c += (v / sum) * (v / sum);
-      c *= c;
-    }
+    double c = 0;  // (sum of the 1-D taps' squares)^2, from float64 taps as denoise._excess_error_z2
+    for (double v : gaussian_taps<double>(blur_sigma, r)) c += v * v;
+    c *= c;
     std::vector<std::pair<int64_t, int64_t>> pairs;
     for (int64_t a = 0; a < K; ++a)
       for (int64_t b = a + 1; b < K; ++b) pairs.emplace_back(a, b);
@@ -858,7 +859,7 @@ at::Tensor footprint_albedo_cpu(const at::Tensor& alb_, const at::Tensor& flat_,
   const at::Tensor alb = alb_.contiguous(), flat = flat_.contiguous();
   at::Tensor out = at::empty_like(alb, at::MemoryFormat::Contiguous);
   if (out.numel() == 0) return out;
-  const int64_t r = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(3 * sigma)));
+  const int64_t r = gaussian_radius(sigma);
   AT_DISPATCH_FLOATING_TYPES(alb.scalar_type(), "footprint_albedo_cpu", [&] {
     using T = scalar_t;
     const std::vector<T> taps = gaussian_taps<T>(sigma, r);
