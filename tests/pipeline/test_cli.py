@@ -177,3 +177,4 @@ def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir)
     assert not np.array_equal(a, b)
     rc = main(["denoise", *map(str, paths), "--out", str(tmp_path / "bad"), "--spp", "0", "--quiet"])
     assert rc == 2 and "samples_per_pixel" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()  # refused before anything was created

@@ -48,6 +48,13 @@ def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
             raise ValueError(f"{frame.path}: {what} {a} differs from {first.path} ({b})")
 
 
+def clip_samples_per_pixel(first: RenderFrame, samples_per_pixel: int | None) -> int | None:
+    """A clip's sample count: the caller's (a positive int), else what the first frame's header says."""
+    if samples_per_pixel is None:
+        return first.samples_per_pixel
+    return check_int("samples_per_pixel", samples_per_pixel, min=1)
+
+
 class ClipWindow:
     """The frames of a clip, read as a moving time window needs them and released behind it, with
     what the denoiser derives from each frame alone (prepared once, released with the frame).
@@ -62,7 +69,7 @@ class ClipWindow:
     def __init__(self, inputs: Sequence[Path], first: RenderFrame, color_channels: Sequence[str] | None,
                  samples_per_pixel: int | None = None):
         self.inputs, self.first, self.color_channels = list(inputs), first, color_channels
-        self.samples_per_pixel = samples_per_pixel or first.samples_per_pixel
+        self.samples_per_pixel = clip_samples_per_pixel(first, samples_per_pixel)
         self.feature_names = first.feature_names
         self.notes = list(first.notes)
         self.reads = 0  # frames served (each is read once: windows only move on)
@@ -171,11 +178,10 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     # the first frame fixes the features; fail on it before creating anything
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
     fnames = first.feature_names
+    spp = clip_samples_per_pixel(first, samples_per_pixel)
     outp = prepare_out(outp, overwrite)
 
-    if samples_per_pixel is not None:
-        check_int("samples_per_pixel", samples_per_pixel, min=1)
-    clip = ClipWindow(inputs, first, color_channels, samples_per_pixel)
+    clip = ClipWindow(inputs, first, color_channels, spp)
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
     with staged_dir(outp) as stage:

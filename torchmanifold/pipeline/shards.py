@@ -41,7 +41,6 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold._checks import check_int
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.timewindow import frame_at, window
 
@@ -539,7 +538,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ImportError: Ray is not installed. ConnectionError: nothing answers at ``address``.
     """
     from torchmanifold.io.frames import read_render_frame
-    from torchmanifold.pipeline.denoise_files import _check_inputs
+    from torchmanifold.pipeline.denoise_files import _check_inputs, clip_samples_per_pixel
 
     if chunk is not None:
         _check_chunk(chunk)
@@ -547,9 +546,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     inputs = [p.resolve() for p in inputs]
     settings = (settings or DenoiseSettings(temporal_radius=1)).check()
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
-    if samples_per_pixel is not None:
-        check_int("samples_per_pixel", samples_per_pixel, min=1)
-    spp = samples_per_pixel or first.samples_per_pixel
+    spp = clip_samples_per_pixel(first, samples_per_pixel)
     ray, started = connect(address)  # before anything is written: a dead address writes nothing
     try:
         n, r = len(inputs), settings.temporal_radius
