@@ -14,6 +14,9 @@ Variants:
 * ``window r1, ahead``: the same with the tracer one iteration ahead (the overlap alone).
 * ``per frame, in turn`` / ``per frame, ahead``: this demo's filter default (each frame filtered alone), the
   tracer in turn / ahead (the default).
+* ``per frame, ahead, fitting zoom``: the same at the default zoom (the largest with the window at most 1280
+  pixels wide: 2 at 128x128); every other variant draws the panels at zoom 3, the demo before's default, so
+  their display times compare at equal window size.
 
 This demo's ``display_ms`` includes the window clear; the demo before cleared outside its display time.
 """
@@ -39,6 +42,7 @@ VARIANTS = {
     "window r1, ahead": ["--time-window", "1"],
     "per frame, in turn": ["--no-overlap"],
     "per frame, ahead": [],
+    "per frame, ahead, fitting zoom": ["--scale", "0"],
 }
 
 
@@ -84,7 +88,8 @@ def _old_size_argv(argv: list[str]) -> list[str]:
 def test_demo_speed(quick, tmp_path):
     size, frames = ("48x48", 4) if quick else ("128x128", 12)
     rounds = int(os.environ.get("TORCHMANIFOLD_BENCH_ROUNDS", "1"))
-    common = ["--headless", "--size", size, "--clip", "3", "--frames", str(frames), "--reference-spp", "8",
+    common = ["--headless", "--size", size, "--scale", "3", "--clip", "3", "--frames", str(frames),
+              "--reference-spp", "8",
               "--threads", os.environ.get("TORCHMANIFOLD_BENCH_THREADS", "1")]
     before = _before_tree(tmp_path / "before")
     runs: dict[str, list[dict]] = {name: [] for name in VARIANTS}

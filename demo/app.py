@@ -42,8 +42,9 @@ from tqdm import tqdm  # noqa: E402
 
 from demo import controls  # noqa: E402
 from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams  # noqa: E402
-from demo.overlay import Canvas, OverlayRenderer, draw_overlay  # noqa: E402
-from demo.panels import MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout, PanelRenderer  # noqa: E402
+from demo.overlay import BACKGROUND, Canvas, OverlayRenderer, draw_overlay  # noqa: E402
+from demo.panels import (MAX_WINDOW_WIDTH, MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout,  # noqa: E402
+                         PanelRenderer)
 from demo.session import DemoSession, torch_threads  # noqa: E402
 from demo.tracing import TracerProcess, TracerSpec  # noqa: E402
 from torchmanifold.timewindow import bracket, frame_at  # noqa: E402
@@ -120,7 +121,7 @@ class DemoApp(WindowConfig):
     aspect_ratio = None
     resizable = False
     vsync = False
-    clear_color = (0.06, 0.06, 0.07, 1.0)
+    clear_color = tuple(c / 255.0 for c in BACKGROUND)
     window_size = Layout(96, 96).window_size
     log_level = logging.WARNING
 
@@ -313,7 +314,7 @@ class DemoApp(WindowConfig):
         self.wnd.fbo.clear(*self.clear_color)  # here, not in the loop: the clear is display time too
         buffer_size = self.wnd.buffer_size
         viewports = [layout.gl_viewport(layout.panel_rect(i), buffer_size) for i in range(layout.n_panels)]
-        self.panels.draw_magnified(self.wnd.fbo, viewports)
+        self.panels.draw_magnified(self.wnd.fbo, viewports, buffer_size)
         self.overlay.draw(self.canvas(ref_frame is not None), layout.window_size, (0, 0, *buffer_size))
 
     def canvas(self, has_heat: bool) -> Canvas:
@@ -389,7 +390,9 @@ def add_demo_arguments(parser) -> None:
     g = parser.add_argument_group("demo")
     g.add_argument("--width", type=int, default=64, help="image width in pixels (default 64)")
     g.add_argument("--height", type=int, default=64, help="image height in pixels (default 64)")
-    g.add_argument("--scale", type=int, default=3, help="panel zoom factor (default 3)")
+    g.add_argument("--scale", type=int, default=0,
+                   help=f"panel zoom factor, 0 = the largest with the window at most {MAX_WINDOW_WIDTH} pixels "
+                        "wide (default 0: 4 at 64x64, 2 at 128x128)")
     g.add_argument("--clip", type=int, default=3, help="clip length in frames (default 3)")
     g.add_argument("--clip-fps", type=float, default=4.0, help="playback speed in frames/s (default 4)")
     g.add_argument("--scene", default=None,
@@ -434,8 +437,8 @@ def validate_args(args) -> None:
     for name in ("width", "height"):
         if not 8 <= getattr(args, name) <= 4096:
             raise ValueError(f"--{name}: expected 8..4096 pixels, got {getattr(args, name)}")
-    if not 1 <= args.scale <= 16:
-        raise ValueError(f"--scale: expected 1..16, got {args.scale}")
+    if not 0 <= args.scale <= 16:
+        raise ValueError(f"--scale: expected 1..16, or 0 for the largest that fits, got {args.scale}")
     if args.clip < 1:
         raise ValueError(f"--clip: expected at least 1 frame, got {args.clip}")
     if args.reference_spp < 0:
@@ -478,6 +481,9 @@ def create_app(argv: list[str]) -> DemoApp:
     add_demo_arguments(pre)
     args, _ = pre.parse_known_args(argv)
     validate_args(args)
+    if args.scale == 0:  # resolved once here: the window's size and the app's layout both read --scale
+        args.scale = Layout.fitting_scale(args.width)
+        argv += ["--scale", str(args.scale)]
     extra = []
     window_flag = any(a in ("-wnd", "--window") or a.startswith("--window=") for a in argv)
     asks_help = any(a in ("-h", "--help") for a in argv)  # moderngl-window prints the help and exits

@@ -17,7 +17,8 @@ from PIL import Image, ImageDraw, ImageFont
 CURVE_COLOURS = {"raw": (170, 170, 170), "gaussian": (90, 160, 255), "ours": (255, 150, 40)}
 TEXT = (235, 235, 235, 255)
 DIM = (150, 150, 150, 255)
-BOX = (20, 20, 24, 255)
+#: The window's background (its clear colour); boxes are outlines on it.
+BACKGROUND = (15, 15, 18, 255)
 AXIS = (120, 120, 130, 255)
 SIZES = (11, 12, 13)
 FIRST, LAST = 32, 127  # printable ASCII; other characters draw as "?"
@@ -116,9 +117,6 @@ class Canvas:
         self.atlas = atlas
         self._quads: list[np.ndarray] = []
         self._lines: list[np.ndarray] = []
-        #: opaque rectangles ``(x, y, w, h, (r, g, b, a))``, drawn first as scissored clears (the cheapest
-        #: way to fill pixels on a software rasteriser)
-        self.fills: list[tuple] = []
 
     def text(self, xy, text: str, size: int = 12, fill=TEXT, max_width: float | None = None) -> float:
         """Draw ``text`` with its top-left at ``xy``; returns its width in pixels."""
@@ -131,15 +129,17 @@ class Canvas:
         """Add everything drawn on ``other`` (e.g. a cached part)."""
         self._quads += other._quads
         self._lines += other._lines
-        self.fills += other.fills
 
     def rect(self, x, y, w, h, fill) -> None:
         self._quads.append(np.array([[x, y, w, h, *self.atlas.solid, *(np.asarray(fill, np.float32) / 255.0)]],
                                     np.float32))
 
-    def box(self, x, y, w, h, fill=BOX, outline=(80, 80, 90, 255)) -> None:
-        """A filled box with an outline; the fill is opaque (a clear), so boxes go under everything."""
-        self.fills.append((int(x), int(y), int(w), int(h), fill))
+    def box(self, x, y, w, h, fill=None, outline=(80, 80, 90, 255)) -> None:
+        """A box outline, filled with ``fill`` when given (quads draw in order, so what is drawn after it
+        lies on top). The overlay's boxes are unfilled, on the window's background: on llvmpipe a filled
+        box cost more than all the text."""
+        if fill is not None:
+            self.rect(x, y, w, h, fill)
         self.polyline([(x, y), (x + w, y), (x + w, y + h), (x, y + h), (x, y)], outline)
 
     def polyline(self, points, colour) -> None:
@@ -201,7 +201,10 @@ void main() { frag = colour; }
 
 
 class OverlayRenderer:
-    """Draws a :class:`Canvas` over the window: one instanced quad call, one line call (alpha blended)."""
+    """Draws a :class:`Canvas` over the window: one instanced quad call, one line call (alpha blended).
+
+    Filled boxes are quads of that call too.
+    """
 
     def __init__(self, ctx: moderngl.Context, atlas: GlyphAtlas | None = None):
         self.ctx = ctx
@@ -237,11 +240,6 @@ class OverlayRenderer:
         if grown:
             self._vaos()
         self.ctx.viewport = viewport
-        x0, y0, vw, vh = viewport
-        sx, sy = vw / window_size[0], vh / window_size[1]
-        for x, y, w, h, fill in canvas.fills:
-            rect = (x0 + round(x * sx), y0 + round((window_size[1] - y - h) * sy), round(w * sx), round(h * sy))
-            self.ctx.clear(*(c / 255.0 for c in fill), viewport=rect)
         self.ctx.enable(moderngl.BLEND)
         self.ctx.blend_func = moderngl.SRC_ALPHA, moderngl.ONE_MINUS_SRC_ALPHA
         size = tuple(float(v) for v in window_size)
@@ -273,7 +271,8 @@ def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
         canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, None, 0.0, 0.0))
         canvas.text((left, top + 10), "no reference: no error curve", 12, DIM)
         return
-    max_it = max(2, int(pts[:, 0].max()))
+    # the axis ends at a power of two, so its frame (cached) is rebuilt log2 times, not every iteration
+    max_it = 1 << (max(2, int(pts[:, 0].max())) - 1).bit_length()
     lo, hi = float(np.floor(pts[:, 1].min() - 0.5)), float(np.ceil(pts[:, 1].max() + 0.5))
     canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, max_it, lo, hi))
     to_px = _plot_mapping(rect, max_it, lo, hi)

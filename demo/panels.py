@@ -1,10 +1,10 @@
 """GL side of the demo: window layout and the panel renderer.
 
 The engine's estimates of every row (clip frames and tracked in-between times) travel to the GPU as
-one float texture array, written once per iteration straight from the engine's state (no per-panel
-CPU work); the reference is uploaded once per progression. Tone mapping, the blend between rows for a
-shown in-between time and the error heat map all happen in the fragment shader, at image resolution
-into a small framebuffer that is then magnified into the window.
+one RGB float texture array, written once per iteration straight from the engine's state (no
+per-panel CPU work); the reference is uploaded once per progression. Tone mapping, the blend between
+rows for a shown in-between time and the error heat map all happen in the fragment shader, at image
+resolution into a small framebuffer that one more draw magnifies into the window.
 """
 from __future__ import annotations
 
@@ -21,6 +21,10 @@ SHADER_PATH = Path(__file__).with_name("shaders") / "panel.glsl"
 SLOTS = ("raw", "gaussian", "ours")
 
 MODE_IMAGE, MODE_DISPLAY, MODE_HEAT = 0, 1, 2
+
+#: The default zoom keeps the window this wide at most: it fits a 1366-pixel laptop screen, and on
+#: llvmpipe the display's cost is its window pixels (magnify, clear, text).
+MAX_WINDOW_WIDTH = 1280
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,14 @@ class Layout:
         tx, ty, tw, th = self.text_rect()
         return tx + 16, tx + tw - 16, ty + th - 18
 
+    @staticmethod
+    def fitting_scale(image_width: int, n_panels: int = 4, max_width: int = MAX_WINDOW_WIDTH) -> int:
+        """The largest panel zoom whose window is at most ``max_width`` pixels wide (at least 1)."""
+        scale = 1
+        while Layout(image_width, 1, scale + 1, n_panels).window_size[0] <= max_width:
+            scale += 1
+        return scale
+
     def uv_rect(self, rect: tuple[int, int, int, int]) -> tuple[float, float, float, float]:
         """Window rect -> (u, v, du, dv) of the window-sized overlay texture (v from the top)."""
         width, height = self.window_size
@@ -99,18 +111,26 @@ class PanelRenderer:
         self.image_size = (image_width, image_height)
         self.n_panels = n_panels
         source = SHADER_PATH.read_text()
-        vs = "#version 330\n#define VERTEX_SHADER\n" + source
-        self.programs = [ctx.program(vertex_shader=vs, fragment_shader=f"#version 330\n#define FRAGMENT_SHADER\n"
-                                     f"#define MODE {mode}\n" + source) for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
-        self.magnify = ctx.program(vertex_shader=vs, fragment_shader="#version 330\n#define FRAGMENT_SHADER\n"
-                                   "#define MAGNIFY\n" + source)
+
+        def stage(*defines: str) -> str:
+            lines = ["#version 330", *(f"#define {d}" for d in (f"N_PANELS {n_panels}", *defines))]
+            return "\n".join(lines) + "\n" + source
+
+        self.programs = [ctx.program(vertex_shader=stage("VERTEX_SHADER"),
+                                     fragment_shader=stage("FRAGMENT_SHADER", f"MODE {mode}"))
+                         for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
+        self.magnify = ctx.program(vertex_shader=stage("VERTEX_SHADER", "MAGNIFY"),
+                                   fragment_shader=stage("FRAGMENT_SHADER", "MAGNIFY"))
         quad = np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4")
         self.vbo = ctx.buffer(quad.tobytes())
         self.vaos = [ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in self.programs]
-        self.magnify_vao = ctx.vertex_array(self.magnify, [(self.vbo, "2f", "in_pos")])
-        self.estimates = None  # float planes (rows * 3 estimates * 3 channels), HDR: tone mapped in the shader
+        # two triangles per panel: (clip-space x, y, u, v) per vertex, rewritten when the viewports change
+        self.magnify_vbo = ctx.buffer(reserve=n_panels * 6 * 4 * 4, dynamic=True)
+        self.magnify_vao = ctx.vertex_array(self.magnify, [(self.magnify_vbo, "2f 2f", "in_pos", "in_uv")])
+        self._magnify_key = None
+        self.estimates = None  # RGB float layers (rows * 3 estimates), HDR: tone mapped in the shader
         self.rows = 0
-        self.reference = self._planes(3)  # placeholder until a reference arrives
+        self.reference = self._planes(1)  # placeholder until a reference arrives
         self.view = ctx.texture((image_width, image_height), 3, dtype="f4")
         self.small = ctx.texture((image_width * n_panels, image_height), 4)
         self.small_fbo = ctx.framebuffer(color_attachments=[self.small])
@@ -127,7 +147,7 @@ class PanelRenderer:
 
     def _planes(self, layers: int) -> moderngl.TextureArray:
         w, h = self.image_size
-        tex = self.ctx.texture_array((w, h, layers), 1, dtype="f4")
+        tex = self.ctx.texture_array((w, h, layers), 3, dtype="f4")
         tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
         return tex
 
@@ -141,8 +161,8 @@ class PanelRenderer:
         if self.estimates is None or rows != self.rows:
             if self.estimates is not None:
                 self.estimates.release()
-            self.estimates, self.rows = self._planes(rows * len(SLOTS) * 3), rows
-        self.estimates.write(planes.contiguous().numpy())
+            self.estimates, self.rows = self._planes(rows * len(SLOTS)), rows
+        self.estimates.write(planes.permute(0, 1, 3, 4, 2).contiguous().numpy())  # RGB texels: one fetch each
         self.uploads += 1
 
     def upload_reference(self, frames: torch.Tensor | None) -> None:
@@ -153,8 +173,8 @@ class PanelRenderer:
             if frames.dim() != 4 or tuple(frames.shape[1:]) != (3, h, w):
                 raise ValueError(f"reference: expected (T, 3, {h}, {w}), got {tuple(frames.shape)}")
             self.reference.release()
-            self.reference = self._planes(frames.shape[0] * 3)
-            self.reference.write(frames.float().contiguous().numpy())
+            self.reference = self._planes(frames.shape[0])
+            self.reference.write(frames.float().permute(0, 2, 3, 1).contiguous().numpy())
 
     def upload_view(self, image: torch.Tensor) -> None:
         """A display-ready ``(3, H, W)`` image in [0, 1] (a feature buffer) for :data:`MODE_DISPLAY`."""
@@ -162,39 +182,69 @@ class PanelRenderer:
 
     def draw_panels(self, panels, rows: tuple[int, int], blend: float, ref_frame: int | None,
                     exposure: float) -> None:
-        """Pass 1: ``panels`` = [(mode, estimate index)] left to right, at image resolution."""
+        """Pass 1: ``panels`` = [(mode, estimate index)] left to right, at image resolution; one draw per run
+        of adjacent panels of one mode. A panel of mode None, or a heat map with no reference at this time,
+        is black."""
         if self.estimates is None:
             return
+        if len(panels) != self.n_panels:
+            raise ValueError(f"panels: expected {self.n_panels} (mode, estimate) pairs, got {len(panels)}")
+        no_heat = ref_frame is None or not self.has_reference
+        modes = [None if mode == MODE_HEAT and no_heat else mode for mode, _ in panels]
         w, h = self.image_size
         self.small_fbo.use()
-        self.small_fbo.clear(0.0, 0.0, 0.0, 1.0)
         self.estimates.use(0)
         self.reference.use(1)
         self.view.use(2)
         values = {"u_rows": rows, "u_blend": float(blend), "u_exposure": float(exposure),
-                  "u_ref_frame": -1 if ref_frame is None else int(ref_frame)}
-        for i, (mode, estimate) in enumerate(panels):
-            if mode is None or (mode == MODE_HEAT and (ref_frame is None or not self.has_reference)):
-                continue  # left black: no reference at this time
-            self.small_fbo.viewport = (i * w, 0, w, h)
-            prog = self.programs[mode]
-            for name, value in dict(values, u_estimate=estimate).items():
-                if name in prog:
-                    prog[name] = value
-            self.vaos[mode].render(moderngl.TRIANGLE_STRIP)
+                  "u_ref_frame": -1 if ref_frame is None else int(ref_frame),
+                  "u_estimate": [int(estimate) for _, estimate in panels]}
+        start = 0
+        for end in range(1, len(modes) + 1):
+            if end < len(modes) and modes[end] == modes[start]:
+                continue
+            viewport = (start * w, 0, (end - start) * w, h)
+            if modes[start] is None:
+                self.small_fbo.clear(0.0, 0.0, 0.0, 1.0, viewport=viewport)
+            else:
+                prog = self.programs[modes[start]]
+                for name, value in values.items():
+                    if name in prog:
+                        prog[name] = value
+                self.small_fbo.viewport = viewport
+                self.vaos[modes[start]].render(moderngl.TRIANGLE_STRIP)
+            start = end
 
-    def draw_magnified(self, fbo, viewports) -> None:
-        """Pass 2: panel ``i`` of pass 1 into ``viewports[i]`` of ``fbo`` (nearest)."""
+    def draw_magnified(self, fbo, viewports, buffer_size: tuple[int, int]) -> None:
+        """Pass 2, one draw: panel ``i`` of pass 1 into ``viewports[i]`` of ``fbo`` (nearest); ``fbo`` is
+        ``buffer_size`` pixels."""
+        if len(viewports) != self.n_panels:
+            raise ValueError(f"viewports: expected {self.n_panels}, got {len(viewports)}")
+        key = (tuple(map(tuple, viewports)), tuple(buffer_size))
+        if key != self._magnify_key:
+            self._magnify_key = key
+            self.magnify_vbo.write(magnify_vertices(viewports, buffer_size, self.n_panels).tobytes())
         fbo.use()
+        self.ctx.viewport = (0, 0, *buffer_size)
         self.small.use(3)
-        n = self.n_panels
-        for i, viewport in enumerate(viewports):
-            self.ctx.viewport = viewport
-            self.magnify["u_sub"] = (i / n, 0.0, 1.0 / n, 1.0)
-            self.magnify_vao.render(moderngl.TRIANGLE_STRIP)
+        self.magnify_vao.render(moderngl.TRIANGLES)
 
     def release(self) -> None:
-        for obj in (*self.vaos, self.magnify_vao, self.vbo, *self.programs, self.magnify, self.estimates, self.reference, self.view, self.small_fbo,
-                    self.small):
+        for obj in (*self.vaos, self.magnify_vao, self.vbo, self.magnify_vbo, *self.programs, self.magnify,
+                    self.estimates, self.reference, self.view, self.small_fbo, self.small):
             if obj is not None:
                 obj.release()
+
+
+def magnify_vertices(viewports, buffer_size: tuple[int, int], n_panels: int) -> np.ndarray:
+    """Two triangles per panel, ``(n_panels * 6, 4)`` float32 rows of (clip x, clip y, u, v): panel ``i``
+    of the small image (columns ``[i / n, (i + 1) / n)`` of its texture) over ``viewports[i]`` = (x, y, w, h)
+    in framebuffer pixels, GL origin."""
+    corners = np.array([(0, 0), (1, 0), (0, 1), (0, 1), (1, 0), (1, 1)], np.float32)
+    out = np.empty((len(viewports), 6, 4), np.float32)
+    size = np.asarray(buffer_size, np.float32)
+    for i, (x, y, w, h) in enumerate(viewports):
+        out[i, :, :2] = (np.array([x, y], np.float32) + corners * (w, h)) / size * 2.0 - 1.0
+        out[i, :, 2] = (i + corners[:, 0]) / n_panels
+        out[i, :, 3] = corners[:, 1]
+    return out.reshape(-1, 4)

@@ -306,8 +306,31 @@ def test_scene_names_and_files(tmp_path):
         resolve_scene(str(bad))
 
 
+def test_default_zoom_is_the_largest_that_fits():
+    from demo.panels import MAX_WINDOW_WIDTH, Layout
+
+    for width in (8, 48, 64, 100, 128, 256, 700):
+        scale = Layout.fitting_scale(width)
+        assert scale == 1 or Layout(width, width, scale).window_size[0] <= MAX_WINDOW_WIDTH
+        assert Layout(width, width, scale + 1).window_size[0] > MAX_WINDOW_WIDTH
+
+
+def test_window_without_scale_uses_the_fitting_zoom():
+    from demo.panels import Layout
+
+    i = SMALL.index("--scale")
+    argv = SMALL[:i] + SMALL[i + 2:] + ["--headless", "--reference-spp", "0"]
+    app = create_app(argv)
+    try:
+        assert app.layout.scale == Layout.fitting_scale(48) and app.wnd.size == app.layout.window_size
+    finally:
+        app.on_close()
+        app.wnd.destroy()
+
+
 @pytest.mark.parametrize("argv, match", [
     (["--width", "2"], "--width"),
+    (["--scale", "-1"], "--scale"),
     (["--clip", "0"], "--clip"),
     (["--a", "1.5"], "a: expected"),
     (["--feature-set", "nope"], "feature_set"),
