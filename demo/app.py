@@ -45,8 +45,9 @@ from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterPar
 from demo.overlay import BACKGROUND, Canvas, OverlayRenderer, draw_overlay  # noqa: E402
 from demo.panels import (MAX_WINDOW_WIDTH, MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout,  # noqa: E402
                          PanelRenderer)
-from demo.session import DemoSession, torch_threads  # noqa: E402
+from demo.session import DemoSession  # noqa: E402
 from demo.tracing import TracerProcess, TracerSpec  # noqa: E402
+from torchmanifold._threads import torch_threads  # noqa: E402
 from torchmanifold.timewindow import bracket, frame_at  # noqa: E402
 
 PANEL_TITLES = {"raw": "raw average", "gaussian": "Gaussian", "ours": "ours (AM)"}

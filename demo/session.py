@@ -9,31 +9,17 @@ PSNR curves against the reference, the mean feature buffers for the feature view
 """
 from __future__ import annotations
 
-import contextlib
 import time
 from dataclasses import dataclass
 
 import torch
 
 from demo.controls import FEATURE_GROUPS, FEATURE_SETS, SIGMA_R_UNSCALED, FilterParams
+from torchmanifold._threads import torch_threads
 from torchmanifold.metrics import psnr
 from torchmanifold.pipeline import DenoiseSettings
 from torchmanifold.pipeline.progressive import ESTIMATES, ProgressiveRenderer
 from torchmanifold.timewindow import frame_at, interpolate
-
-
-@contextlib.contextmanager
-def torch_threads(n: int | None):
-    """Run the block with ``n`` torch intra-op threads (None = unchanged), then restore the count."""
-    if n is None:
-        yield
-        return
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def guide_channels(feature_set: str, feature_names) -> list[str]:

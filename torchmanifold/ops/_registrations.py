@@ -68,6 +68,13 @@ def _register() -> None:
         _check_op_args(values, guide, sigma_s, sigma_r, tree_height, power_iterations)
         return torch.empty_like(values, memory_format=torch.contiguous_format)
 
+    @torch.library.register_fake("torchmanifold::_adaptive_manifold_bandwidths")
+    def _bandwidths_fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
+        torch._check(len(sigma_s) > 0, lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
+        for s in sigma_s:
+            _check_op_args(values, guide, s, sigma_r, tree_height, power_iterations)
+        return values.new_empty((len(sigma_s), *values.shape))
+
     @torch.library.custom_op(BACKWARD_NAME, mutates_args=())
     def _adaptive_manifold_backward(grad: Tensor, values: Tensor, guide: Tensor, sigma_s: float,
                                     sigma_r: float, tree_height: int, power_iterations: int,

@@ -82,6 +82,36 @@ def _stored_sigmas(guide_sigmas) -> Tensor | tuple | None:
     return guide_sigmas.detach().clone() if isinstance(guide_sigmas, Tensor) else tuple(checked.tolist())
 
 
+def _working_inputs(values: Tensor, guide: Tensor, sigma_r: float, guide_sigmas) -> tuple[Tensor, Tensor]:
+    """Values and guide in the op's dtype (float32, or float64), the guide scaled per channel by
+    ``sigma_r / guide_sigmas`` (when given)."""
+    work = torch.float64 if values.dtype == torch.float64 else torch.float32
+    v, g = values.to(work), guide.to(work)
+    if guide_sigmas is not None:
+        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[1]).to(device=g.device, dtype=work)
+        g = g * scales[:, None, None]
+    return v, g
+
+
+def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float], sigma_r: float, tree_height: int,
+                       guide_sigmas: Sequence[float] | Tensor | None = None, power_iterations: int = 32) -> Tensor:
+    """:func:`adaptive_manifold_filter` of ``(B, C, H, W)`` values at every spatial sigma of ``sigmas_s``:
+    ``(K, B, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
+    op call whose images share the threads (``_adaptive_manifold_bandwidths``); otherwise one call each."""
+    if not (values.dim() == 4 and values.device.type == "cpu" and _has_kernel_for("cpu") and values.numel()
+            and not (torch.is_grad_enabled() and values.requires_grad)):
+        return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, tree_height, guide_sigmas=guide_sigmas,
+                                                     power_iterations=power_iterations) for s in sigmas_s])
+    _check_inputs(values, guide)
+    sigma_r, tree_height = check_positive("sigma_r", sigma_r), check_tree_height(tree_height)
+    power_iterations = check_int("power_iterations", power_iterations, min=0)
+    sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
+    v, g = _working_inputs(values, guide, sigma_r, guide_sigmas)
+    out = torch.ops.torchmanifold._adaptive_manifold_bandwidths(v.contiguous(), g.contiguous(), sigmas, sigma_r,
+                                                                tree_height, power_iterations, False)
+    return out.to(values.dtype)
+
+
 def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,
                              tree_height: int | None = 2, *,
                              guide_sigmas: Sequence[float] | Tensor | None = None, adjust_outliers: bool = False,
@@ -141,12 +171,7 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
         values, guide = values.unsqueeze(0), guide.unsqueeze(0)
 
     out_dtype = values.dtype
-    work = torch.float64 if out_dtype == torch.float64 else torch.float32
-    v, g = values.to(work), guide.to(work)
-    if guide_sigmas is not None:
-        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[1]).to(device=g.device, dtype=work)
-        g = g * scales[:, None, None]
-
+    v, g = _working_inputs(values, guide, sigma_r, guide_sigmas)
     if values.numel() == 0:
         out = v.clone()
     elif backend == "torch" or (backend == "auto" and not _has_kernel_for(v.device.type)):

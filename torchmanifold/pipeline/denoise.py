@@ -43,6 +43,7 @@ from torch import Tensor, nn
 
 from torchmanifold import features as feature_table
 from torchmanifold._checks import check_choice, check_int, check_nonnegative, check_positive, check_tree_height
+from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
 from torchmanifold.timewindow import bracket, frame_at, interpolate, window
 
@@ -75,11 +76,13 @@ def feature_group(name: str) -> str:
     return feature_table.group_of(name)
 
 
+@serial
 def luminance(x: Tensor) -> Tensor:
     """Rec. 709 luminance of ``(..., 3, H, W)`` -> ``(..., 1, H, W)``."""
     return 0.2126 * x[..., 0:1, :, :] + 0.7152 * x[..., 1:2, :, :] + 0.0722 * x[..., 2:3, :, :]
 
 
+@serial
 def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
     the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
@@ -341,6 +344,11 @@ def _window_max(x: Tensor, r: int, dim: int) -> Tensor:
     return torch.maximum(m.narrow(dim, 0, n), m.narrow(dim, width - span, n))
 
 
+#: Largest output of the bandwidths filtered in one call, in elements (256 MB of float32: four 16-channel
+#: bandwidths of a 1 MP frame); a larger frame filters one bandwidth at a time.
+_BANDWIDTHS_AT_ONCE = 1 << 26
+
+
 class _Filter:
     """The weighted (sample-mask) adaptive-manifold filter over a clip, at query times.
 
@@ -381,6 +389,22 @@ class _Filter:
                     sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
                     guide_sigmas=self._sigmas_at(q))[0, 0])
         return outs[0][None] if len(outs) == 1 else torch.stack(outs)  # one query: no copy
+
+    @staticmethod
+    def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
+        """``[f.apply(x) for f in filters]`` for filters that differ in ``sigma_s`` alone. A query that is a
+        frame filtered alone is one op call for every bandwidth (on CPU their images share the threads)."""
+        from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
+
+        f0 = filters[0]
+        frames = [frame_at(f0.ft, q) for q in f0.qt]
+        if len(filters) == 1 or f0.st.temporal_radius != 0 or None in frames or \
+                len(filters) * x[0].numel() > _BANDWIDTHS_AT_ONCE:
+            return [f.apply(x) for f in filters]
+        sigmas = [f.sigma_s for f in filters]
+        outs = [_filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, f0.st.tree_height, f0.gs[k])
+                for k in frames]  # each (K, 1, C, H, W)
+        return list((outs[0] if len(outs) == 1 else torch.cat(outs, 1)).unbind(0))
 
     def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor) -> Tensor:
         """``num / den`` at the queries; where no valid sample lies under the kernel, the interpolated
@@ -496,16 +520,21 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     idx = query_frames if at_frames else list(range(T))
     flat_cv = flat[idx]
     preds, fulls, cv_outs = [], [], []
-    for b in st.bandwidths:
-        filt = _Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale)
-        if _fast.enabled(e, mask):  # the same stack, prediction and sums in two C++ passes
-            pred, num, den = _fast.cv_split(filt.apply(_fast.cv_halves(e, mask, flat, class_ids)))
+    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
+    fast = _fast.enabled(e, mask)
+    if fast:  # the same stack, prediction and sums in two C++ passes
+        stack = _fast.cv_halves(e, mask, flat, class_ids)
+    else:
+        parts = []
+        for c in classes:
+            for h in (half, 1 - half):
+                parts += [e * (mask * c * h), mask * c * h]
+        stack = torch.cat(parts, 1)
+    for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
+        if fast:
+            pred, num, den = _fast.cv_split(y)
         else:
-            parts = []
-            for c in classes:
-                for h in (half, 1 - half):
-                    parts += [e * (mask * c * h), mask * c * h]
-            y = filt.apply(torch.cat(parts, 1)).view(len(cv_times), len(classes), 2, 4, H, W)
+            y = y.view(len(cv_times), len(classes), 2, 4, H, W)
             num, den = y[:, :, :, :3], y[:, :, :, 3:]
             # a pixel of the first half is predicted from the second half's samples and the other way round
             other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
@@ -808,6 +837,7 @@ def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
     return c, f, mask, em, stats
 
 
+@serial
 def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
     """The albedo the colour is divided by, ``(T, 3, H, W)``, and where it is flat (1), ``(T, 1, H, W)``.
 
@@ -944,6 +974,7 @@ def _radiance_sigma(settings: DenoiseSettings) -> float:
     return float(dict(settings.guide_sigmas).get(RADIANCE_GUIDE, settings.radiance_sigma))
 
 
+@serial
 def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor, settings: DenoiseSettings):
     """The guide with its log-radiance channel (the last, see :func:`_guide`) taken from the pilot
     estimate ``(T, 3, H, W)`` instead of the samples: it tells a light, a shadow or what glass shows from
@@ -959,6 +990,7 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     return guide, sigmas
 
 
+@serial
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
     energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter

@@ -21,6 +21,7 @@
 #include <torch/library.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -648,10 +649,50 @@ at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& gui
   return out;
 }
 
+at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
+                                            c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height,
+                                            int64_t power_iterations, bool adjust_outliers) {
+  TORCH_CHECK_VALUE(!sigma_s.empty(), "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
+  for (double s : sigma_s) check_adaptive_manifold_args(values, guide, s, sigma_r, tree_height, power_iterations);
+  TORCH_CHECK_VALUE(values.device().is_cpu(),
+                    "_adaptive_manifold_bandwidths: values and guide must be CPU tensors for this kernel, got ",
+                    values.device());
+  const at::Tensor f = values.contiguous();
+  const at::Tensor g = guide.contiguous();
+  const int64_t K = static_cast<int64_t>(sigma_s.size());
+  const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
+  at::Tensor out = at::empty({K, B, C, H, W}, f.options());
+  if (out.numel() == 0) return out;
+  // the smallest sigma first: it costs most (least downsampling), so the queue ends with cheap images
+  std::vector<int64_t> order(K);
+  for (int64_t k = 0; k < K; ++k) order[k] = k;
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
+  const int64_t items = K * B, threads = at::get_num_threads();
+  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "_adaptive_manifold_bandwidths_cpu", [&] {
+    auto run = [&](int64_t item) {
+      const int64_t k = order[item / B], b = item % B;
+      const FilterOptions opt{sigma_s[k], sigma_r, tree_height, power_iterations, adjust_outliers};
+      ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W, g.data_ptr<scalar_t>() + b * D * H * W,
+                                 out.data_ptr<scalar_t>() + (k * B + b) * C * H * W, C, D, H, W, opt);
+      filt.run();  // inside the parallel region below its own loops run on this thread
+    };
+    if (threads >= 2 && items >= threads && !at::in_parallel_region()) {
+      std::atomic<int64_t> next{0};
+      at::parallel_for(0, threads, 1, [&](int64_t, int64_t) {
+        for (int64_t item = next.fetch_add(1); item < items; item = next.fetch_add(1)) run(item);
+      });
+    } else {
+      for (int64_t item = 0; item < items; ++item) run(item);
+    }
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("adaptive_manifold", &adaptive_manifold_cpu);
+  m.impl("_adaptive_manifold_bandwidths", &adaptive_manifold_bandwidths_cpu);
 }
 
 }  // namespace cpu

@@ -1,0 +1,54 @@
+"""torchmanifold::_adaptive_manifold_bandwidths: the filter at K spatial sigmas in one call (the denoiser's
+bandwidth candidates), against the op called once per sigma, for any thread count."""
+import pytest
+import torch
+
+from torchmanifold._threads import torch_threads
+from torchmanifold.ops import adaptive_manifold_filter
+from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
+
+op = torch.ops.torchmanifold._adaptive_manifold_bandwidths.default
+single = torch.ops.torchmanifold.adaptive_manifold.default
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("B, sigmas", [(2, (2.0, 8.0, 3.0)), (1, (4.0,)), (1, (16.0, 2.0))])
+def test_each_slice_is_the_single_op(random_inputs, threads, B, sigmas):
+    # (1, (4,)) runs on one thread's loop, (2, ...) has more images than threads: side by side
+    v, g = random_inputs(B, 5, 4, 40, 52, seed=3)
+    with torch_threads(threads):
+        out = op(v, g, list(sigmas), 0.4, 3, 8, False)
+    assert out.shape == (len(sigmas), *v.shape)
+    for k, s in enumerate(sigmas):
+        assert torch.equal(out[k], single(v, g, s, 0.4, 3, 8, False)), (k, s)
+
+
+def test_filter_bandwidths_matches_the_public_filter(random_inputs):
+    v, g = random_inputs(1, 3, 4, 33, 30, seed=5)
+    sig = torch.tensor([0.5, 0.2, 0.3, 0.9], dtype=torch.float64)
+    out = _filter_bandwidths(v, g, [2.0, 6.0], 1.0, 2, sig)
+    for k, s in enumerate((2.0, 6.0)):
+        assert torch.equal(out[k], adaptive_manifold_filter(v, g, s, 1.0, 2, guide_sigmas=sig))
+
+
+def test_filter_bandwidths_keeps_gradients(random_inputs):
+    v, g = random_inputs(1, 2, 3, 16, 16, dtype=torch.float64, seed=1)
+    v.requires_grad_(True)
+    out = _filter_bandwidths(v, g, [2.0, 4.0], 0.3, 2)
+    (grad,) = torch.autograd.grad(out.square().sum(), v)
+    want = sum(adaptive_manifold_filter(v, g, s, 0.3, 2).square().sum() for s in (2.0, 4.0))
+    (grad_want,) = torch.autograd.grad(want, v)
+    torch.testing.assert_close(grad, grad_want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_opcheck(random_inputs, dtype):
+    v, g = random_inputs(2, 2, 3, 9, 11, dtype=dtype)
+    torch.library.opcheck(op, (v, g, [2.0, 5.0], 0.3, 2, 5, False))
+
+
+@pytest.mark.parametrize("sigmas, match", [([], "at least one sigma"), ([2.0, -1.0], "sigma_s")])
+def test_bad_sigmas_are_named(random_inputs, sigmas, match):
+    v, g = random_inputs(1, 2, 3, 8, 8)
+    with pytest.raises(ValueError, match=match):
+        op(v, g, sigmas, 0.3, 2, 5, False)
