@@ -9,6 +9,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // clamped to the range of the valid (mask > 0) values in the (2 radius + 1)^2 box around each pixel
   // (_Filter._guard). num/values (N, C, H, W), den/mask (N, 1, H, W) -> (N, C, H, W).
   m.def("_normalise_guard(Tensor num, Tensor den, Tensor values, Tensor mask, int radius) -> Tensor");
+  // The same where a query mixes a window of frames: fallback (N, C, H, W) replaces values * mask, and the
+  // bounds are box maxima of hi and nlo (N, C, H, W), the window's largest valid value and largest minus
+  // valid value at each pixel (-max where the window has none).
+  m.def("_normalise_guard_bounds(Tensor num, Tensor den, Tensor fallback, Tensor hi, Tensor nlo, int radius) "
+        "-> Tensor");
   // denoise._footprint_average after its knee: x (T, 3, H, W) clamped at 0 (NaN kept), k (T,) the tone-mapping
   // knee of each frame (PyTorch computes it, so the frame means are its bits) -> (T, 3, H, W).
   m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma) -> Tensor");

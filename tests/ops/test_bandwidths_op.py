@@ -52,3 +52,48 @@ def test_bad_sigmas_are_named(random_inputs, sigmas, match):
     v, g = random_inputs(1, 2, 3, 8, 8)
     with pytest.raises(ValueError, match=match):
         op(v, g, sigmas, 0.3, 2, 5, False)
+
+
+spacetime = torch.ops.torchmanifold.spacetime_adaptive_manifold.default
+spacetime_k = torch.ops.torchmanifold._spacetime_adaptive_manifold_bandwidths.default
+
+
+def _window(random_inputs, B=2, T=3, Q=2, seed=4):
+    v, g = random_inputs(B, 3, 4, 24, 28, T=T, seed=seed)
+    w = torch.tensor([[0.5, 1.0, 0.5], [0.0, 0.6, 1.0]])[:Q, :T]
+    gq = torch.stack([g[:, 1], 0.5 * (g[:, 1] + g[:, 2])], 1)[:, :Q]
+    return v, g, w, gq
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_spacetime_slices_are_the_single_op(random_inputs, threads):
+    v, g, w, gq = _window(random_inputs)
+    with torch_threads(threads):
+        out = spacetime_k(v, g, w, gq, [6.0, 2.0], 0.5, 2, 8, False)
+    assert out.shape == (2, *v.shape[:1], w.shape[0], *v.shape[2:])
+    for k, s in enumerate((6.0, 2.0)):
+        for b in range(v.shape[0]):  # each window alone: the batched op runs its images side by side
+            assert torch.equal(out[k, b:b + 1], spacetime(v[b:b + 1], g[b:b + 1], w, gq[b:b + 1], s, 0.5, 2, 8, False))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_batched_op_images_are_the_single_images(random_inputs, threads):
+    v, g = random_inputs(3, 2, 3, 30, 20, seed=8)
+    with torch_threads(threads):
+        out = single(v, g, 4.0, 0.3, 2, 8, False)
+    for b in range(3):
+        assert torch.equal(out[b:b + 1], single(v[b:b + 1], g[b:b + 1], 4.0, 0.3, 2, 8, False))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_spacetime_opcheck(random_inputs, dtype):
+    v, g, w, gq = (t.to(dtype) for t in _window(random_inputs, B=1, Q=1))
+    torch.library.opcheck(spacetime_k, (v, g, w, gq, [2.0, 5.0], 0.3, 2, 5, False))
+
+
+def test_spacetime_bad_sigmas_are_named(random_inputs):
+    v, g, w, gq = _window(random_inputs, B=1, Q=1)
+    with pytest.raises(ValueError, match="at least one sigma"):
+        spacetime_k(v, g, w, gq, [], 0.3, 2, 5, False)
+    with pytest.raises(ValueError, match="sigma_s"):
+        spacetime_k(v, g, w, gq, [0.0], 0.3, 2, 5, False)

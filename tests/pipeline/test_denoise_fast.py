@@ -66,6 +66,25 @@ def test_normalise_guard_equals_reference_bitwise(frame, dtype):
             _same(out, ref)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_window_normalise_guard_equals_reference_bitwise(dtype):
+    """A query mixing a window of frames (space-time): the fallback and bounds come from the window."""
+    for name, e, m in _hazards():
+        if e.shape[0] < 2:
+            continue
+        e, m = e.to(dtype), m.to(dtype)
+        g = torch.Generator().manual_seed(2)
+        num = torch.rand(1, *e.shape[1:], generator=g, dtype=dtype)
+        den = torch.rand(1, 1, *e.shape[2:], generator=g, dtype=dtype) * m[:1]
+        num[..., 0, 0] = math.nan
+        st = DenoiseSettings(temporal_radius=1, mode="spacetime")
+        for q, sigma_s in ((0.0, 0.5), (1.0, 8.0), (0.5, 40.0)):  # a frame, and between frames
+            filt = D._Filter(torch.zeros(e.shape[0], 1, *e.shape[2:], dtype=dtype), torch.ones(e.shape[0], 1), st,
+                             [0.0, 1.0], [q], sigma_s)
+            out, ref = _both(filt.normalise, num, den, e, m)
+            _same(out, ref)
+
+
 def test_kuwahara_log_radiance_equals_reference_bitwise(frame):
     for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
         for dtype in (torch.float32, torch.float64):
@@ -203,6 +222,8 @@ def test_op_argument_errors():
     x = torch.zeros(1, 3, 4, 4)
     with pytest.raises(ValueError, match="den and mask must be"):
         torch.ops.torchmanifold._normalise_guard(x, x, x, x[:, :1], 2)
+    with pytest.raises(ValueError, match="fallback, hi and nlo must match num"):
+        torch.ops.torchmanifold._normalise_guard_bounds(x, x[:, :1], x, x[:, :2], x, 2)
     with pytest.raises(ValueError, match="x must be .T, 3, H, W."):
         torch.ops.torchmanifold._footprint_average(x[:, :2], torch.ones(1), 0.5, 0.3)
     with pytest.raises(ValueError, match="k must be .T,."):
@@ -223,7 +244,8 @@ def _op_samples():
     flat = torch.rand(T, 1, H, W, generator=g) > 0.7
     y = torch.rand(T, 16, H, W, generator=g)
     preds, fulls = torch.rand(3, T, 3, H, W, generator=g), torch.rand(3, T, 3, H, W, generator=g)
-    return [("_normalise_guard", (e, m, e, m, 2)), ("_footprint_average", (e, torch.ones(T), 0.5, 0.3)),
+    return [("_normalise_guard", (e, m, e, m, 2)), ("_normalise_guard_bounds", (e, m, e, e, -e, 2)),
+            ("_footprint_average", (e, torch.ones(T), 0.5, 0.3)),
             ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0)),
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m, flat, [0, 1])),
             ("_cv_halves_out", (e, m, flat, [0, 1], torch.empty(T, 16, H, W))), ("_cv_split", (y,)),

@@ -166,6 +166,15 @@ def _register_spacetime() -> None:
         B, _, C, H, W = values.shape
         return values.new_empty((B, weights.shape[0], C, H, W))
 
+    @torch.library.register_fake("torchmanifold::_spacetime_adaptive_manifold_bandwidths")
+    def _bandwidths_fake(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
+                         adjust_outliers):
+        torch._check(len(sigma_s) > 0,
+                     lambda: "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
+        _check_spacetime_shapes(values, guide, weights, query_guide)
+        B, _, C, H, W = values.shape
+        return values.new_empty((len(sigma_s), B, weights.shape[0], C, H, W))
+
     @torch.library.custom_op(SPACETIME_BACKWARD_NAME, mutates_args=())
     def _spacetime_backward(grad: Tensor, values: Tensor, guide: Tensor, weights: Tensor, query_guide: Tensor,
                             sigma_s: float, sigma_r: float, tree_height: int, power_iterations: int,

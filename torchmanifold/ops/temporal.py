@@ -31,7 +31,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from torchmanifold._checks import check_choice, check_numbers, check_positive, check_same_dtype_device, check_tensor
+from torchmanifold._checks import (check_choice, check_int, check_numbers, check_positive, check_same_dtype_device,
+                                   check_tensor, check_tree_height)
 from torchmanifold.ops._reference import (
     GRAM_BAND,
     _domain_transform,
@@ -206,6 +207,48 @@ def _has_spacetime_kernel_for(device_type: str) -> bool:
                                                                _DISPATCH_KEYS[device_type]))
 
 
+def _window_inputs(values: Tensor, guide: Tensor, ft: Tensor, qt: Tensor, sigma_r: float, sigma_t: float,
+                    guide_sigmas) -> tuple[Tensor, Tensor, Tensor]:
+    """Values and guide in the ops' dtype (float32, or float64), the guide scaled per channel by
+    ``sigma_r / guide_sigmas`` (when given), and the time weights ``(Q, T)``."""
+    work = torch.float64 if values.dtype == torch.float64 else torch.float32
+    v, g = values.to(work), guide.to(work)
+    if guide_sigmas is not None:
+        g = g * _guide_scales(guide_sigmas, sigma_r, g.shape[2]).to(g.device, work)[:, None, None]
+    return v, g, time_weights(ft, qt, sigma_t).to(v.device, work)
+
+
+def _query_guides(g: Tensor, ft: Tensor, qt: Tensor) -> Tensor:
+    """Every query's guide ``(B, Q, D, H, W)``: linear between the frames that bracket it."""
+    return torch.stack([interpolate(g, ft, q, dim=1) for q in qt.tolist()], 1)
+
+
+def _spacetime_bandwidths(values: Tensor, guide: Tensor, frame_times, query_times, sigmas_s: Sequence[float],
+                          sigma_r: float, sigma_t: float, tree_height: int,
+                          guide_sigmas: Sequence[float] | Tensor | None = None, power_iterations: int = 32) -> Tensor:
+    """:func:`temporal_adaptive_manifold_filter` in ``"spacetime"`` mode at every spatial sigma of ``sigmas_s``:
+    ``(K, B, Q, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
+    op call whose images share the threads (``_spacetime_adaptive_manifold_bandwidths``); otherwise one
+    call each."""
+    if not (values.dim() == 5 and values.device.type == "cpu" and _has_spacetime_kernel_for("cpu")
+            and values.numel() and not (torch.is_grad_enabled() and values.requires_grad)):
+        return torch.stack([temporal_adaptive_manifold_filter(
+            values, guide, frame_times, query_times, s, sigma_r, sigma_t, "spacetime", tree_height,
+            guide_sigmas=guide_sigmas, power_iterations=power_iterations) for s in sigmas_s])
+    check_same_dtype_device("guide", guide, "values", values)
+    ft = check_numbers("frame_times", frame_times, n=values.shape[1]).cpu()
+    qt = check_numbers("query_times", query_times, allow_scalar=True).cpu()
+    sigma_r, sigma_t = check_positive("sigma_r", sigma_r), check_positive("sigma_t", sigma_t)
+    tree_height = check_tree_height(tree_height)
+    power_iterations = check_int("power_iterations", power_iterations, min=0)
+    sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
+    v, g, tw = _window_inputs(values, guide, ft, qt, sigma_r, sigma_t, guide_sigmas)
+    out = torch.ops.torchmanifold._spacetime_adaptive_manifold_bandwidths(
+        v.contiguous(), g.contiguous(), tw.contiguous(), _query_guides(g, ft, qt).contiguous(), sigmas, sigma_r,
+        tree_height, power_iterations, False)
+    return out.to(values.dtype)
+
+
 def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times, query_times, sigma_s: float,
                                       sigma_r: float, sigma_t: float = 1.0, mode: str = "window",
                                       tree_height: int | None = 2, *,
@@ -262,11 +305,8 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         tree_height = automatic_tree_height(sigma_s, sigma_r)
 
     B, T, C, H, W = values.shape
-    work = torch.float64 if values.dtype == torch.float64 else torch.float32
-    v, g = values.to(work), guide.to(work)
-    if guide_sigmas is not None:
-        g = g * _guide_scales(guide_sigmas, sigma_r, g.shape[2]).to(g.device, work)[:, None, None]
-    tw = time_weights(ft, qt, sigma_t).to(v.device, work)  # (Q, T)
+    v, g, tw = _window_inputs(values, guide, ft, qt, sigma_r, sigma_t, guide_sigmas)
+    work = v.dtype
 
     if mode == "window":
         fin_v, fin_g = torch.isfinite(v), torch.isfinite(g)
@@ -283,8 +323,7 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
                                        backend=backend)
         out = out.reshape(B, -1, C, H, W)
     else:
-        # every query frame's guide: linear between the frames that bracket it
-        gq = torch.stack([interpolate(g, ft, q, dim=1) for q in qt.tolist()], 1)
+        gq = _query_guides(g, ft, qt)
         args = (sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers)
         if backend == "torch" or (backend == "auto" and not _has_spacetime_kernel_for(v.device.type)):
             out = spacetime_torch(v, g, tw, gq, *args)

@@ -17,7 +17,7 @@ import threading
 import torch
 from torch import Tensor
 
-__all__ = ["enabled", "reference", "normalise_guard", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
+__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -63,6 +63,13 @@ def normalise_guard(num: Tensor, den: Tensor, values: Tensor, mask: Tensor, radi
     """``_Filter.normalise`` at frame queries: num ``(N, C, H, W)``, den ``(N, 1, H, W)``, values
     ``(N, C, H, W)``, mask ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0 skips the guard."""
     return torch.ops.torchmanifold._normalise_guard(num, den, values, mask, int(radius))
+
+
+def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tensor, nlo: Tensor, radius: int) -> Tensor:
+    """``_Filter.normalise`` where a query mixes a window: num, fallback (the masked values at the queries), hi
+    and nlo (``_Filter.window_bounds``) ``(N, C, H, W)``, den ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0
+    skips the guard."""
+    return torch.ops.torchmanifold._normalise_guard_bounds(num, den, fallback, hi, nlo, int(radius))
 
 
 def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float) -> Tensor:
@@ -132,6 +139,10 @@ def _register_fakes() -> None:
 
     @torch.library.register_fake(lib + "_normalise_guard")
     def _(num, den, values, mask, radius):
+        return torch.empty_like(num, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_normalise_guard_bounds")
+    def _(num, den, fallback, hi, nlo, radius):
         return torch.empty_like(num, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_footprint_average")

@@ -392,29 +392,43 @@ class _Filter:
 
     @staticmethod
     def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
-        """``[f.apply(x) for f in filters]`` for filters that differ in ``sigma_s`` alone. A query that is a
-        frame filtered alone is one op call for every bandwidth (on CPU their images share the threads)."""
+        """``[f.apply(x) for f in filters]`` for filters that differ in ``sigma_s`` alone: per query, one op
+        call for every bandwidth (on CPU their images share the threads; the same bits)."""
         from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
+        from torchmanifold.ops.temporal import _spacetime_bandwidths
 
-        f0 = filters[0]
-        frames = [frame_at(f0.ft, q) for q in f0.qt]
-        if len(filters) == 1 or f0.st.temporal_radius != 0 or None in frames or \
-                len(filters) * x[0].numel() > _BANDWIDTHS_AT_ONCE:
+        f0, st = filters[0], filters[0].st
+        if len(filters) == 1 or len(filters) * x[0].numel() > _BANDWIDTHS_AT_ONCE:
             return [f.apply(x) for f in filters]
         sigmas = [f.sigma_s for f in filters]
-        outs = [_filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, f0.st.tree_height, f0.gs[k])
-                for k in frames]  # each (K, 1, C, H, W)
-        return list((outs[0] if len(outs) == 1 else torch.cat(outs, 1)).unbind(0))
+        outs = []  # per query (K, C, H, W)
+        for q in f0.qt:
+            k = frame_at(f0.ft, q)
+            if st.temporal_radius == 0 and k is not None:
+                outs.append(_filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])[:, 0])
+            elif st.mode == "spacetime":
+                ids = f0._window(q)
+                outs.append(_spacetime_bandwidths(x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids], [q], sigmas,
+                                                  1.0, st.sigma_t, st.tree_height, f0._sigmas_at(q))[:, 0, 0])
+            else:  # the window mean: its spatial filter per bandwidth
+                return [f.apply(x) for f in filters]
+        return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
 
-    def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor) -> Tensor:
+    def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor,
+                  bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """``num / den`` at the queries; where no valid sample lies under the kernel, the interpolated
-        (masked) input; guarded (see :meth:`_guard`)."""
-        if self._per_frame() and _fast.enabled(num, den, values, mask):
-            return _fast.normalise_guard(num, den, values, mask, 0 if values.dtype == torch.float64 else
-                                         self._guard_radius())
+        (masked) input; guarded (see :meth:`_guard`). ``bounds``: :meth:`window_bounds` of ``values`` and
+        ``mask`` where the caller holds them (they do not depend on the bandwidth)."""
+        if _fast.enabled(num, den, values, mask):
+            radius = 0 if values.dtype == torch.float64 else self._guard_radius()
+            if self._per_frame():
+                return _fast.normalise_guard(num, den, values, mask, radius)
+            fallback = self.at_queries(values * mask)
+            hi, nlo = (bounds or self.window_bounds(values, mask)) if radius else (fallback, fallback)
+            return _fast.normalise_guard_bounds(num, den, fallback, hi, nlo, radius)
         ok = den > 1e-8
         out = torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
-        return self._guard(out, values, mask)
+        return self._guard(out, values, mask, bounds)
 
     def _per_frame(self) -> bool:
         """Every query is a frame and mixes that frame alone (at_queries and at_queries_max are identities)."""
@@ -441,7 +455,14 @@ class _Filter:
                     for k in range(2))
         return torch.where(self.at_queries(flat.to(values.dtype)) > 0.5, own, out)
 
-    def _guard(self, out: Tensor, values: Tensor, mask: Tensor) -> Tensor:
+    def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+        """At each query, the largest valid value of its window's frames and the largest minus valid value
+        (``-max`` of the dtype where none): what the guard's box maxima start from."""
+        big = torch.finfo(values.dtype).max
+        return (self.at_queries_max(torch.where(mask > 0, values, -big)),
+                self.at_queries_max(torch.where(mask > 0, -values, -big)))
+
+    def _guard(self, out: Tensor, values: Tensor, mask: Tensor, bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """A normalised filter is a convex combination: keep the result inside the range of the valid
         samples near the pixel. In float32 a pixel far from every manifold (weights ~1e-38) can come back
         as garbage; this bounds it (float64 needs no guard)."""
@@ -450,8 +471,7 @@ class _Filter:
         r = self._guard_radius()
         big = torch.finfo(values.dtype).max
         # the window's largest first, then the box (max commutes): one box per query, not per frame
-        hi = self.at_queries_max(torch.where(mask > 0, values, -big))
-        lo = self.at_queries_max(torch.where(mask > 0, -values, -big))
+        hi, lo = bounds or self.window_bounds(values, mask)
         hi, lo = _box_max(hi, r), -_box_max(lo, r)
         ok = hi > -big / 2
         return torch.where(ok, torch.minimum(torch.maximum(out, lo), hi), out)
@@ -530,6 +550,10 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             for h in (half, 1 - half):
                 parts += [e * (mask * c * h), mask * c * h]
         stack = torch.cat(parts, 1)
+    class_masks = [mask * c for c in classes]
+    # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
+    class_bounds = [None if filters[0]._per_frame() or e.dtype == torch.float64 else filters[0].window_bounds(e, m)
+                    for m in class_masks]
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
         if fast:
             pred, num, den = _fast.cv_split(y)
@@ -543,8 +567,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             # NaN where the other half has no sample under the kernel: no support, no error estimate
             pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
             num, den = num.sum(2), den.sum(2)
-        full = torch.stack([filt.normalise(num[:, k], den[:, k], e, mask * c)
-                            for k, c in enumerate(classes)], 1)
+        full = torch.stack([filt.normalise(num[:, k], den[:, k], e, class_masks[k], class_bounds[k])
+                            for k in range(len(classes))], 1)
         if len(classes) == 2:
             pred = torch.where(flat_cv, pred[:, 1], pred[:, 0])
             cv_out = torch.where(flat_cv, full[:, 1], full[:, 0])

@@ -21,7 +21,6 @@
 #include <torch/library.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -639,12 +638,12 @@ at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& gui
   if (out.numel() == 0) return out;
   const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
-    for (int64_t b = 0; b < B; ++b) {
+    for_each_image(B, [&](int64_t b) {
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W,
                                  g.data_ptr<scalar_t>() + b * D * H * W,
                                  out.data_ptr<scalar_t>() + b * C * H * W, C, D, H, W, opt);
       filt.run();
-    }
+    });
   });
   return out;
 }
@@ -667,23 +666,14 @@ at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::
   std::vector<int64_t> order(K);
   for (int64_t k = 0; k < K; ++k) order[k] = k;
   std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
-  const int64_t items = K * B, threads = at::get_num_threads();
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "_adaptive_manifold_bandwidths_cpu", [&] {
-    auto run = [&](int64_t item) {
+    for_each_image(K * B, [&](int64_t item) {
       const int64_t k = order[item / B], b = item % B;
       const FilterOptions opt{sigma_s[k], sigma_r, tree_height, power_iterations, adjust_outliers};
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W, g.data_ptr<scalar_t>() + b * D * H * W,
                                  out.data_ptr<scalar_t>() + (k * B + b) * C * H * W, C, D, H, W, opt);
-      filt.run();  // inside the parallel region below its own loops run on this thread
-    };
-    if (threads >= 2 && items >= threads && !at::in_parallel_region()) {
-      std::atomic<int64_t> next{0};
-      at::parallel_for(0, threads, 1, [&](int64_t, int64_t) {
-        for (int64_t item = next.fetch_add(1); item < items; item = next.fetch_add(1)) run(item);
-      });
-    } else {
-      for (int64_t item = 0; item < items; ++item) run(item);
-    }
+      filt.run();
+    });
   });
   return out;
 }

@@ -158,6 +158,48 @@ void clamp_row(const T* __restrict hi, const T* __restrict nlo, int64_t W, T* __
   }
 }
 
+template <typename T>
+void normalise_fallback_row(const T* __restrict a, const T* __restrict d, const T* __restrict fb, int64_t W,
+                            T* __restrict o) {
+  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > T(1e-8) ? a[x] / d[x] : fb[x];
+}
+
+// The guarded normalisation over (N, C, H, W) into po: bound_plane(b, dst) writes plane b = (n, c, side)
+// of the bound sources (side 0: valid values, side 1: minus valid values, -max where none), which are
+// box-maxed (radius > 0); normalise(n, c, y, o) writes row y of (n, c) unguarded.
+template <typename T, typename BoundPlane, typename Normalise>
+void guarded_normalise(int64_t N, int64_t C, int64_t H, int64_t W, int64_t radius, const BoundPlane& bound_plane,
+                       const Normalise& normalise, T* po) {
+  const int64_t HW = H * W;
+  Scratch<T> bounds;  // (N, C, 2, H, W): box max of valid values, box max of minus valid values (pooled)
+  T* pb = nullptr;
+  if (radius > 0) {
+    bounds.resize(N * C * 2 * HW);
+    pb = bounds.data();
+    at::parallel_for(0, N * C * 2, 1, [&](int64_t b0, int64_t b1) {
+      Scratch<T> src, scratch;
+      src.resize(HW);
+      for (int64_t b = b0; b < b1; ++b) {
+        bound_plane(b, src.data());
+        box_max_plane(src.data(), H, W, radius, pb + b * HW, scratch);
+      }
+    });
+  }
+  at::parallel_for(0, N * H, row_grain(W), [&](int64_t r0, int64_t r1) {
+    for (int64_t row = r0; row < r1; ++row) {
+      const int64_t n = row / H, y = row % H;
+      for (int64_t c = 0; c < C; ++c) {
+        T* o = po + (n * C + c) * HW + y * W;
+        normalise(n, c, y, o);
+        if (pb) {
+          const T* hi = pb + ((n * C + c) * 2) * HW + y * W;
+          clamp_row(hi, hi + HW, W, o);
+        }
+      }
+    }
+  });
+}
+
 at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, const at::Tensor& values_,
                                const at::Tensor& mask_, int64_t radius) {
   const char* op = "_normalise_guard";
@@ -178,44 +220,54 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
   AT_DISPATCH_FLOATING_TYPES(num.scalar_type(), "normalise_guard_cpu", [&] {
     using T = scalar_t;
     const T *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>(), *pv = values.data_ptr<T>(), *pm = mask.data_ptr<T>();
-    T* po = out.data_ptr<T>();
-    Scratch<T> bounds;  // (N, C, 2, H, W): box max of valid values, box max of minus valid values (pooled)
-    T* pb = nullptr;
-    if (radius > 0) {
-      bounds.resize(N * C * 2 * HW);
-      pb = bounds.data();
-      const T big = std::numeric_limits<T>::max();
-      at::parallel_for(0, N * C * 2, 1, [&](int64_t b0, int64_t b1) {
-        Scratch<T> src, scratch;
-        src.resize(HW);
-        for (int64_t b = b0; b < b1; ++b) {
+    const T big = std::numeric_limits<T>::max();
+    guarded_normalise<T>(
+        N, C, H, W, radius,
+        [&](int64_t b, T* dst) {
           const int64_t n = b / (2 * C), c = (b / 2) % C;
-          const T sign = (b % 2) ? T(-1) : T(1);
-          const T* v = pv + (n * C + c) * HW;
-          const T* m = pm + n * HW;
-          masked_row(v, m, sign, -big, HW, src.data());
-          box_max_plane(src.data(), H, W, radius, pb + b * HW, scratch);
-        }
-      });
-    }
-    at::parallel_for(0, N * H, row_grain(W), [&](int64_t r0, int64_t r1) {
-      for (int64_t row = r0; row < r1; ++row) {
-        const int64_t n = row / H, y = row % H;
-        const T* d = pd + n * HW + y * W;
-        const T* m = pm + n * HW + y * W;
-        for (int64_t c = 0; c < C; ++c) {
+          masked_row(pv + (n * C + c) * HW, pm + n * HW, (b % 2) ? T(-1) : T(1), -big, HW, dst);
+        },
+        [&](int64_t n, int64_t c, int64_t y, T* o) {
           const int64_t off = (n * C + c) * HW + y * W;
-          const T* a = pn + off;
-          const T* v = pv + off;
-          T* o = po + off;
-          normalise_row(a, d, v, m, W, o);
-          if (pb) {
-            const T* hi = pb + ((n * C + c) * 2) * HW + y * W;
-            clamp_row(hi, hi + HW, W, o);
-          }
-        }
-      }
-    });
+          normalise_row(pn + off, pd + n * HW + y * W, pv + off, pm + n * HW + y * W, W, o);
+        },
+        out.data_ptr<T>());
+  });
+  return out;
+}
+
+at::Tensor normalise_guard_bounds_cpu(const at::Tensor& num_, const at::Tensor& den_, const at::Tensor& fallback_,
+                                      const at::Tensor& hi_, const at::Tensor& nlo_, int64_t radius) {
+  const char* op = "_normalise_guard_bounds";
+  for (auto* p : {&num_, &den_, &fallback_, &hi_, &nlo_}) check_shape(*p, "every input", op, 4);
+  check_float(num_, "num", op);
+  for (auto* p : {&den_, &fallback_, &hi_, &nlo_})
+    TORCH_CHECK_VALUE(p->scalar_type() == num_.scalar_type(), op, ": inputs must share num's dtype");
+  for (auto* p : {&fallback_, &hi_, &nlo_})
+    TORCH_CHECK_VALUE(p->sizes() == num_.sizes(), op, ": fallback, hi and nlo must match num ", num_.sizes(),
+                      ", got ", p->sizes());
+  const int64_t N = num_.size(0), C = num_.size(1), H = num_.size(2), W = num_.size(3), HW = H * W;
+  TORCH_CHECK_VALUE(den_.sizes() == at::IntArrayRef({N, 1, H, W}), op, ": den must be (N, 1, H, W) = ",
+                    at::IntArrayRef({N, 1, H, W}), ", got ", den_.sizes());
+  const at::Tensor num = num_.contiguous(), den = den_.contiguous(), fallback = fallback_.contiguous(),
+                   hi = hi_.contiguous(), nlo = nlo_.contiguous();
+  at::Tensor out = at::empty_like(num, at::MemoryFormat::Contiguous);
+  if (out.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(num.scalar_type(), "normalise_guard_bounds_cpu", [&] {
+    using T = scalar_t;
+    const T *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>(), *pf = fallback.data_ptr<T>();
+    const T *ph = hi.data_ptr<T>(), *pl = nlo.data_ptr<T>();
+    guarded_normalise<T>(
+        N, C, H, W, radius,
+        [&](int64_t b, T* dst) {
+          const T* src = ((b % 2) ? pl : ph) + (b / 2) * HW;
+          std::copy(src, src + HW, dst);
+        },
+        [&](int64_t n, int64_t c, int64_t y, T* o) {
+          const int64_t off = (n * C + c) * HW + y * W;
+          normalise_fallback_row(pn + off, pd + n * HW + y * W, pf + off, W, o);
+        },
+        out.data_ptr<T>());
   });
   return out;
 }
@@ -914,6 +966,7 @@ at::Tensor footprint_albedo_cpu(const at::Tensor& alb_, const at::Tensor& flat_,
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_normalise_guard", &normalise_guard_cpu);
+  m.impl("_normalise_guard_bounds", &normalise_guard_bounds_cpu);
   m.impl("_footprint_average", &footprint_average_cpu);
   m.impl("_kuwahara3", &kuwahara3_cpu);
   m.impl("_cv_blend", &cv_blend_cpu);

@@ -449,18 +449,18 @@ class SpacetimeFilter {
   std::vector<Sliced> sliced_;
 };
 
-at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
-                                           const at::Tensor& weights, const at::Tensor& query_guide,
-                                           double sigma_s, double sigma_r, int64_t tree_height,
-                                           int64_t power_iterations, bool adjust_outliers) {
+// The op's checks, for one sigma_s.
+void check_spacetime_args(const at::Tensor& values, const at::Tensor& guide, const at::Tensor& weights,
+                          const at::Tensor& query_guide, double sigma_s, double sigma_r, int64_t tree_height,
+                          int64_t power_iterations) {
   constexpr const char* op = "spacetime_adaptive_manifold: ";
   TORCH_CHECK_VALUE(values.dim() == 5, op, "values must be (B, T, C, H, W), got shape ", values.sizes());
   TORCH_CHECK_VALUE(guide.dim() == 5, op, "guide must be (B, T, D, H, W), got shape ", guide.sizes());
   TORCH_CHECK_VALUE(weights.dim() == 2, op, "weights must be (Q, T), got shape ", weights.sizes());
   TORCH_CHECK_VALUE(query_guide.dim() == 5, op, "query_guide must be (B, Q, D, H, W), got shape ",
                     query_guide.sizes());
-  const int64_t B = values.size(0), T = values.size(1), C = values.size(2), H = values.size(3),
-                W = values.size(4), D = guide.size(2), Q = weights.size(0);
+  const int64_t B = values.size(0), T = values.size(1), H = values.size(3), W = values.size(4),
+                D = guide.size(2), Q = weights.size(0);
   TORCH_CHECK_VALUE(guide.size(0) == B && guide.size(1) == T && guide.size(3) == H && guide.size(4) == W,
                     op, "guide must match values in B, T, H, W; got values ", values.sizes(), " and guide ",
                     guide.sizes());
@@ -490,29 +490,63 @@ at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::T
   TORCH_CHECK_VALUE(weights.numel() == 0 || (weights.isfinite().all().item<bool>() &&
                                              weights.ge(0).all().item<bool>()),
                     op, "weights must be finite and >= 0");
+}
+
+// (K, B, Q, C, H, W): every window b, query q and spatial sigma k, the images side by side
+// (for_each_image), the smallest sigma (the costliest) first.
+at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, const at::Tensor& weights,
+                            const at::Tensor& query_guide, c10::ArrayRef<double> sigma_s, double sigma_r,
+                            int64_t tree_height, int64_t power_iterations, bool adjust_outliers) {
+  for (double s : sigma_s)
+    check_spacetime_args(values, guide, weights, query_guide, s, sigma_r, tree_height, power_iterations);
+  const int64_t K = static_cast<int64_t>(sigma_s.size());
+  const int64_t B = values.size(0), T = values.size(1), C = values.size(2), H = values.size(3),
+                W = values.size(4), D = guide.size(2), Q = weights.size(0);
   const at::Tensor f = values.contiguous(), g = guide.contiguous(), w = weights.contiguous(),
                    q = query_guide.contiguous();
-  at::Tensor out = at::empty({B, Q, C, H, W}, values.options());
+  at::Tensor out = at::empty({K, B, Q, C, H, W}, values.options());
   if (out.numel() == 0) return out;
-  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
+  std::vector<int64_t> order(K);
+  for (int64_t k = 0; k < K; ++k) order[k] = k;
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
-    for (int64_t b = 0; b < B; ++b)
-      for (int64_t k = 0; k < Q; ++k) {
-        SpacetimeFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * T * C * N,
-                                       g.data_ptr<scalar_t>() + b * T * D * N, w.data_ptr<scalar_t>() + k * T,
-                                       T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N,
-                                       out.data_ptr<scalar_t>() + (b * Q + k) * C * N, C, D, H, W, opt);
-        filt.run();
-      }
+    for_each_image(K * B * Q, [&](int64_t item) {
+      const int64_t s = order[item / (B * Q)], b = item / Q % B, k = item % Q;
+      const FilterOptions opt{sigma_s[s], sigma_r, tree_height, power_iterations, adjust_outliers};
+      SpacetimeFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * T * C * N,
+                                     g.data_ptr<scalar_t>() + b * T * D * N, w.data_ptr<scalar_t>() + k * T,
+                                     T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N,
+                                     out.data_ptr<scalar_t>() + ((s * B + b) * Q + k) * C * N, C, D, H, W, opt);
+      filt.run();
+    });
   });
   return out;
+}
+
+at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
+                                           const at::Tensor& weights, const at::Tensor& query_guide,
+                                           double sigma_s, double sigma_r, int64_t tree_height,
+                                           int64_t power_iterations, bool adjust_outliers) {
+  return spacetime_images(values, guide, weights, query_guide, {sigma_s}, sigma_r, tree_height, power_iterations,
+                          adjust_outliers)[0];
+}
+
+at::Tensor spacetime_adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
+                                                      const at::Tensor& weights, const at::Tensor& query_guide,
+                                                      c10::ArrayRef<double> sigma_s, double sigma_r,
+                                                      int64_t tree_height, int64_t power_iterations,
+                                                      bool adjust_outliers) {
+  TORCH_CHECK_VALUE(!sigma_s.empty(), "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
+  return spacetime_images(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
+                          adjust_outliers);
 }
 
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("spacetime_adaptive_manifold", &spacetime_adaptive_manifold_cpu);
+  m.impl("_spacetime_adaptive_manifold_bandwidths", &spacetime_adaptive_manifold_bandwidths_cpu);
 }
 
 }  // namespace cpu
