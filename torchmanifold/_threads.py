@@ -1,10 +1,23 @@
-"""Torch intra-op thread counts for a block or a function: one place for the library and the demo."""
+"""Torch intra-op thread counts for a block or a function: one place for the library and the demo.
+
+The pipeline is thousands of small elementwise torch ops around a few C++ ops. With OpenMP workers that
+sleep between parallel regions (``import torchmanifold`` sets ``OMP_WAIT_POLICY=PASSIVE``, see
+``torchmanifold/__init__.py``), every small op on two threads paid more to wake a worker than it saved:
+the denoiser's frame step took 20 ms longer on 2 threads than on 1 in such glue, and a ``render``
+iteration (128x96 frames) was no faster on 2 threads than on 1 (``benchmarks/bench_threads.py``). So a
+pipeline entry point runs :func:`serial` and the C++ ops it calls run :func:`call_parallel`, with the threads
+the caller had. Elementwise results do not depend on the thread count, and the ops give the same bits
+for any count, so nothing changes but the time.
+"""
 from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 
 import torch
+
+_caller = threading.local()  # .threads: the count a serial() entry point took away, inside it
 
 
 @contextlib.contextmanager
@@ -22,14 +35,38 @@ def torch_threads(n: int | None):
 
 
 def serial(fn):
-    """Run ``fn`` on the calling thread alone. For a chain of elementwise passes over one frame: on a
-    shared CPU each parallel region costs more to wake its threads than it saves (the denoiser's frame
-    step took 20 ms longer on 2 threads than on 1 in such glue, `benchmarks/bench_pipeline.py`).
-    Elementwise results do not depend on the thread count, so the bits stay the same."""
+    """Run ``fn`` on the calling thread alone; the :func:`call_parallel` calls inside it get the caller's
+    threads."""
     @functools.wraps(fn)
     def run(*args, **kwargs):
-        if torch.get_num_threads() == 1:
+        n = torch.get_num_threads()
+        if n == 1:
             return fn(*args, **kwargs)
-        with torch_threads(1):
-            return fn(*args, **kwargs)
+        before = getattr(_caller, "threads", None)
+        _caller.threads = n
+        try:
+            with torch_threads(1):
+                return fn(*args, **kwargs)
+        finally:
+            _caller.threads = before
+    return run
+
+
+def call_parallel(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` (a C++ op, which scales) with the threads of the :func:`serial` entry point
+    around it, if any."""
+    if torch.compiler.is_compiling():  # a traced graph has no thread count to set
+        return fn(*args, **kwargs)
+    n = getattr(_caller, "threads", None)
+    if n is None or n == torch.get_num_threads():
+        return fn(*args, **kwargs)
+    with torch_threads(n):
+        return fn(*args, **kwargs)
+
+
+def parallel(fn):
+    """Decorator form of :func:`call_parallel`."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        return call_parallel(fn, *args, **kwargs)
     return run

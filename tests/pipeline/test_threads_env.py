@@ -1,9 +1,15 @@
-"""Thread settings of the CLI: every core by default, OpenMP workers that sleep instead of spinning
-(benchmarks/bench_threads.py measured spinning workers making two threads 4-10x slower than one)."""
+"""Thread settings: the CLI uses every core by default, OpenMP workers sleep instead of spinning
+(benchmarks/bench_threads.py measured spinning workers making two threads 4-10x slower than one), and a
+pipeline entry point runs its glue on one thread and hands the caller's threads to the ops it calls."""
 import os
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
+import torch
+
+from torchmanifold._threads import call_parallel, serial, torch_threads
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -29,3 +35,32 @@ def test_threads_default_to_every_core():
     args = build_parser().parse_args(["denoise", "a.exr", "--out", "o"])
     assert args.threads == len(os.sched_getaffinity(0))
     assert build_parser().parse_args(["denoise", "a.exr", "--out", "o", "--threads", "1"]).threads == 1
+
+
+def test_serial_glue_and_parallel_ops():
+    seen = {}
+
+    @serial
+    def step():
+        seen["glue"] = torch.get_num_threads()
+        seen["op"] = call_parallel(torch.get_num_threads)
+        seen["nested"] = serial(lambda: call_parallel(torch.get_num_threads))()
+
+    with torch_threads(2):
+        step()
+        assert torch.get_num_threads() == 2
+    assert seen == {"glue": 1, "op": 2, "nested": 2}
+    with torch_threads(2):
+        assert call_parallel(torch.get_num_threads) == 2  # outside an entry point: unchanged
+
+
+def test_counts_restored_after_an_error():
+    @serial
+    def fails():
+        call_parallel(lambda: (_ for _ in ()).throw(RuntimeError("op failed")))
+
+    with torch_threads(2):
+        with pytest.raises(RuntimeError, match="op failed"):
+            fails()
+        assert torch.get_num_threads() == 2
+        assert call_parallel(torch.get_num_threads) == 2

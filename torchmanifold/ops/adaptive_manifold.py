@@ -26,6 +26,7 @@ from torchmanifold._checks import (
     check_tree_height,
     check_values_and_guide,
 )
+from torchmanifold._threads import call_parallel
 from torchmanifold.ops._reference import adaptive_manifold_torch
 
 __all__ = ["adaptive_manifold_filter", "AdaptiveManifoldFilter", "automatic_tree_height", "has_kernel"]
@@ -107,8 +108,8 @@ def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float],
     power_iterations = check_int("power_iterations", power_iterations, min=0)
     sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
     v, g = _working_inputs(values, guide, sigma_r, guide_sigmas)
-    out = torch.ops.torchmanifold._adaptive_manifold_bandwidths(v.contiguous(), g.contiguous(), sigmas, sigma_r,
-                                                                tree_height, power_iterations, False)
+    out = call_parallel(torch.ops.torchmanifold._adaptive_manifold_bandwidths, v.contiguous(), g.contiguous(),
+                        sigmas, sigma_r, tree_height, power_iterations, False)
     return out.to(values.dtype)
 
 
@@ -180,8 +181,9 @@ def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigm
         if backend == "cpp" and not _has_kernel_for(v.device.type):
             raise ValueError(f"backend='cpp' needs a kernel of torchmanifold::adaptive_manifold for "
                              f"{v.device.type} tensors; none is registered (use backend='torch' or 'auto')")
-        out = torch.ops.torchmanifold.adaptive_manifold(v.contiguous(), g.detach().contiguous(), sigma_s,
-                                                        sigma_r, tree_height, power_iterations, adjust_outliers)
+        op = torch.ops.torchmanifold.adaptive_manifold
+        out = call_parallel(op, v.contiguous(), g.detach().contiguous(), sigma_s, sigma_r, tree_height,
+                            power_iterations, adjust_outliers)
     out = out.to(out_dtype)
     return out[0] if unbatched else out
 

@@ -33,6 +33,7 @@ from torch import Tensor
 
 from torchmanifold._checks import (check_choice, check_int, check_numbers, check_positive, check_same_dtype_device,
                                    check_tensor, check_tree_height)
+from torchmanifold._threads import call_parallel
 from torchmanifold.ops._reference import (
     GRAM_BAND,
     _domain_transform,
@@ -243,9 +244,10 @@ def _spacetime_bandwidths(values: Tensor, guide: Tensor, frame_times, query_time
     power_iterations = check_int("power_iterations", power_iterations, min=0)
     sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
     v, g, tw = _window_inputs(values, guide, ft, qt, sigma_r, sigma_t, guide_sigmas)
-    out = torch.ops.torchmanifold._spacetime_adaptive_manifold_bandwidths(
-        v.contiguous(), g.contiguous(), tw.contiguous(), _query_guides(g, ft, qt).contiguous(), sigmas, sigma_r,
-        tree_height, power_iterations, False)
+    gq = _query_guides(g, ft, qt)
+    out = call_parallel(torch.ops.torchmanifold._spacetime_adaptive_manifold_bandwidths, v.contiguous(),
+                        g.contiguous(), tw.contiguous(), gq.contiguous(), sigmas, sigma_r, tree_height,
+                        power_iterations, False)
     return out.to(values.dtype)
 
 
@@ -328,8 +330,8 @@ def temporal_adaptive_manifold_filter(values: Tensor, guide: Tensor, frame_times
         if backend == "torch" or (backend == "auto" and not _has_spacetime_kernel_for(v.device.type)):
             out = spacetime_torch(v, g, tw, gq, *args)
         else:
-            out = torch.ops.torchmanifold.spacetime_adaptive_manifold(
-                v.contiguous(), g.detach().contiguous(), tw.contiguous(), gq.detach().contiguous(), *args)
+            out = call_parallel(torch.ops.torchmanifold.spacetime_adaptive_manifold, v.contiguous(),
+                                g.detach().contiguous(), tw.contiguous(), gq.detach().contiguous(), *args)
     return out.to(values.dtype)
 
 

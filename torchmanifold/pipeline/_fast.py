@@ -17,6 +17,8 @@ import threading
 import torch
 from torch import Tensor
 
+from torchmanifold._threads import call_parallel, parallel
+
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
 
 _FLOATS = (torch.float32, torch.float64)
@@ -59,12 +61,14 @@ def reference():
         _state.reference = old
 
 
+@parallel
 def normalise_guard(num: Tensor, den: Tensor, values: Tensor, mask: Tensor, radius: int) -> Tensor:
     """``_Filter.normalise`` at frame queries: num ``(N, C, H, W)``, den ``(N, 1, H, W)``, values
     ``(N, C, H, W)``, mask ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0 skips the guard."""
     return torch.ops.torchmanifold._normalise_guard(num, den, values, mask, int(radius))
 
 
+@parallel
 def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tensor, nlo: Tensor, radius: int) -> Tensor:
     """``_Filter.normalise`` where a query mixes a window: num, fallback (the masked values at the queries), hi
     and nlo (``_Filter.window_bounds``) ``(N, C, H, W)``, den ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0
@@ -72,12 +76,14 @@ def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tenso
     return torch.ops.torchmanifold._normalise_guard_bounds(num, den, fallback, hi, nlo, int(radius))
 
 
+@parallel
 def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float) -> Tensor:
     """``denoise._footprint_average`` after its tone-mapping knee: x ``(T, 3, H, W)`` (clamped at 0), k
     ``(T, 1, 1, 1)`` -> ``(T, 3, H, W)``."""
     return torch.ops.torchmanifold._footprint_average(x, k.reshape(-1), float(sigma), float(range_sigma))
 
 
+@parallel
 def kuwahara3(x: Tensor) -> Tensor:
     """``denoise._log_radiance``'s 3x3 Kuwahara filter: ``(N, C, H, W)`` -> ``(N, C, H, W)``."""
     return torch.ops.torchmanifold._kuwahara3(x)
@@ -87,16 +93,18 @@ def cv_blend(preds: list[Tensor], fulls: list[Tensor], e: Tensor, weight: Tensor
              blur_sigma: float, softness: float, error_cut: float) -> Tensor:
     """The end of ``denoise._select_bandwidth`` at frame queries: K predictions and outputs
     ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``."""
-    return torch.ops.torchmanifold._cv_blend(torch.stack(preds), torch.stack(fulls), e, weight, mask,
-                                             float(blur_sigma), float(softness), float(error_cut))
+    return call_parallel(torch.ops.torchmanifold._cv_blend, torch.stack(preds), torch.stack(fulls), e, weight,
+                         mask, float(blur_sigma), float(softness), float(error_cut))
 
 
+@parallel
 def quantiles(v: Tensor, q: list[float]) -> Tensor:
     """``torch.quantile(v.double(), q, dim=1)`` (linear) by selection: v ``(R, N)`` -> ``(len(q), R)``
     float64, the same bits."""
     return torch.ops.torchmanifold._quantiles(v, [float(x) for x in q]).t()
 
 
+@parallel
 def cv_halves(e: Tensor, mask: Tensor, flat: Tensor, classes: list[int]) -> Tensor:
     """``_select_bandwidth``'s op input: per class (0 not flat, 1 flat) and checkerboard half ``[e * m, m]``:
     e ``(T, 3, H, W)``, mask ``(T, 1, H, W)``, flat ``(T, 1, H, W)`` bool -> ``(T, 8 K, H, W)``."""
@@ -112,12 +120,14 @@ def cv_halves(e: Tensor, mask: Tensor, flat: Tensor, classes: list[int]) -> Tens
     return buf
 
 
+@parallel
 def cv_split(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The op's output on :func:`cv_halves` ``(T, 8 K, H, W)`` -> per class the other half's prediction
     ``(T, K, 3, H, W)``, and the halves' sums num ``(T, K, 3, H, W)`` and den ``(T, K, 1, H, W)``."""
     return torch.ops.torchmanifold._cv_split(y)
 
 
+@parallel
 def sanitize(c: Tensor, f: Tensor) -> tuple[Tensor, Tensor, Tensor, dict]:
     """``denoise._sanitize``'s finite check: c ``(T, C, H, W)``, f ``(T, D, H, W)`` -> c and f with non-finite
     values 0, the mask ``(T, 1, H, W)`` and the stats dict (same keys and counts)."""
@@ -126,6 +136,7 @@ def sanitize(c: Tensor, f: Tensor) -> tuple[Tensor, Tensor, Tensor, dict]:
     return c, f, mask, {"nonfinite_color": n[0], "nonfinite_features": n[1], "masked_pixels": n[2]}
 
 
+@parallel
 def footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
     """``denoise._footprint_albedo`` (``sigma > 0``): alb ``(T, 3, H, W)``, flat ``(T, 1, H, W)`` bool ->
     ``(T, 3, H, W)``."""

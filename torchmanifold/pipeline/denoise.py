@@ -76,13 +76,11 @@ def feature_group(name: str) -> str:
     return feature_table.group_of(name)
 
 
-@serial
 def luminance(x: Tensor) -> Tensor:
     """Rec. 709 luminance of ``(..., 3, H, W)`` -> ``(..., 1, H, W)``."""
     return 0.2126 * x[..., 0:1, :, :] + 0.7152 * x[..., 1:2, :, :] + 0.0722 * x[..., 2:3, :, :]
 
 
-@serial
 def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
     the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
@@ -654,6 +652,7 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> 
     return torch.where(out & ~keep, _LEFT_OUT, z2)
 
 
+@serial
 def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names: Sequence[str] = (),
                    emission: Tensor | None = None, settings: DenoiseSettings | None = None,
                    sigma_s: float | None = None, range_scale: float = 1.0,
@@ -775,6 +774,7 @@ class FrameState:
         return {**c, "firefly_energy_removed": removed / max(total, 1e-30)}
 
 
+@serial
 def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str], emission: Tensor | None,
                    settings: DenoiseSettings, sigma_s: float | None = None, range_scale: float = 1.0,
                    pilot: Tensor | None = None, firefly_k: float | None = None,
@@ -817,6 +817,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     return state
 
 
+@serial
 def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: Sequence[float],
                      query_times: Sequence[float], sigma_s: float | None = None,
                      range_scale: float = 1.0) -> Tensor:
@@ -861,7 +862,6 @@ def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
     return c, f, mask, em, stats
 
 
-@serial
 def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
     """The albedo the colour is divided by, ``(T, 3, H, W)``, and where it is flat (1), ``(T, 1, H, W)``.
 
@@ -998,7 +998,6 @@ def _radiance_sigma(settings: DenoiseSettings) -> float:
     return float(dict(settings.guide_sigmas).get(RADIANCE_GUIDE, settings.radiance_sigma))
 
 
-@serial
 def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor, settings: DenoiseSettings):
     """The guide with its log-radiance channel (the last, see :func:`_guide`) taken from the pilot
     estimate ``(T, 3, H, W)`` instead of the samples: it tells a light, a shadow or what glass shows from
@@ -1014,7 +1013,6 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     return guide, sigmas
 
 
-@serial
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
     energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter

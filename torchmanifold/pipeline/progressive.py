@@ -34,6 +34,7 @@ from typing import Callable, Sequence
 import torch
 from torch import Tensor
 
+from torchmanifold._threads import serial
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.timewindow import frame_at, interpolate, window
@@ -293,6 +294,7 @@ class ProgressiveRenderer:
             self.on_render(k, res)
         return res
 
+    @serial  # the C++ ops inside take the caller's threads (torchmanifold._threads)
     def step(self) -> ProgressiveState:
         """Run one iteration over the whole clip and return the updated :class:`ProgressiveState`."""
         i = self.iteration + 1
