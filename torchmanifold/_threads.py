@@ -52,6 +52,11 @@ def serial(fn):
     return run
 
 
+def caller_threads() -> int:
+    """The torch threads of the :func:`serial` entry point around this call (the current count outside one)."""
+    return getattr(_caller, "threads", None) or torch.get_num_threads()
+
+
 def call_parallel(fn, *args, **kwargs):
     """``fn(*args, **kwargs)`` (a C++ op, which scales) with the threads of the :func:`serial` entry point
     around it, if any."""

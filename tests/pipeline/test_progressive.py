@@ -241,3 +241,23 @@ def test_both_schemes_tend_to_the_raw_mean_as_the_bandwidth_vanishes(small_trace
     acc.set_settings(sigma_s=1e-3, footprint_sigma=0.0, sigma_t=1e-3)
     st = acc.step()
     torch.testing.assert_close(st.ours, st.raw, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("scheme", ["accumulate", "average"])
+def test_query_times_filtered_side_by_side_give_the_same_bytes(small_tracer, scheme):
+    """With two threads the query times are filtered side by side on worker threads; the frames, the
+    statistics and the progress calls are those of one thread."""
+    from torchmanifold._threads import torch_threads
+
+    out = {}
+    for threads in (1, 2):
+        calls = []
+        pr = ProgressiveRenderer(small_tracer, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], scheme=scheme, seed=2,
+                                 settings=DenoiseSettings(temporal_radius=1, mode="spacetime"), progress=calls.append)
+        with torch_threads(threads):
+            states = [pr.step() for _ in range(3)]
+        out[threads] = (states, calls)
+    for a, b in zip(out[1][0], out[2][0]):
+        assert torch.equal(a.ours, b.ours) and torch.equal(a.raw, b.raw) and torch.equal(a.gaussian, b.gaussian)
+        assert a.stats == b.stats
+    assert out[1][1] == out[2][1] == [1] * 18

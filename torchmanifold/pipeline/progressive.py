@@ -27,14 +27,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from torchmanifold._threads import serial
+from torchmanifold._threads import caller_threads, serial, torch_threads
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.timewindow import frame_at, interpolate, window
@@ -49,6 +50,12 @@ PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")
+
+
+def _with_threads(n: int, fn, *args):
+    """``fn(*args)`` with ``n`` torch threads (a worker filtering one query time beside others)."""
+    with torch_threads(n):
+        return fn(*args)
 
 
 def gaussian_baseline(color: Tensor, sigma: float) -> Tensor:
@@ -315,41 +322,70 @@ class ProgressiveRenderer:
         rows: list[Tensor | None] = [None] * len(qt)
         ring: "OrderedDict[int, object]" = OrderedDict()  # frame index -> render result (bounded window)
         stats_all: dict = {}
-        for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order, so the ring only moves on
-            q = qt[qi]
-            need = self._needed(q)
-            for k in need:
-                if k not in ring:
-                    tr = time.perf_counter()
-                    ring[k] = self._render(k, i)
-                    render_s += time.perf_counter() - tr
-                    if self.scheme == "accumulate":
-                        self._accumulate(k, ring[k])
-            for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
-                del ring[k]
-            rs = [ring[k] for k in need]
-            ft = [self.times[k] for k in need]
-            names = list(rs[0].feature_names)
-            samples = torch.cat([r.color for r in rs])
-            if self.scheme == "accumulate":
-                mean = torch.stack([self._frame_sums[k] for k in need]).div_(i).float()
-                color, feats, emis = mean.split([3, len(names), 3], 1)
-            else:
-                color = samples
-                feats = torch.cat([r.features for r in rs])
-                emis = torch.cat([r.emission for r in rs])
-            pilot = None
-            if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
-                pilot = torch.stack([self.estimate(t) for t in ft])
+
+        def filter_query(color, feats, names, emis, pilot, ft, q, samples):
             y, st = denoise_frames(color, feats, names, emis, settings, sigma_s=sig_s, range_scale=rscale,
                                    frame_times=ft, query_times=[q], pilot=pilot, firefly_k=k_ff, return_stats=True)
-            for key, v in st.items():
-                stats_all[key] = stats_all.get(key, 0) + v
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
-            rows[qi] = torch.stack([y[0], x, gauss]).double()
+            return torch.stack([y[0], x, gauss]).double(), st
+
+        def collect(qi, row, st):  # in time order, so the stats sum in one order for any thread count
+            rows[qi] = row
+            for key, v in st.items():
+                stats_all[key] = stats_all.get(key, 0) + v
             if self.progress is not None:
                 self.progress(1)
+
+        # Query times are independent once their frames are rendered: with more than one thread they are
+        # filtered side by side on worker threads that share the caller's (the GL tracer stays on this
+        # one), a few at a time so the frames held stay bounded. The Python around a small frame's ops
+        # does not scale inside one query; across queries it overlaps with the other's ops.
+        threads = caller_threads()
+        workers = min(threads, len(qt))
+        pool = ThreadPoolExecutor(workers) if workers > 1 else None
+        pending: "deque[tuple[int, Future]]" = deque()
+        try:
+            for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order, so the ring only moves on
+                q = qt[qi]
+                need = self._needed(q)
+                for k in need:
+                    if k not in ring:
+                        tr = time.perf_counter()
+                        ring[k] = self._render(k, i)
+                        render_s += time.perf_counter() - tr
+                        if self.scheme == "accumulate":
+                            self._accumulate(k, ring[k])
+                for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
+                    del ring[k]
+                rs = [ring[k] for k in need]
+                ft = [self.times[k] for k in need]
+                names = list(rs[0].feature_names)
+                samples = torch.cat([r.color for r in rs])
+                if self.scheme == "accumulate":
+                    mean = torch.stack([self._frame_sums[k] for k in need]).div_(i).float()
+                    color, feats, emis = mean.split([3, len(names), 3], 1)
+                else:
+                    color = samples
+                    feats = torch.cat([r.features for r in rs])
+                    emis = torch.cat([r.emission for r in rs])
+                pilot = None
+                if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
+                    pilot = torch.stack([self.estimate(t) for t in ft])
+                args = (color, feats, names, emis, pilot, ft, q, samples)
+                if pool is None:
+                    collect(qi, *filter_query(*args))
+                    continue
+                pending.append((qi, pool.submit(_with_threads, threads // workers, filter_query, *args)))
+                while len(pending) > 2 * workers:
+                    j, fut = pending.popleft()
+                    collect(j, *fut.result())
+            while pending:
+                j, fut = pending.popleft()
+                collect(j, *fut.result())
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
         new = torch.stack(rows)
         if self._sums is None:
             self._sums = new
