@@ -14,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import threading
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
@@ -75,3 +77,58 @@ def parallel(fn):
     def run(*args, **kwargs):
         return call_parallel(fn, *args, **kwargs)
     return run
+
+
+class InOrder:
+    """Independent calls run side by side on worker threads that share ``threads`` torch threads between
+    them, at most one per worker ahead of the caller (what a call holds stays bounded), with the results
+    handed back in submission order
+    (so anything summed from them sums in one order for any thread count). With one worker (one thread,
+    or one call) each call runs at once on the calling thread.
+
+    Use as a context manager::
+
+        with InOrder(threads, calls) as pool:
+            for item in items:
+                for key, result in pool.submit(key, fn, *args):
+                    ...  # the results now due, in order
+            for key, result in pool.drain():
+                ...
+    """
+
+    def __init__(self, threads: int, calls: int):
+        self.workers = max(1, min(int(threads), int(calls)))
+        self.threads_each = max(1, int(threads) // self.workers)
+        self._pool = None
+        self._pending: deque = deque()
+
+    def __enter__(self) -> "InOrder":
+        if self.workers > 1:
+            self._pool = ThreadPoolExecutor(self.workers)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def submit(self, key, fn, *args) -> list:
+        """Queue ``fn(*args)``; returns the ``(key, result)`` pairs due now (oldest first)."""
+        if self._pool is None:
+            return [(key, fn(*args))]
+        self._pending.append((key, self._pool.submit(_with_threads, self.threads_each, fn, *args)))
+        done = []
+        while len(self._pending) > self.workers:
+            k, fut = self._pending.popleft()
+            done.append((k, fut.result()))
+        return done
+
+    def drain(self) -> list:
+        """Every result still due, in order."""
+        done = [(k, fut.result()) for k, fut in self._pending]
+        self._pending.clear()
+        return done
+
+
+def _with_threads(n: int, fn, *args):
+    with torch_threads(n):
+        return fn(*args)

@@ -317,10 +317,12 @@ def test_same_bytes_for_any_thread_count(clip):
     assert torch.equal(outs[0], outs[1])
 
 
-def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
+@pytest.mark.parametrize("threads", [1, 2])
+def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads):
     """The denoise command prepares each frame once and reuses it in every window that holds it; each
     output frame has the bytes of :func:`denoise_frames` over that frame's window, computed afresh with
-    the sample count the files' header gives."""
+    the sample count the files' header gives, on one thread or two."""
+    from torchmanifold._threads import torch_threads
     from torchmanifold.io import read_exr, write_exr
     from torchmanifold.pipeline.denoise_files import denoise_files
 
@@ -333,7 +335,8 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir):
         write_exr(paths[-1], {**{ch: c[t, k].numpy() for k, ch in enumerate("RGB")},
                               **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}}, attributes={"spp": "1"})
     st = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=2)
-    res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
+    with torch_threads(threads):
+        res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
     assert res["nonfinite_color"] == 3
     assert res["samples_per_pixel"] == 1 and res["footprint_sigma"] == pytest.approx(0.7)  # from the header
     for t in range(4):

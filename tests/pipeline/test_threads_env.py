@@ -64,3 +64,37 @@ def test_counts_restored_after_an_error():
             fails()
         assert torch.get_num_threads() == 2
         assert call_parallel(torch.get_num_threads) == 2
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_in_order_pool_hands_results_back_in_submission_order(threads):
+    import time
+
+    from torchmanifold._threads import InOrder
+
+    def work(k):
+        time.sleep(0.02 if k % 3 == 0 else 0.0)  # early calls finish last
+        return k * k, torch.get_num_threads()
+
+    got = []
+    with InOrder(threads, 7) as pool:
+        for k in range(7):
+            got += pool.submit(k, work, k)
+        got += pool.drain()
+    assert [k for k, _ in got] == list(range(7)) and [r for _, (r, _) in got] == [k * k for k in range(7)]
+    assert {n for _, (_, n) in got} == ({torch.get_num_threads()} if threads == 1 else {threads // min(threads, 7)})
+
+
+def test_in_order_pool_raises_a_worker_error():
+    from torchmanifold._threads import InOrder
+
+    def work(k):
+        if k == 2:
+            raise ValueError("frame 2 is bad")
+        return k
+
+    with pytest.raises(ValueError, match="frame 2"):
+        with InOrder(2, 5) as pool:
+            for k in range(5):
+                pool.submit(k, work, k)
+            pool.drain()

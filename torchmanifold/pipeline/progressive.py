@@ -27,15 +27,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import OrderedDict, deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import torch
 from torch import Tensor
 
-from torchmanifold._threads import caller_threads, serial, torch_threads
+from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.timewindow import frame_at, interpolate, window
@@ -50,12 +49,6 @@ PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")
-
-
-def _with_threads(n: int, fn, *args):
-    """``fn(*args)`` with ``n`` torch threads (a worker filtering one query time beside others)."""
-    with torch_threads(n):
-        return fn(*args)
 
 
 def gaussian_baseline(color: Tensor, sigma: float) -> Tensor:
@@ -339,13 +332,9 @@ class ProgressiveRenderer:
 
         # Query times are independent once their frames are rendered: with more than one thread they are
         # filtered side by side on worker threads that share the caller's (the GL tracer stays on this
-        # one), a few at a time so the frames held stay bounded. The Python around a small frame's ops
-        # does not scale inside one query; across queries it overlaps with the other's ops.
-        threads = caller_threads()
-        workers = min(threads, len(qt))
-        pool = ThreadPoolExecutor(workers) if workers > 1 else None
-        pending: "deque[tuple[int, Future]]" = deque()
-        try:
+        # one). The Python around a small frame's ops does not scale inside one query; across queries it
+        # overlaps with the other's ops.
+        with InOrder(caller_threads(), len(qt)) as pool:
             for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order, so the ring only moves on
                 q = qt[qi]
                 need = self._needed(q)
@@ -372,20 +361,10 @@ class ProgressiveRenderer:
                 pilot = None
                 if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
                     pilot = torch.stack([self.estimate(t) for t in ft])
-                args = (color, feats, names, emis, pilot, ft, q, samples)
-                if pool is None:
-                    collect(qi, *filter_query(*args))
-                    continue
-                pending.append((qi, pool.submit(_with_threads, threads // workers, filter_query, *args)))
-                while len(pending) > 2 * workers:
-                    j, fut = pending.popleft()
-                    collect(j, *fut.result())
-            while pending:
-                j, fut = pending.popleft()
-                collect(j, *fut.result())
-        finally:
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
+                for j, result in pool.submit(qi, filter_query, color, feats, names, emis, pilot, ft, q, samples):
+                    collect(j, *result)
+            for j, result in pool.drain():
+                collect(j, *result)
         new = torch.stack(rows)
         if self._sums is None:
             self._sums = new
