@@ -55,7 +55,8 @@ def serial(fn):
 
 
 def caller_threads() -> int:
-    """The torch threads of the :func:`serial` entry point around this call (the current count outside one)."""
+    """The torch threads of the :func:`serial` entry point around this call (the current count outside
+    one)."""
     return getattr(_caller, "threads", None) or torch.get_num_threads()
 
 
@@ -82,9 +83,8 @@ def parallel(fn):
 class InOrder:
     """Independent calls run side by side on worker threads that share ``threads`` torch threads between
     them, at most one per worker ahead of the caller (what a call holds stays bounded), with the results
-    handed back in submission order
-    (so anything summed from them sums in one order for any thread count). With one worker (one thread,
-    or one call) each call runs at once on the calling thread.
+    handed back in submission order (so anything summed from them sums in one order for any thread
+    count). With one worker (one thread, or one call) each call runs at once on the calling thread.
 
     Use as a context manager::
 

@@ -70,7 +70,8 @@ def _register() -> None:
 
     @torch.library.register_fake("torchmanifold::_adaptive_manifold_bandwidths")
     def _bandwidths_fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
-        torch._check(len(sigma_s) > 0, lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
+        torch._check(len(sigma_s) > 0,
+                     lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
         for s in sigma_s:
             _check_op_args(values, guide, s, sigma_r, tree_height, power_iterations)
         return values.new_empty((len(sigma_s), *values.shape))

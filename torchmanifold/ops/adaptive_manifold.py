@@ -94,15 +94,17 @@ def _working_inputs(values: Tensor, guide: Tensor, sigma_r: float, guide_sigmas)
     return v, g
 
 
-def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float], sigma_r: float, tree_height: int,
-                       guide_sigmas: Sequence[float] | Tensor | None = None, power_iterations: int = 32) -> Tensor:
+def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float], sigma_r: float,
+                       tree_height: int, guide_sigmas: Sequence[float] | Tensor | None = None,
+                       power_iterations: int = 32) -> Tensor:
     """:func:`adaptive_manifold_filter` of ``(B, C, H, W)`` values at every spatial sigma of ``sigmas_s``:
     ``(K, B, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
     op call whose images share the threads (``_adaptive_manifold_bandwidths``); otherwise one call each."""
     if not (values.dim() == 4 and values.device.type == "cpu" and _has_kernel_for("cpu") and values.numel()
             and not (torch.is_grad_enabled() and values.requires_grad)):
-        return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, tree_height, guide_sigmas=guide_sigmas,
-                                                     power_iterations=power_iterations) for s in sigmas_s])
+        return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, tree_height,
+                                                     guide_sigmas=guide_sigmas, power_iterations=power_iterations)
+                            for s in sigmas_s])
     _check_inputs(values, guide)
     sigma_r, tree_height = check_positive("sigma_r", sigma_r), check_tree_height(tree_height)
     power_iterations = check_int("power_iterations", power_iterations, min=0)

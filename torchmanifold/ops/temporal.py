@@ -226,9 +226,10 @@ def _query_guides(g: Tensor, ft: Tensor, qt: Tensor) -> Tensor:
 
 def _spacetime_bandwidths(values: Tensor, guide: Tensor, frame_times, query_times, sigmas_s: Sequence[float],
                           sigma_r: float, sigma_t: float, tree_height: int,
-                          guide_sigmas: Sequence[float] | Tensor | None = None, power_iterations: int = 32) -> Tensor:
-    """:func:`temporal_adaptive_manifold_filter` in ``"spacetime"`` mode at every spatial sigma of ``sigmas_s``:
-    ``(K, B, Q, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
+                          guide_sigmas: Sequence[float] | Tensor | None = None,
+                          power_iterations: int = 32) -> Tensor:
+    """:func:`temporal_adaptive_manifold_filter` in ``"spacetime"`` mode at every spatial sigma of
+    ``sigmas_s``: ``(K, B, Q, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
     op call whose images share the threads (``_spacetime_adaptive_manifold_bandwidths``); otherwise one
     call each."""
     if not (values.dim() == 5 and values.device.type == "cpu" and _has_spacetime_kernel_for("cpu")

@@ -19,7 +19,8 @@ from torch import Tensor
 
 from torchmanifold._threads import call_parallel, parallel
 
-__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
+__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
+           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -69,10 +70,11 @@ def normalise_guard(num: Tensor, den: Tensor, values: Tensor, mask: Tensor, radi
 
 
 @parallel
-def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tensor, nlo: Tensor, radius: int) -> Tensor:
-    """``_Filter.normalise`` where a query mixes a window: num, fallback (the masked values at the queries), hi
-    and nlo (``_Filter.window_bounds``) ``(N, C, H, W)``, den ``(N, 1, H, W)`` -> ``(N, C, H, W)``; ``radius`` 0
-    skips the guard."""
+def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tensor, nlo: Tensor,
+                           radius: int) -> Tensor:
+    """``_Filter.normalise`` where a query mixes a window: num, fallback (the masked values at the
+    queries), hi and nlo (``_Filter.window_bounds``) ``(N, C, H, W)``, den ``(N, 1, H, W)`` ->
+    ``(N, C, H, W)``; ``radius`` 0 skips the guard."""
     return torch.ops.torchmanifold._normalise_guard_bounds(num, den, fallback, hi, nlo, int(radius))
 
 

@@ -403,11 +403,13 @@ class _Filter:
         for q in f0.qt:
             k = frame_at(f0.ft, q)
             if st.temporal_radius == 0 and k is not None:
-                outs.append(_filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])[:, 0])
+                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])
+                outs.append(y[:, 0])
             elif st.mode == "spacetime":
                 ids = f0._window(q)
-                outs.append(_spacetime_bandwidths(x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids], [q], sigmas,
-                                                  1.0, st.sigma_t, st.tree_height, f0._sigmas_at(q))[:, 0, 0])
+                y = _spacetime_bandwidths(x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids], [q], sigmas, 1.0,
+                                          st.sigma_t, st.tree_height, f0._sigmas_at(q))
+                outs.append(y[:, 0, 0])
             else:  # the window mean: its spatial filter per bandwidth
                 return [f.apply(x) for f in filters]
         return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
@@ -460,7 +462,8 @@ class _Filter:
         return (self.at_queries_max(torch.where(mask > 0, values, -big)),
                 self.at_queries_max(torch.where(mask > 0, -values, -big)))
 
-    def _guard(self, out: Tensor, values: Tensor, mask: Tensor, bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    def _guard(self, out: Tensor, values: Tensor, mask: Tensor,
+               bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """A normalised filter is a convex combination: keep the result inside the range of the valid
         samples near the pixel. In float32 a pixel far from every manifold (weights ~1e-38) can come back
         as garbage; this bounds it (float64 needs no guard)."""
@@ -550,8 +553,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
         stack = torch.cat(parts, 1)
     class_masks = [mask * c for c in classes]
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
-    class_bounds = [None if filters[0]._per_frame() or e.dtype == torch.float64 else filters[0].window_bounds(e, m)
-                    for m in class_masks]
+    windowed = not filters[0]._per_frame() and e.dtype != torch.float64
+    class_bounds = [filters[0].window_bounds(e, m) if windowed else None for m in class_masks]
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
         if fast:
             pred, num, den = _fast.cv_split(y)

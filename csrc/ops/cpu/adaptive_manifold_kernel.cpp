@@ -652,7 +652,8 @@ at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::
                                             c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height,
                                             int64_t power_iterations, bool adjust_outliers) {
   TORCH_CHECK_VALUE(!sigma_s.empty(), "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
-  for (double s : sigma_s) check_adaptive_manifold_args(values, guide, s, sigma_r, tree_height, power_iterations);
+  for (double s : sigma_s)
+    check_adaptive_manifold_args(values, guide, s, sigma_r, tree_height, power_iterations);
   TORCH_CHECK_VALUE(values.device().is_cpu(),
                     "_adaptive_manifold_bandwidths: values and guide must be CPU tensors for this kernel, got ",
                     values.device());

@@ -537,7 +537,8 @@ at::Tensor spacetime_adaptive_manifold_bandwidths_cpu(const at::Tensor& values, 
                                                       c10::ArrayRef<double> sigma_s, double sigma_r,
                                                       int64_t tree_height, int64_t power_iterations,
                                                       bool adjust_outliers) {
-  TORCH_CHECK_VALUE(!sigma_s.empty(), "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
+  TORCH_CHECK_VALUE(!sigma_s.empty(),
+                    "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
   return spacetime_images(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
                           adjust_outliers);
 }
