@@ -35,7 +35,8 @@ import torch
 from torch import Tensor
 
 from torchmanifold._threads import InOrder, caller_threads, serial
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
+from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
+                                             prepare_frames)
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.timewindow import frame_at, interpolate, window
 
@@ -316,12 +317,24 @@ class ProgressiveRenderer:
         ring: "OrderedDict[int, object]" = OrderedDict()  # frame index -> render result (bounded window)
         stats_all: dict = {}
 
-        def filter_query(color, feats, names, emis, pilot, ft, q, samples):
-            y, st = denoise_frames(color, feats, names, emis, settings, sigma_s=sig_s, range_scale=rscale,
-                                   frame_times=ft, query_times=[q], pilot=pilot, firefly_k=k_ff, return_stats=True)
+        prepared: dict[int, FrameState] = {}  # frame -> its part of the frame step, once per iteration
+
+        def prepare(k: int) -> FrameState:
+            res = ring[k]
+            if self.scheme == "accumulate":
+                color, feats, emis = (self._frame_sums[k] / i).float()[None].split(
+                    [3, len(res.feature_names), 3], 1)
+            else:
+                color, feats, emis = res.color, res.features, res.emission
+            # the running estimate is a far better firefly pilot than one sample
+            pilot = None if self._sums is None else self.estimate(self.times[k])[None]
+            return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot, k_ff)
+
+        def filter_query(state: FrameState, ft: list[float], q: float, samples: Tensor):
+            y = denoise_prepared(state, settings, ft, [q], sig_s, rscale).float()
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
-            return torch.stack([y[0], x, gauss]).double(), st
+            return torch.stack([y[0], x, gauss]).double(), state.stats()
 
         def collect(qi, row, st):  # in time order, so the stats sum in one order for any thread count
             rows[qi] = row
@@ -330,7 +343,8 @@ class ProgressiveRenderer:
             if self.progress is not None:
                 self.progress(1)
 
-        # Query times are independent once their frames are rendered: with more than one thread they are
+        # Each frame is prepared once (sanitised, demodulated, guided, clamped) for every window that
+        # holds it. Query times are independent once their frames are: with more than one thread they are
         # filtered side by side on worker threads that share the caller's (the GL tracer stays on this
         # one). The Python around a small frame's ops does not scale inside one query; across queries it
         # overlaps with the other's ops.
@@ -347,21 +361,14 @@ class ProgressiveRenderer:
                             self._accumulate(k, ring[k])
                 for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
                     del ring[k]
-                rs = [ring[k] for k in need]
+                    prepared.pop(k, None)
+                for k in need:
+                    if k not in prepared:
+                        prepared[k] = prepare(k)
+                state = FrameState.cat([prepared[k] for k in need])
                 ft = [self.times[k] for k in need]
-                names = list(rs[0].feature_names)
-                samples = torch.cat([r.color for r in rs])
-                if self.scheme == "accumulate":
-                    mean = torch.stack([self._frame_sums[k] for k in need]).div_(i).float()
-                    color, feats, emis = mean.split([3, len(names), 3], 1)
-                else:
-                    color = samples
-                    feats = torch.cat([r.features for r in rs])
-                    emis = torch.cat([r.emission for r in rs])
-                pilot = None
-                if self._sums is not None:  # the running estimate is a far better firefly pilot than one sample
-                    pilot = torch.stack([self.estimate(t) for t in ft])
-                for j, result in pool.submit(qi, filter_query, color, feats, names, emis, pilot, ft, q, samples):
+                samples = torch.cat([ring[k].color for k in need])
+                for j, result in pool.submit(qi, filter_query, state, ft, q, samples):
                     collect(j, *result)
             for j, result in pool.drain():
                 collect(j, *result)
