@@ -169,3 +169,30 @@ def test_every_bundled_scene_renders(ctx):
         assert torch.isfinite(res.color).all() and torch.isfinite(res.features).all(), f.name
         assert res.color.mean() > 0 and (res.object_id >= 0).float().mean() > 0.5, f.name
         assert ctx.error == "GL_NO_ERROR", f.name
+
+
+def test_a_collected_tracer_frees_its_objects_in_its_own_context():
+    """A tracer garbage-collected while another context is current (a window's) must not delete that
+    context's objects: GL names are per context, and a delete goes to whichever one is current."""
+    import gc
+
+    import moderngl
+
+    from torchmanifold.render.context import make_current
+
+    tracer = PathTracer(default_scene(), 16, 12)
+    tracer.render(times=[0.0], spp=1, seed=0)
+    own = tracer.ctx
+    other = moderngl.create_context(standalone=True, backend="egl")  # stands in for a window
+    try:
+        other.__enter__()
+        data = np.arange(4096, dtype="f4")
+        bufs = [other.buffer(data.tobytes()) for _ in range(64)]  # names that collide with the tracer's
+        del tracer
+        gc.collect()
+        assert all(np.array_equal(np.frombuffer(b.read(), "f4"), data) for b in bufs)
+        assert other.error == "GL_NO_ERROR"
+        make_current(own)  # the tracer's objects go now, with their context current
+        assert len(own.objects) == 0 and own.error == "GL_NO_ERROR"
+    finally:
+        other.release()

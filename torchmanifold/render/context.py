@@ -36,7 +36,10 @@ def create_context(new: bool = False) -> moderngl.Context:
             f"could not create a headless OpenGL 4.3 context through EGL ({exc}); "
             "on Debian install libegl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libopengl0"
         ) from exc
-    ctx.gc_mode = "auto"  # GL objects are freed when garbage-collected: tracers come and go in long sessions
+    # GL objects a garbage-collected tracer leaves are freed the next time this context is made current
+    # (make_current): freed at once ("auto"), they were deleted through whichever context was current,
+    # e.g. a window's, whose objects with the same names then vanished
+    ctx.gc_mode = "context_gc"
     if not new:
         _default_ctx = ctx
     return ctx
@@ -47,6 +50,11 @@ def make_current(ctx: moderngl.Context) -> None:
 
     Another GL user (pyrender, a second context, a window) may have switched contexts. moderngl's
     ``with ctx:`` would restore the previous (possibly no) context on exit, which breaks every later
-    plain moderngl call, so only the enter half is used.
+    plain moderngl call, so only the enter half is used. The objects of ``ctx`` garbage-collected since
+    are freed here, with their own context current.
     """
     ctx.__enter__()
+    while ctx.objects:  # ctx.gc(), but objects released by hand come back as InvalidObject: skip them
+        obj = ctx.objects.popleft()
+        if hasattr(obj, "release"):
+            obj.release()
