@@ -1,7 +1,7 @@
 """Do more torch threads help the pipeline? 1 vs 2 (or N) threads on a ``render`` iteration and on the frame
 step, under several thread environments, every configuration in its own fresh process, ratios in one run.
 
-Run: ``.venv/bin/python benchmarks/bench_threads.py [--iterations 4] [--quick]``; writes
+Run: ``.venv/bin/python benchmarks/bench_threads.py [--iterations 4] [--kinds render] [--envs ...]``; writes
 ``benchmarks/results/threads.json``. Each thread environment runs in its own fresh process (OpenMP reads
 its settings once); inside it the thread counts alternate iteration by iteration after one warm-up, so
 the ratios compare runs under the same machine load. Times are medians, never asserted.
