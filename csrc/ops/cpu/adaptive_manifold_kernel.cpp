@@ -624,38 +624,14 @@ class ImageFilter {
   PhaseClock clock_;
 };
 
-at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
-                                 double sigma_s, double sigma_r, int64_t tree_height,
-                                 int64_t power_iterations, bool adjust_outliers) {
-  check_adaptive_manifold_args(values, guide, sigma_s, sigma_r, tree_height, power_iterations);
-  TORCH_CHECK_VALUE(values.device().is_cpu(),
-                    "adaptive_manifold: values and guide must be CPU tensors for this kernel, got ",
-                    values.device());
-  const at::Tensor f = values.contiguous();
-  const at::Tensor g = guide.contiguous();
-  at::Tensor out = at::empty_like(f);
-  const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
-  if (out.numel() == 0) return out;
-  const FilterOptions opt{sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers};
-  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
-    for_each_image(B, [&](int64_t b) {
-      ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W,
-                                 g.data_ptr<scalar_t>() + b * D * H * W,
-                                 out.data_ptr<scalar_t>() + b * C * H * W, C, D, H, W, opt);
-      filt.run();
-    });
-  });
-  return out;
-}
-
-at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
-                                            c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height,
-                                            int64_t power_iterations, bool adjust_outliers) {
-  TORCH_CHECK_VALUE(!sigma_s.empty(), "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
+// (K, B, C, H, W): every image b at every spatial sigma k, the images side by side (for_each_image),
+// the costliest first. op names the caller in messages.
+at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Tensor& guide,
+                         c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height, int64_t power_iterations,
+                         bool adjust_outliers) {
   for (double s : sigma_s)
     check_adaptive_manifold_args(values, guide, s, sigma_r, tree_height, power_iterations);
-  TORCH_CHECK_VALUE(values.device().is_cpu(),
-                    "_adaptive_manifold_bandwidths: values and guide must be CPU tensors for this kernel, got ",
+  TORCH_CHECK_VALUE(values.device().is_cpu(), op, ": values and guide must be CPU tensors for this kernel, got ",
                     values.device());
   const at::Tensor f = values.contiguous();
   const at::Tensor g = guide.contiguous();
@@ -663,11 +639,8 @@ at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::
   const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
   at::Tensor out = at::empty({K, B, C, H, W}, f.options());
   if (out.numel() == 0) return out;
-  // the smallest sigma first: it costs most (least downsampling), so the queue ends with cheap images
-  std::vector<int64_t> order(K);
-  for (int64_t k = 0; k < K; ++k) order[k] = k;
-  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
-  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "_adaptive_manifold_bandwidths_cpu", [&] {
+  const std::vector<int64_t> order = smallest_first(sigma_s);
+  AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
     for_each_image(K * B, [&](int64_t item) {
       const int64_t k = order[item / B], b = item % B;
       const FilterOptions opt{sigma_s[k], sigma_r, tree_height, power_iterations, adjust_outliers};
@@ -677,6 +650,21 @@ at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::
     });
   });
   return out;
+}
+
+at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
+                                 double sigma_s, double sigma_r, int64_t tree_height,
+                                 int64_t power_iterations, bool adjust_outliers) {
+  return filter_images("adaptive_manifold", values, guide, {sigma_s}, sigma_r, tree_height, power_iterations,
+                       adjust_outliers)[0];
+}
+
+at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
+                                            c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height,
+                                            int64_t power_iterations, bool adjust_outliers) {
+  TORCH_CHECK_VALUE(!sigma_s.empty(), "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
+  return filter_images("_adaptive_manifold_bandwidths", values, guide, sigma_s, sigma_r, tree_height,
+                       power_iterations, adjust_outliers);
 }
 
 }  // namespace

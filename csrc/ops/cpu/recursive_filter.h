@@ -15,6 +15,7 @@
 #include <cmath>
 #include <cstdint>
 #include <type_traits>
+#include <vector>
 
 #include "ops/cpu/manifold_ops.h"  // exp_neg_scaled_row
 
@@ -87,6 +88,15 @@ inline void for_each_image(int64_t items, const F& fn) {
     return;
   }
   for (int64_t item = 0; item < items; ++item) fn(item);
+}
+
+// The indices of sigma_s, smallest first: a filter at a smaller spatial sigma downsamples less and
+// costs more, so for_each_image's queue ends with cheap images.
+inline std::vector<int64_t> smallest_first(c10::ArrayRef<double> sigma_s) {
+  std::vector<int64_t> order(sigma_s.size());
+  for (size_t k = 0; k < order.size(); ++k) order[k] = static_cast<int64_t>(k);
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
+  return order;
 }
 
 // ---- constant-coefficient low-pass h ---------------------------------------------------------

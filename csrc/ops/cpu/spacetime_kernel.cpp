@@ -506,9 +506,7 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
                    q = query_guide.contiguous();
   at::Tensor out = at::empty({K, B, Q, C, H, W}, values.options());
   if (out.numel() == 0) return out;
-  std::vector<int64_t> order(K);
-  for (int64_t k = 0; k < K; ++k) order[k] = k;
-  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return sigma_s[a] < sigma_s[b]; });
+  const std::vector<int64_t> order = smallest_first(sigma_s);
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
     for_each_image(K * B * Q, [&](int64_t item) {
