@@ -371,47 +371,38 @@ class _Filter:
 
     def apply(self, x: Tensor) -> Tensor:
         """The op on the channel stack ``x`` ``(T, C, H, W)`` at every query: ``(Q, C, H, W)``, unnormalised."""
-        from torchmanifold.ops import adaptive_manifold_filter, temporal_adaptive_manifold_filter
-
-        st = self.st
-        outs = []
-        for q in self.qt:
-            k = frame_at(self.ft, q)
-            if st.temporal_radius == 0 and k is not None:
-                outs.append(adaptive_manifold_filter(x[k:k + 1], self.g[k:k + 1], self.sigma_s, 1.0,
-                                                     tree_height=st.tree_height, guide_sigmas=self.gs[k])[0])
-            else:
-                ids = self._window(q)
-                outs.append(temporal_adaptive_manifold_filter(
-                    x[ids][None], self.g[ids][None], [self.ft[k] for k in ids], [q], self.sigma_s, 1.0,
-                    sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
-                    guide_sigmas=self._sigmas_at(q))[0, 0])
-        return outs[0][None] if len(outs) == 1 else torch.stack(outs)  # one query: no copy
+        return _Filter.apply_each([self], x)[0]
 
     @staticmethod
     def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
-        """``[f.apply(x) for f in filters]`` for filters that differ in ``sigma_s`` alone: per query, one op
-        call for every bandwidth (on CPU their images share the threads; the same bits)."""
+        """:meth:`apply` of filters that differ in ``sigma_s`` alone: per query, one op call for all of them
+        (on CPU their images share the threads; the bits of one call each), as many at once as
+        ``_BANDWIDTHS_AT_ONCE`` allows."""
+        from torchmanifold.ops import temporal_adaptive_manifold_filter
         from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
         from torchmanifold.ops.temporal import _spacetime_bandwidths
 
+        per_call = max(1, _BANDWIDTHS_AT_ONCE // max(1, x[0].numel()))
+        if len(filters) > per_call:
+            return [y for i in range(0, len(filters), per_call) for y in _Filter.apply_each(filters[i:i + per_call], x)]
         f0, st = filters[0], filters[0].st
-        if len(filters) == 1 or len(filters) * x[0].numel() > _BANDWIDTHS_AT_ONCE:
-            return [f.apply(x) for f in filters]
         sigmas = [f.sigma_s for f in filters]
         outs = []  # per query (K, C, H, W)
         for q in f0.qt:
             k = frame_at(f0.ft, q)
             if st.temporal_radius == 0 and k is not None:
-                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])
-                outs.append(y[:, 0])
-            elif st.mode == "spacetime":
+                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])[:, 0]
+            else:
                 ids = f0._window(q)
-                y = _spacetime_bandwidths(x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids], [q], sigmas, 1.0,
-                                          st.sigma_t, st.tree_height, f0._sigmas_at(q))
-                outs.append(y[:, 0, 0])
-            else:  # the window mean: its spatial filter per bandwidth
-                return [f.apply(x) for f in filters]
+                xw, gw, ftw = x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids]
+                if st.mode == "spacetime":
+                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, st.tree_height,
+                                              f0._sigmas_at(q))[:, 0, 0]
+                else:  # the window mean, then the spatial filter, per bandwidth
+                    y = torch.stack([temporal_adaptive_manifold_filter(
+                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
+                        guide_sigmas=f0._sigmas_at(q))[0, 0] for s in sigmas])
+            outs.append(y)
         return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
 
     def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor,
