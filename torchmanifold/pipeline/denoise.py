@@ -585,10 +585,13 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
                               _SELECTION_ERROR_CUT)
-    sq = torch.stack([((p - e) ** 2).sum(1, keepdim=True) * weight for p in preds])  # (K, T', 1, H, W)
     # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
-    # pools as the worst candidate's residual there, and its candidate is left out at that pixel
-    held = ~torch.isnan(sq)
+    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
+    # residual is taken as 0 first, so no NaN reaches a gradient)
+    held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T', 1, H, W)
+    sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
+                      for p, h in zip(preds, held)])
+    sq = torch.where(held, sq, math.nan)
     worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
     sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
     z2 = _excess_error_z2(sq, mask, st.selection_blur, held | ~held.any(0, keepdim=True))
@@ -1018,9 +1021,10 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     L = luminance(e)
     scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
     ec = e * scale
-    stats["energy"] += float(((e * alb) * mask).sum())
-    stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
-    stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
+    with torch.no_grad():  # counts, not part of a gradient
+        stats["energy"] += float(((e * alb) * mask).sum())
+        stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
+        stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
     return ec
 
 
