@@ -7,6 +7,7 @@ so the numbers can change every iteration at no cost.
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import moderngl
@@ -142,14 +143,16 @@ class Canvas:
             self.rect(x, y, w, h, fill)
         self.polyline([(x, y), (x + w, y), (x + w, y + h), (x, y + h), (x, y)], outline)
 
-    def polyline(self, points, colour) -> None:
-        """Segments between consecutive ``points`` ((n, 2) pixels)."""
+    def polyline(self, points, colour, thickness: int = 1) -> None:
+        """Segments between consecutive ``points`` ((n, 2) pixels), ``thickness`` pixels thick downwards
+        (core GL has no wide lines: each pixel row is a copy one pixel lower)."""
         p = np.asarray(points, np.float32).reshape(-1, 2)
         if len(p) < 2:
             return
-        seg = np.empty((len(p) - 1, 2, 6), np.float32)
-        seg[:, 0, :2], seg[:, 1, :2] = p[:-1], p[1:]
-        seg[:, :, 2:] = np.asarray(colour, np.float32) / 255.0
+        seg = np.empty((thickness, len(p) - 1, 2, 6), np.float32)
+        seg[:, :, 0, :2], seg[:, :, 1, :2] = p[:-1], p[1:]
+        seg[:, :, :, 1] += np.arange(thickness, dtype=np.float32)[:, None, None]
+        seg[..., 2:] = np.asarray(colour, np.float32) / 255.0
         self._lines.append(seg.reshape(-1, 6))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -264,30 +267,29 @@ def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
               title: str = "PSNR (dB, clamped sRGB) vs iteration") -> None:
     """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x."""
     x0, y0, w, h = rect
-    pts = np.array([p for c in curves.values() for p in c], np.float64).reshape(-1, 2)
-    pts = pts[np.isfinite(pts[:, 1])]
+    # drawn every frame: plain Python over the few points costs less than numpy's per-call overhead
+    finite = {name: [(it, val) for it, val in curve if math.isfinite(val)] for name, curve in curves.items()}
+    values = [val for curve in finite.values() for _, val in curve]
     left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
-    if not len(pts):
+    if not values:
         canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, None, 0.0, 0.0))
         canvas.text((left, top + 10), "no reference: no error curve", 12, DIM)
         return
     # the axis ends at a power of two, so its frame (cached) is rebuilt log2 times, not every iteration
-    max_it = 1 << (max(2, int(pts[:, 0].max())) - 1).bit_length()
-    lo, hi = float(np.floor(pts[:, 1].min() - 0.5)), float(np.ceil(pts[:, 1].max() + 0.5))
+    last = max(it for curve in finite.values() for it, _ in curve)
+    max_it = 1 << (max(2, int(last)) - 1).bit_length()
+    lo, hi = float(math.floor(min(values) - 0.5)), float(math.ceil(max(values) + 0.5))
     canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, max_it, lo, hi))
     to_px = _plot_mapping(rect, max_it, lo, hi)
     legend_x = left + 6
-    for name, curve in curves.items():
+    for name, good in finite.items():
         colour = CURVE_COLOURS.get(name, (255, 255, 255)) + (255,)
-        good = np.array([p for p in curve if np.isfinite(p[1])], np.float64).reshape(-1, 2)
         if len(good) >= 2:
-            xy = to_px(good[:, 0], good[:, 1])
-            canvas.polyline(xy, colour)
-            canvas.polyline(xy + (0, 1), colour)  # 2 pixels thick (core GL has no wide lines)
-        elif len(good):
+            canvas.polyline(to_px(*np.asarray(good, np.float64).T), colour, thickness=2)
+        elif good:
             px, py = to_px(*good[0])
             canvas.rect(px - 2, py - 2, 4, 4, colour)
-        label = f"{name} {good[-1, 1]:.1f}" if len(good) else name
+        label = f"{name} {good[-1][1]:.1f}" if good else name
         legend_x += canvas.text((legend_x, top + 2), label, 11, colour) + 12
 
 

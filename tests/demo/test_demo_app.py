@@ -156,6 +156,23 @@ def test_overlay_has_plot_and_text(headless_run):
     assert (text.max(-1) > 200).sum() > 200  # light text on the dark box
 
 
+def test_plot_draws_finite_points_two_pixels_thick():
+    """A curve's non-finite values are skipped; a curve is two rows of segments one pixel apart; a curve
+    of one point is a dot."""
+    from demo.overlay import CURVE_COLOURS, Canvas, GlyphAtlas, _plot_mapping, draw_plot
+
+    rect = (4, 100, 356, 198)
+    canvas = Canvas(GlyphAtlas())
+    draw_plot(canvas, rect, {"raw": [(1, 20.0), (2, float("nan")), (3, 22.0)], "ours": [(1, 25.0)]})
+    quads, lines = canvas.arrays()
+    raw = lines[np.all(np.isclose(lines[:, 2:5] * 255, CURVE_COLOURS["raw"]), 1)]
+    to_px = _plot_mapping(rect, 4, 19.0, 26.0)  # axis to the next power of two; values padded to whole dB
+    ends = np.stack([to_px(1, 20.0), to_px(3, 22.0)]).astype(np.float32)
+    assert np.allclose(raw[:, :2], np.concatenate([ends, ends + (0, 1)]))
+    dots = quads[np.all(np.isclose(quads[:, 8:11] * 255, CURVE_COLOURS["ours"]), 1) & (quads[:, 2] == 4)]
+    assert len(dots) == 1 and np.allclose(dots[0, :2], to_px(1, 25.0) - 2)
+
+
 def step_frame(app):
     """One frame as the main loop does it: clear, render."""
     app.wnd.clear(*app.clear_color)
