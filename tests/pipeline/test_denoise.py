@@ -289,6 +289,31 @@ def test_border_stays_clean():
         (border.mean(), border.abs().mean(), inner.abs().mean())
 
 
+def test_sky_keeps_its_samples():
+    """Where the camera ray leaves the scene (depth 0, Mitsuba's sky: albedo and normal 0) the colour is
+    the environment itself, with no noise to filter: a sharp sky pattern and a sun 50x brighter than the
+    ground come out as sampled (footprint average off), while the ground beside them is still filtered.
+    A pixel whose depth is not finite is no sky: it is filled from its neighbours."""
+    T, H, W = 2, 48, 48
+    f, names = _plane(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.7 * 0.5)
+    sky = (slice(None), slice(None), slice(0, 16))
+    f[sky] = 0.0
+    stripes = 0.2 + 0.6 * (torch.arange(W) % 2).float()  # one-pixel stripes no filter would keep
+    truth[sky] = stripes.view(1, 1, 1, W) * torch.tensor([0.6, 0.8, 1.0]).view(1, 3, 1, 1)
+    truth[:, :, 4:6, 20:22] = 25.0  # the sun
+    color = _noisy(truth, 6)
+    color[sky] = truth[sky]
+    f[1, 6, 8, 8] = float("nan")  # depth unknown: not sky
+    out = denoise_frames(color, f, names, settings=DenoiseSettings(footprint_sigma=0.0))
+    known = torch.ones_like(out, dtype=torch.bool)
+    known[1, :, 8, 8] = False
+    torch.testing.assert_close(out[sky][known[sky]], truth[sky][known[sky]])
+    assert torch.isfinite(out[1, :, 8, 8]).all() and (out[1, :, 8, 8] - truth[1, :, 8, 9]).abs().max() < 0.5
+    ground = out[..., 24:, :]
+    assert (ground - truth[..., 24:, :]).abs().mean() < 0.3 * (color - truth)[..., 24:, :].abs().mean()
+
+
 def test_black_object_beside_dark_albedo_stays_black():
     """A black (zero-albedo) object is not demodulated: its radiance must not mix with the irradiance of
     a dark-albedo neighbour, which no guide channel tells apart (albedo 0 vs 0.07)."""

@@ -28,6 +28,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
    it (:func:`_footprint_average`).
+9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
+   Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
 
 Every statistic comes from the frames of one query's window, so a clip gives the same bytes streamed,
 sharded or all at once.
@@ -735,6 +737,8 @@ class FrameState:
         mask: ``(T, 1, H, W)`` sample weights (0 where a sample was not finite).
         flat: ``(T, 1, H, W)`` bool, pixels filtered as radiance (not demodulated).
         albedo: ``(T, 3, H, W)`` the albedo the output is multiplied back by.
+        escaped: ``(T, 1, H, W)`` bool, pixels whose camera ray left the scene (see :func:`_escaped`): they
+            keep their samples.
         emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
@@ -747,6 +751,7 @@ class FrameState:
     mask: Tensor
     flat: Tensor
     albedo: Tensor
+    escaped: Tensor
     emission: Tensor | None
     guide: Tensor
     sigmas: Tensor
@@ -761,7 +766,7 @@ class FrameState:
             xs = [getattr(s, name) for s in states]
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
-        tensors = ("values", "level", "mask", "flat", "albedo", "emission", "guide", "sigmas")
+        tensors = ("values", "level", "mask", "flat", "albedo", "escaped", "emission", "guide", "sigmas")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts, states[0].footprint)
 
     def stats(self) -> dict:
@@ -785,11 +790,12 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     alb, flat = _demodulation_albedo(f, names, settings)
+    escaped = _escaped(f, names) & (mask > 0)
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
-    state = FrameState(e, None, mask, flat, alb, em, guide, sig, False, counts, fp)
+    state = FrameState(e, None, mask, flat, alb, escaped, em, guide, sig, False, counts, fp)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -808,7 +814,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
-    state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts)
+    state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings)
     return state
@@ -836,6 +842,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     else:
         out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base,
                                 range_scale, s.level)
+    if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
+        out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
     out = _footprint_average(out * at_queries(s.albedo), s.footprint)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
@@ -873,6 +881,22 @@ def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSetti
     alb = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
     flat = luminance(alb) < settings.albedo_eps
     return torch.where(flat, 1.0, alb.clamp_min(settings.albedo_eps)), flat
+
+
+def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
+    """Pixels whose camera ray left the scene, ``(T, 1, H, W)`` bool: depth (``Z`` or ``Zplane``) 0, as
+    every renderer writes it there (see :mod:`torchmanifold.features`); none without a depth channel.
+
+    Such a pixel's colour is the environment seen directly: a 1-spp pixel is exact up to the spread of
+    the environment over the pixel, which the footprint average takes. Filtering it only blurs the sky:
+    on the validation set ``mi_env_thin`` (40% sky) gains 0.45 / 0.58 dB from 1 / 4 spp, every other
+    scene stays within 0.01 dB (``benchmarks/validation/findings.md``).
+    """
+    canon = [canonical_name(n) for n in names]
+    depth = [k for k, n in enumerate(canon) if n in ("Z", "Zplane")]
+    if not depth:
+        return f.new_zeros(f.shape[0], 1, *f.shape[2:], dtype=torch.bool)
+    return (f[:, depth] == 0).all(1, keepdim=True)
 
 
 def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
@@ -1010,16 +1034,17 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     return guide, sigmas
 
 
-def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict) -> Tensor:
-    """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound; the
-    energy, the energy removed and the samples clamped are added to ``stats``. The floor is a quarter
-    of the frame's mean pilot luminance, so dark regions next to noise-free black do not clamp every
-    lit sample (measured on shared/data)."""
+def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict,
+                     keep: Tensor) -> Tensor:
+    """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound, except
+    where ``keep`` (bool ``(T, 1, H, W)``); the energy, the energy removed and the samples clamped are added
+    to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
+    noise-free black do not clamp every lit sample (measured on shared/data)."""
     lp = luminance(pe).clamp_min(0.0)
     floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
     thr = k * (lp + floor)
     L = luminance(e)
-    scale = torch.where(L > thr, thr / L.clamp_min(1e-30), torch.ones_like(L))
+    scale = torch.where((L > thr) & ~keep, thr / L.clamp_min(1e-30), torch.ones_like(L))
     ec = e * scale
     with torch.no_grad():  # counts, not part of a gradient
         stats["energy"] += float(((e * alb) * mask).sum())
