@@ -884,16 +884,15 @@ def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSetti
 
 
 def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
-    """Pixels whose camera ray left the scene, ``(T, 1, H, W)`` bool: depth (``Z`` or ``Zplane``) 0, as
-    every renderer writes it there (see :mod:`torchmanifold.features`); none without a depth channel.
+    """Pixels whose camera ray left the scene, ``(T, 1, H, W)`` bool: 0 in every channel whose 0 means
+    no hit (``zero_is_no_hit`` in :mod:`torchmanifold.features`: depth ``Z``, ``Zplane``); none without one.
 
     Such a pixel's colour is the environment seen directly: a 1-spp pixel is exact up to the spread of
     the environment over the pixel, which the footprint average takes. Filtering it only blurs the sky:
     on the validation set ``mi_env_thin`` (40% sky) gains 0.45 / 0.58 dB from 1 / 4 spp, every other
     scene stays within 0.01 dB (``benchmarks/validation/findings.md``).
     """
-    canon = [canonical_name(n) for n in names]
-    depth = [k for k, n in enumerate(canon) if n in ("Z", "Zplane")]
+    depth = [k for k, n in enumerate(names) if getattr(feature_table.feature_of(n), "zero_is_no_hit", False)]
     if not depth:
         return f.new_zeros(f.shape[0], 1, *f.shape[2:], dtype=torch.bool)
     return (f[:, depth] == 0).all(1, keepdim=True)
