@@ -15,6 +15,7 @@ from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
                                             prepare_frames)
+from torchmanifold.pipeline.sliding import SlidingFrames
 
 __all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
@@ -56,8 +57,9 @@ def clip_samples_per_pixel(first: RenderFrame, samples_per_pixel: int | None) ->
 
 
 class ClipWindow:
-    """The frames of a clip, read as a moving time window needs them and released behind it, with
-    what the denoiser derives from each frame alone (prepared once, released with the frame).
+    """The frames of a clip's files, read as a moving time window needs them and released behind it, with
+    what the denoiser derives from each frame alone (prepared once, released with the frame; see
+    :class:`~torchmanifold.pipeline.sliding.SlidingFrames`).
 
     Args:
         inputs: the frame files, in order.
@@ -72,45 +74,40 @@ class ClipWindow:
         self.samples_per_pixel = clip_samples_per_pixel(first, samples_per_pixel)
         self.feature_names = first.feature_names
         self.notes = list(first.notes)
-        self.reads = 0  # frames served (each is read once: windows only move on)
-        self._cache: dict[int, RenderFrame] = {0: first}
-        self._served: set[int] = set()
-        self._prepared: dict[int, FrameState] = {}
-        self._prepared_with: DenoiseSettings | None = None
+        self._window = SlidingFrames(self._read, self._prepare, {0: first})
+        self._settings: DenoiseSettings | None = None
 
     def __len__(self) -> int:
         return len(self.inputs)
 
+    @property
+    def reads(self) -> int:
+        """Frames served so far (each is read once: windows only move on)."""
+        return self._window.served
+
+    def _read(self, k: int) -> RenderFrame:
+        fr = read_render_frame(self.inputs[k], self.color_channels, self.feature_names, self.first.layer)
+        _same_as_first(fr, self.first)
+        self.notes += [n for n in fr.notes if n not in self.notes]
+        return fr
+
+    def _prepare(self, k: int, fr: RenderFrame) -> FrameState:
+        em = None if fr.emission is None else torch.from_numpy(fr.emission)[None]
+        features = torch.from_numpy(fr.stack(self.feature_names))[None]
+        return prepare_frames(torch.from_numpy(fr.color)[None], features, self.feature_names, em, self._settings,
+                              samples_per_pixel=self.samples_per_pixel)
+
     def frames(self, ids: Sequence[int]) -> list[RenderFrame]:
         """The frames ``ids`` (increasing); frames before ``ids[0]`` are dropped."""
-        for k in ids:
-            if k not in self._cache:
-                fr = read_render_frame(self.inputs[k], self.color_channels, self.feature_names, self.first.layer)
-                _same_as_first(fr, self.first)
-                self.notes += [n for n in fr.notes if n not in self.notes]
-                self._cache[k] = fr
-            if k not in self._served:
-                self._served.add(k)
-                self.reads += 1
-        for k in [k for k in self._cache if k < ids[0]]:
-            del self._cache[k]
-            self._prepared.pop(k, None)
-        return [self._cache[k] for k in ids]
+        return self._window.frames(ids)
 
     def prepared(self, ids: Sequence[int], settings: DenoiseSettings) -> list[FrameState]:
         """The frames ``ids`` (increasing) through :func:`~torchmanifold.pipeline.denoise.prepare_frames`,
         each prepared once for ``settings``."""
-        frames = self.frames(ids)
-        if settings != self._prepared_with:
-            self._prepared, self._prepared_with = {}, settings
-        for k, fr in zip(ids, frames):
-            if k not in self._prepared:
-                em = None if fr.emission is None else torch.from_numpy(fr.emission)[None]
-                self._prepared[k] = prepare_frames(torch.from_numpy(fr.color)[None],
-                                                   torch.from_numpy(fr.stack(self.feature_names))[None],
-                                                   self.feature_names, em, settings,
-                                                   samples_per_pixel=self.samples_per_pixel)
-        return [self._prepared[k] for k in ids]
+        if settings != self._settings:
+            self._window.forget_prepared()
+            self._settings = settings
+        return self._window.prepared(ids)
 
 
 def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[np.ndarray, dict, RenderFrame]:

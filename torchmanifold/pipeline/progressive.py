@@ -9,7 +9,8 @@ schedule (``sigma_i^2 / sigma_{i-1}^2 = (i-1+a)/i``), and adds the result into a
 As the bandwidth shrinks the filter tends to the identity, so the running average converges to the
 true image like the raw average does (consistency), but starts from a far better estimate.
 
-Memory is bounded by the time window: frames are rendered in order into a ring of ``2r+1`` frames;
+Memory is bounded by the time window: frames are rendered in order and held while a window needs them
+(:class:`~torchmanifold.pipeline.sliding.SlidingFrames`, ``2r+1`` frames);
 a query time is filtered as soon as the last frame of its window has arrived, and only its running
 sums (ours, the raw average and the Gaussian-filtered baseline, 3 channels each) are kept.
 
@@ -27,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
@@ -38,6 +38,7 @@ from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
                                              prepare_frames)
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
+from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import frame_at, interpolate, window
 
 __all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline", "ESTIMATES"]
@@ -314,13 +315,18 @@ class ProgressiveRenderer:
         k_ff = self._settings.firefly_k * i ** self.firefly_growth
         qt = self._query_times
         rows: list[Tensor | None] = [None] * len(qt)
-        ring: "OrderedDict[int, object]" = OrderedDict()  # frame index -> render result (bounded window)
         stats_all: dict = {}
 
-        prepared: dict[int, FrameState] = {}  # frame -> its part of the frame step, once per iteration
+        def render(k: int):
+            nonlocal render_s
+            tr = time.perf_counter()
+            res = self._render(k, i)
+            render_s += time.perf_counter() - tr
+            if self.scheme == "accumulate":
+                self._accumulate(k, res)
+            return res
 
-        def prepare(k: int) -> FrameState:
-            res = ring[k]
+        def prepare(k: int, res) -> FrameState:
             if self.scheme == "accumulate":
                 color, feats, emis = (self._frame_sums[k] / i).float()[None].split(
                     [3, len(res.feature_names), 3], 1)
@@ -343,31 +349,19 @@ class ProgressiveRenderer:
             if self.progress is not None:
                 self.progress(1)
 
-        # Each frame is prepared once (sanitised, demodulated, guided, clamped) for every window that
-        # holds it. Query times are independent once their frames are: with more than one thread they are
-        # filtered side by side on worker threads that share the caller's (the GL tracer stays on this
-        # one). The Python around a small frame's ops does not scale inside one query; across queries it
-        # overlaps with the other's ops.
+        # Each frame is rendered and prepared once (sanitised, demodulated, guided, clamped) for every
+        # window that holds it. Query times are independent once their frames are: with more than one
+        # thread they are filtered side by side on worker threads that share the caller's (the GL tracer
+        # stays on this one). The Python around a small frame's ops does not scale inside one query;
+        # across queries it overlaps with the other's ops.
+        frames = SlidingFrames(render, prepare)
         with InOrder(caller_threads(), len(qt)) as pool:
-            for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order, so the ring only moves on
+            for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order: windows only move on
                 q = qt[qi]
                 need = self._needed(q)
-                for k in need:
-                    if k not in ring:
-                        tr = time.perf_counter()
-                        ring[k] = self._render(k, i)
-                        render_s += time.perf_counter() - tr
-                        if self.scheme == "accumulate":
-                            self._accumulate(k, ring[k])
-                for k in [k for k in ring if k < need[0]]:  # frames behind the window are done
-                    del ring[k]
-                    prepared.pop(k, None)
-                for k in need:
-                    if k not in prepared:
-                        prepared[k] = prepare(k)
-                state = FrameState.cat([prepared[k] for k in need])
+                state = FrameState.cat(frames.prepared(need))
                 ft = [self.times[k] for k in need]
-                samples = torch.cat([ring[k].color for k in need])
+                samples = torch.cat([res.color for res in frames.frames(need)])
                 for j, result in pool.submit(qi, filter_query, state, ft, q, samples):
                     collect(j, *result)
             for j, result in pool.drain():
