@@ -88,11 +88,14 @@ def test_samples_per_pixel_from_the_header(tmp_path):
     ``cycles.<layer>.samples``; nothing, or something not a positive count, gives None."""
     import numpy as np
 
-    from torchmanifold.io.exr import exr_samples_per_pixel, write_exr
+    from torchmanifold.io.exr import exr_samples_per_pixel, header_samples_per_pixel, read_exr, write_exr
 
     px = {"R": np.zeros((2, 3), np.float32)}
     cases = {"mitsuba": ({"spp": "4"}, 4), "blender": ({"cycles.ViewLayer.samples": "16"}, 16),
              "none": ({}, None), "text": ({"spp": "many"}, None), "zero": ({"spp": "0"}, None)}
     for name, (attrs, want) in cases.items():
-        assert exr_samples_per_pixel(write_exr(tmp_path / f"{name}.exr", px, attributes=attrs)) == want, name
+        path = write_exr(tmp_path / f"{name}.exr", px, attributes=attrs)
+        assert exr_samples_per_pixel(path) == want, name
+        headers = []  # the headers of the one open that reads the pixels say the same
+        assert list(read_exr(path, headers=headers)) == ["R"] and header_samples_per_pixel(headers) == want, name
     assert exr_samples_per_pixel(tmp_path / "missing.exr") is None

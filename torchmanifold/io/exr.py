@@ -18,14 +18,20 @@ from torchmanifold.io.files import atomic_path
 
 
 def exr_samples_per_pixel(path: str | os.PathLike) -> int | None:
-    """Samples per pixel the file's header records: ``spp`` (as the shared Mitsuba clips carry it) or
-    Blender Cycles' ``cycles.<view layer>.samples``; ``None`` when no part says, or says something else
-    than a positive integer."""
+    """Samples per pixel the file's header records (see :func:`header_samples_per_pixel`); ``None`` when
+    no part says, or the file cannot be read (:func:`read_exr` reports unreadable files)."""
     try:
         with OpenEXR.File(str(path), header_only=True) as exr:  # headers are views: copy them inside
             headers = [dict(p.header.items()) for p in exr.parts]
-    except Exception:  # read_exr reports unreadable files; this only looks for a hint
+    except Exception:  # only a hint
         return None
+    return header_samples_per_pixel(headers)
+
+
+def header_samples_per_pixel(headers: Iterable[Mapping]) -> int | None:
+    """Samples per pixel that EXR part headers record: ``spp`` (as the shared Mitsuba clips carry it) or
+    Blender Cycles' ``cycles.<view layer>.samples``; ``None`` when no part says, or says something else
+    than a positive integer."""
     for h in headers:
         for key, value in h.items():
             if key == "spp" or (key.startswith("cycles.") and key.endswith(".samples")):
@@ -38,7 +44,8 @@ def exr_samples_per_pixel(path: str | os.PathLike) -> int | None:
     return None
 
 
-def read_exr(path: str | os.PathLike, channels: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+def read_exr(path: str | os.PathLike, channels: Iterable[str] | None = None,
+             headers: list | None = None) -> dict[str, np.ndarray]:
     """Read the channels of a scanline or tiled, single- or multi-part EXR file as float32 ``(H, W)`` arrays.
 
     Channels of all parts are merged. Parts normally carry full channel names (Blender 5:
@@ -48,6 +55,8 @@ def read_exr(path: str | os.PathLike, channels: Iterable[str] | None = None) -> 
     Args:
         path: the file.
         channels: names to read; all channels when ``None``.
+        headers: a list that, when given, receives each part's header as a dict (one open of the file
+            for its pixels and its attributes).
 
     Returns:
         ``{name: (H, W) float32 array}`` in the file's channel order.
@@ -65,6 +74,8 @@ def read_exr(path: str | os.PathLike, channels: Iterable[str] | None = None) -> 
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             parts = [(p.name(), {n: np.asarray(c.pixels) for n, c in p.channels.items()}) for p in exr.parts]
             origins = {tuple(int(v) for v in p.header["dataWindow"][0]) for p in exr.parts}
+            if headers is not None:  # headers are views: copy them inside
+                headers += [dict(p.header.items()) for p in exr.parts]
     except Exception as exc:  # OpenEXR raises plain Exceptions for corrupt files
         raise ValueError(f"{path}: not a readable EXR file ({exc})") from exc
     if len(origins) > 1:  # arrays start at their data window: parts that start elsewhere would not line up

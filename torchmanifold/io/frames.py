@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from torchmanifold import features as F
-from torchmanifold.io.exr import exr_samples_per_pixel, read_exr, write_exr
+from torchmanifold.io.exr import header_samples_per_pixel, read_exr, write_exr
 
 __all__ = ["RenderFrame", "read_render_frame", "write_color", "LAYOUTS"]
 
@@ -57,7 +57,7 @@ class RenderFrame:
             ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
         samples_per_pixel: the sample count the header records (see
-            :func:`~torchmanifold.io.exr.exr_samples_per_pixel`), or ``None``.
+            :func:`~torchmanifold.io.exr.header_samples_per_pixel`), or ``None``.
     """
 
     path: Path
@@ -247,9 +247,10 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
         ((3, 256, 256), ['Z', 'albedo.R', 'albedo.G', 'albedo.B', 'N.X', 'N.Y', 'N.Z', 'P.X', 'P.Y', 'P.Z'])
     """
     path = Path(path)
-    chans = read_exr(path)
+    headers: list = []
+    chans = read_exr(path, headers=headers)
     frame = RenderFrame(path, np.zeros((3, 0, 0), np.float32), {}, "flat",
-                        samples_per_pixel=exr_samples_per_pixel(path))
+                        samples_per_pixel=header_samples_per_pixel(headers))
     layers = _blender_layers(list(chans))
     if layers:
         _read_blender(path, chans, layers, layer, frame, color_channels)
