@@ -51,6 +51,9 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                    help="firefly treatment (%(default)s)")
     g.add_argument("--firefly-k", type=float, default=d.firefly_k, help="clamp at k x the pilot (%(default)s)")
     g.add_argument("--no-demodulate", action="store_true", help="filter colour, not colour / albedo")
+    g.add_argument("--filter-sky", action="store_true",
+                   help="filter pixels whose camera ray left the scene too (a scene in fog: by default they "
+                        "keep their samples)")
     g.add_argument("--temporal-radius", type=int, default=temporal_radius,
                    help="neighbour frames on each side (%(default)s)")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
@@ -63,7 +66,8 @@ def _settings(a):
 
     return DenoiseSettings(sigma_s=a.sigma_s, bandwidths=tuple(a.bandwidths), tree_height=a.tree_height, guide=a.guide,
                            guide_sigmas=_guide_sigmas(a.guide_sigma), firefly=a.firefly, firefly_k=a.firefly_k,
-                           demodulate=not a.no_demodulate, temporal_radius=a.temporal_radius,
+                           demodulate=not a.no_demodulate, keep_sky=not a.filter_sky,
+                           temporal_radius=a.temporal_radius,
                            sigma_t=a.sigma_t, mode=a.mode).check()
 
 

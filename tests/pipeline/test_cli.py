@@ -162,6 +162,17 @@ def test_tree_height_is_checked_and_its_default_shown(tmp_path, capsys):
         assert f"(1 to 30; default {height})" in " ".join(sub[command].format_help().split())
 
 
+def test_filter_sky_flag():
+    """--filter-sky turns the sky rule off (DenoiseSettings.keep_sky), for both commands."""
+    from torchmanifold.cli import _settings, build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices
+    for command in ("render", "denoise"):
+        args = (["x"] if command == "denoise" else []) + ["--out", "o"]
+        assert _settings(sub[command].parse_args(args)).keep_sky
+        assert not _settings(sub[command].parse_args(args + ["--filter-sky"])).keep_sky
+
+
 def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir):
     """The shared clip's header says 1 spp (footprint 0.7 px); --spp overrides it; a bad count is named."""
     paths = _link_frames(tmp_path, mitsuba_dir)

@@ -312,6 +312,9 @@ def test_sky_keeps_its_samples():
     assert torch.isfinite(out[1, :, 8, 8]).all() and (out[1, :, 8, 8] - truth[1, :, 8, 9]).abs().max() < 0.5
     ground = out[..., 24:, :]
     assert (ground - truth[..., 24:, :]).abs().mean() < 0.3 * (color - truth)[..., 24:, :].abs().mean()
+    # a scene in fog: a ray scattered before any surface reads depth 0 too; keep_sky=False filters it
+    fog = denoise_frames(color, f, names, settings=DenoiseSettings(footprint_sigma=0.0, keep_sky=False))
+    assert (fog[sky] - truth[sky]).abs().mean() > 0.1
 
 
 def test_black_object_beside_dark_albedo_stays_black():

@@ -244,6 +244,9 @@ class DenoiseSettings:
             The channel comes from the firefly pilot where there is one, else from the samples
             (:func:`_log_radiance`, at twice this sigma). 0.5 measured best on the tuning part.
         demodulate: divide by albedo when albedo channels are present.
+        keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
+            off for a scene in a medium (global fog), where a ray that scatters before any surface also
+            reads depth 0 and its colour is noisy in-scattered light.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
@@ -264,6 +267,7 @@ class DenoiseSettings:
     albedo_eps: float = 0.02
     radiance_sigma: float = 0.5
     demodulate: bool = True
+    keep_sky: bool = True
     temporal_radius: int = 0
     sigma_t: float = 1.0
     mode: str = "spacetime"
@@ -790,7 +794,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     alb, flat = _demodulation_albedo(f, names, settings)
-    escaped = _escaped(f, names) & (mask > 0)
+    escaped = _escaped(f, names) & (mask > 0) & settings.keep_sky
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
