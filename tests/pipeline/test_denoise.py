@@ -5,6 +5,7 @@ import torch
 from _pipeline_data import FEATURES, load_clip
 from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
+from torchmanifold.features import feature
 from torchmanifold.pipeline.denoise import default_guide_sigmas
 from torchmanifold.pipeline.progressive import gaussian_baseline
 
@@ -177,7 +178,8 @@ def test_guide_sigmas_and_errors():
     f = torch.cat([f, f * 0.5])  # a second frame that spans 5 units: its own sigma
     sig = default_guide_sigmas(["N.X", "N.Y", "N.Z", "P.X"], f)
     assert sig.shape == (2, 4) and sig[:, :3].eq(0.3).all()
-    assert sig[0, 3] == pytest.approx(0.04 * 10 * 0.98, rel=0.05) and sig[1, 3] == pytest.approx(sig[0, 3] / 2)
+    p = feature("P").sigma  # the table's figure, a fraction of the frame's extent (1st to 99th percentile)
+    assert sig[0, 3] == pytest.approx(p * 10 * 0.98, rel=0.05) and sig[1, 3] == pytest.approx(sig[0, 3] / 2)
     f = f[:1]
     c = torch.rand(1, 3, 8, 8)
     with pytest.raises(ValueError, match="'nope' not found"):
