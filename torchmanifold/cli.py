@@ -37,7 +37,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     d = DenoiseSettings()
     g = p.add_argument_group("filter")
     g.add_argument("--sigma-s", type=float, default=d.sigma_s,
-                   help="reference spatial sigma in pixels, the unit of --bandwidths (%(default)s)")
+                   help="reference spatial sigma in pixels from 1 spp, the unit of --bandwidths; denoise "
+                        "scales it by spp^-1/4 (%(default)s)")
     g.add_argument("--bandwidths", type=float, nargs="+", default=list(d.bandwidths), metavar="FACTOR",
                    help="spatial sigmas blended per pixel by their cross-validated error, as multiples of "
                         "--sigma-s; one value filters at that bandwidth alone (%(default)s)")

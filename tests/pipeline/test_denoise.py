@@ -439,6 +439,21 @@ def test_footprint_width_from_the_sample_count():
         DenoiseSettings(footprint_sigma=-1.0).check()
 
 
+def test_spatial_sigma_from_the_sample_count():
+    """sigma_s is the 1-spp figure: it shrinks as spp^-1/4 where the count is known, and the frames are
+    filtered with it (a 4-spp clip the same as passing the shrunk sigma by hand)."""
+    from torchmanifold.pipeline.denoise import spatial_sigma
+
+    st = DenoiseSettings()
+    assert spatial_sigma(st, None) == spatial_sigma(st, 1) == st.sigma_s
+    assert spatial_sigma(st, 4) == pytest.approx(st.sigma_s / 2 ** 0.5) and spatial_sigma(st, 16) == pytest.approx(2.0)
+    c, f = torch.rand(1, 3, 24, 24), torch.rand(1, 7, 24, 24)
+    torch.testing.assert_close(denoise_frames(c, f, FEATURES[:7], samples_per_pixel=16),
+                               denoise_frames(c, f, FEATURES[:7], sigma_s=2.0, samples_per_pixel=16))
+    assert not torch.equal(denoise_frames(c, f, FEATURES[:7], samples_per_pixel=16),
+                           denoise_frames(c, f, FEATURES[:7], samples_per_pixel=1))
+
+
 def test_gradient_through_the_denoiser_is_finite():
     """With a gradient the denoiser runs its PyTorch stages; a bandwidth's prediction with no support (NaN)
     is left out of the blend without its NaN reaching the gradient."""

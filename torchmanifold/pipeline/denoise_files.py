@@ -14,7 +14,7 @@ from torchmanifold._checks import check_int
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
-                                            prepare_frames)
+                                            prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
 
 __all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
@@ -161,8 +161,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
         [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
         "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "samples_per_pixel":
-        n or None (the first frame's header), "footprint_sigma": s (the footprint width used), "seconds_per_frame": s,
-        "outputs": [...]}``; ``notes`` lists what the reader changed or found missing (deduplicated).
+        n or None (the first frame's header), "sigma_s": s (the spatial sigma used), "footprint_sigma": s (the
+        footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader changed or found missing (deduplicated).
 
     Raises:
         FileNotFoundError, ValueError: missing/unreadable file, missing channel or pass, size mismatch,
@@ -197,5 +197,6 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             "nonfinite_features": stats_sum["nonfinite_features"],
             "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
             "samples_per_pixel": clip.samples_per_pixel,
+            "sigma_s": spatial_sigma(settings, clip.samples_per_pixel),
             "footprint_sigma": footprint_width(settings, clip.samples_per_pixel),
             "seconds_per_frame": (time.perf_counter() - t0) / n, "outputs": outputs}

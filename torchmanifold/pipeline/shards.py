@@ -41,7 +41,7 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width
+from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width, spatial_sigma
 from torchmanifold.timewindow import frame_at, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
@@ -578,7 +578,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     return {"frames": n, "size": list(first.size), "feature_channels": first.feature_names,
             "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
             "firefly_energy_removed": ff / n, "samples_per_pixel": spp,
-            "footprint_sigma": footprint_width(settings, spp),
+            "sigma_s": spatial_sigma(settings, spp), "footprint_sigma": footprint_width(settings, spp),
             "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
 
