@@ -42,7 +42,9 @@ __all__ = [
 #: the renderers whose file channel names the table lists (``torchmanifold`` = our tracer's EXR files)
 RENDERERS = ("torchmanifold", "mitsuba", "blender")
 
-_TUNED = "tuned on shared/data mitsuba/cbox_glossy_tex (1-spp frames, PSNR on clamped sRGB)"
+_TUNED = ("tuned on shared/data mitsuba/cbox_glossy_tex (1-spp frames, PSNR on clamped sRGB); scaled x0.5 "
+          "to x4 on the validation set's tuning part it gains at most 0.05 dB from 1 or 4 spp "
+          "(benchmarks/validation/findings.md)")
 _BY_HAND = "set by hand for unit directions, not measured (the group does not guide by default)"
 _AS_N = "the N figure (unit normals the same way), not measured on its own"
 _AS_Z = "the Z figure (depth the same way), not measured on its own"
