@@ -1066,7 +1066,8 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound, except
     where ``keep`` (bool ``(T, 1, H, W)``); the energy, the energy removed and the samples clamped are added
     to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
-    noise-free black do not clamp every lit sample (measured on shared/data)."""
+    noise-free black do not clamp every lit sample (measured on shared/data; on the validation set's
+    tuning part 0.1 to 1 are within 0.05 dB)."""
     lp = luminance(pe).clamp_min(0.0)
     floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
     thr = k * (lp + floor)
