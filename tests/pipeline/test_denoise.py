@@ -317,6 +317,11 @@ def test_sky_keeps_its_samples():
     # a scene in fog: a ray scattered before any surface reads depth 0 too; keep_sky=False filters it
     fog = denoise_frames(color, f, names, settings=DenoiseSettings(footprint_sigma=0.0, keep_sky=False))
     assert (fog[sky] - truth[sky]).abs().mean() > 0.1
+    # depth 0 in every pixel of a frame is a placeholder channel, not a frame of sky: it is filtered
+    blank = f.clone()
+    blank[:, 6] = 0.0
+    noisy = _noisy(torch.full((1, 3, H, W), 0.35), 7)
+    assert (denoise_frames(noisy, blank[:1], names) - 0.35).abs().mean() < 0.3 * (noisy - 0.35).abs().mean()
 
 
 def test_black_object_beside_dark_albedo_stays_black():

@@ -923,7 +923,9 @@ def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
     depth = [k for k, n in enumerate(names) if getattr(feature_table.feature_of(n), "zero_is_no_hit", False)]
     if not depth:
         return f.new_zeros(f.shape[0], 1, *f.shape[2:], dtype=torch.bool)
-    return (f[:, depth] == 0).all(1, keepdim=True)
+    missed = (f[:, depth] == 0).all(1, keepdim=True)
+    # a frame whose depth is 0 everywhere holds a placeholder, not a view of the sky alone
+    return missed & ~missed.flatten(1).all(1).view(-1, 1, 1, 1)
 
 
 def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
