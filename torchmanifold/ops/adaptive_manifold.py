@@ -84,12 +84,13 @@ def _stored_sigmas(guide_sigmas) -> Tensor | tuple | None:
 
 
 def _working_inputs(values: Tensor, guide: Tensor, sigma_r: float, guide_sigmas) -> tuple[Tensor, Tensor]:
-    """Values and guide in the op's dtype (float32, or float64), the guide scaled per channel by
-    ``sigma_r / guide_sigmas`` (when given)."""
+    """Values and guide in the ops' dtype (float32, or float64), the guide scaled per channel by
+    ``sigma_r / guide_sigmas`` (when given); the guide's channels are its third-last dimension (a frame's
+    ``(B, D, H, W)`` or a window's ``(B, T, D, H, W)``)."""
     work = torch.float64 if values.dtype == torch.float64 else torch.float32
     v, g = values.to(work), guide.to(work)
     if guide_sigmas is not None:
-        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[1]).to(device=g.device, dtype=work)
+        scales = _guide_scales(guide_sigmas, sigma_r, g.shape[-3]).to(device=g.device, dtype=work)
         g = g * scales[:, None, None]
     return v, g
 

@@ -50,8 +50,8 @@ from torchmanifold.ops.adaptive_manifold import (
     _DISPATCH_KEYS,
     _FilterSettings,
     _check_settings,
-    _guide_scales,
     _has_kernel_for,
+    _working_inputs,
     adaptive_manifold_filter,
     automatic_tree_height,
 )
@@ -210,13 +210,10 @@ def _has_spacetime_kernel_for(device_type: str) -> bool:
 
 def _window_inputs(values: Tensor, guide: Tensor, ft: Tensor, qt: Tensor, sigma_r: float, sigma_t: float,
                     guide_sigmas) -> tuple[Tensor, Tensor, Tensor]:
-    """Values and guide in the ops' dtype (float32, or float64), the guide scaled per channel by
-    ``sigma_r / guide_sigmas`` (when given), and the time weights ``(Q, T)``."""
-    work = torch.float64 if values.dtype == torch.float64 else torch.float32
-    v, g = values.to(work), guide.to(work)
-    if guide_sigmas is not None:
-        g = g * _guide_scales(guide_sigmas, sigma_r, g.shape[2]).to(g.device, work)[:, None, None]
-    return v, g, time_weights(ft, qt, sigma_t).to(v.device, work)
+    """:func:`~torchmanifold.ops.adaptive_manifold._working_inputs` of the window, and the time weights
+    ``(Q, T)`` in the same dtype."""
+    v, g = _working_inputs(values, guide, sigma_r, guide_sigmas)
+    return v, g, time_weights(ft, qt, sigma_t).to(v.device, v.dtype)
 
 
 def _query_guides(g: Tensor, ft: Tensor, qt: Tensor) -> Tensor:
