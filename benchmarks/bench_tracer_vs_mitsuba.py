@@ -4,8 +4,9 @@ Both renderers get the same scene (``cornell_box.toml`` at frame 0 with the shut
 keyframed shape motion), resolution, samples per pixel and path length: our ``max_depth`` counts hits, and
 next-event estimation adds one more segment, so Mitsuba's ``max_depth`` (path segments) is ours + 1; both start
 Russian roulette at the same vertex. Mitsuba runs in its own virtual environment as a subprocess (it is a
-benchmark dependency only, ``benchmarks/requirements-mitsuba.txt``) and the two are timed in alternating blocks
-of frames rendered back to back (:data:`BLOCK`), round by round, on the same shared machine; medians are reported.
+benchmark dependency only, ``benchmarks/requirements-mitsuba.txt``) and the two are timed in alternating
+blocks of frames rendered back to back (:data:`BLOCK`), round by round, on the same shared machine; medians
+are reported.
 
 Measured:
 

@@ -97,5 +97,6 @@ def test_samples_per_pixel_from_the_header(tmp_path):
         path = write_exr(tmp_path / f"{name}.exr", px, attributes=attrs)
         assert exr_samples_per_pixel(path) == want, name
         headers = []  # the headers of the one open that reads the pixels say the same
-        assert list(read_exr(path, headers=headers)) == ["R"] and header_samples_per_pixel(headers) == want, name
+        assert list(read_exr(path, headers=headers)) == ["R"], name
+        assert header_samples_per_pixel(headers) == want, name
     assert exr_samples_per_pixel(tmp_path / "missing.exr") is None

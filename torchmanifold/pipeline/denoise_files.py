@@ -162,7 +162,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
         "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "samples_per_pixel":
         n or None (the first frame's header), "sigma_s": s (the spatial sigma used), "footprint_sigma": s (the
-        footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader changed or found missing (deduplicated).
+        footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader
+        changed or found missing (deduplicated).
 
     Raises:
         FileNotFoundError, ValueError: missing/unreadable file, missing channel or pass, size mismatch,
