@@ -261,3 +261,32 @@ def test_query_times_filtered_side_by_side_give_the_same_bytes(small_tracer, sch
         assert torch.equal(a.ours, b.ours) and torch.equal(a.raw, b.raw) and torch.equal(a.gaussian, b.gaussian)
         assert a.stats == b.stats
     assert out[1][1] == out[2][1] == [1] * 18
+
+
+def test_every_spatial_bandwidth_shrinks_with_the_schedule(small_tracer, monkeypatch):
+    """Iteration i filters at the schedule's sigma, and its footprint and selection pooling shrink by the
+    same factor (time by its square root); the settings step() filters with are those."""
+    from torchmanifold.pipeline import progressive
+    from torchmanifold.pipeline.denoise import footprint_width
+
+    base = DenoiseSettings(sigma_s=3.0, selection_blur=4.0, sigma_t=1.5)
+    pr = ProgressiveRenderer(small_tracer, [0.0, 1.0], settings=base)
+    for i in (1, 2, 5):
+        f = pr.schedule.factor(i)
+        s = pr.iteration_settings(i)
+        assert s.sigma_s == pytest.approx(3.0 * f) and s.selection_blur == pytest.approx(4.0 * f)
+        assert s.footprint_sigma == pytest.approx(footprint_width(base, None) * f)
+        assert s.sigma_t == pytest.approx(1.5 * f ** 0.5)
+    assert pr.iteration_settings(5).selection_blur < pr.iteration_settings(1).selection_blur
+
+    seen = []
+    real = progressive.denoise_prepared
+
+    def spy(state, settings, *args, **kw):
+        seen.append(settings)
+        return real(state, settings, *args, **kw)
+
+    monkeypatch.setattr(progressive, "denoise_prepared", spy)
+    pr.run(2)
+    assert seen and all(s == pr.iteration_settings(2) for s in seen[-2:])
+    assert all(s == pr.iteration_settings(1) for s in seen[:2])
