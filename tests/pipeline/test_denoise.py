@@ -132,6 +132,28 @@ def test_nonfinite_samples_counted_and_kept_out(clip):
     assert M.psnr(out, ref[:1]) > M.psnr(clean, ref[:1]) - 0.2
 
 
+
+@pytest.mark.parametrize("black", [0.0, 1e-30])
+@pytest.mark.parametrize("fused", [True, False])
+def test_black_frame_between_lit_frames(clip, black, fused):
+    """A frame rendered black (or nearly: a frame mean far below float32's squares) between lit ones stays
+    black in space-time and leaves its neighbours' results finite, on the fused C++ passes and on the
+    PyTorch ones; it used to come out NaN everywhere (the selection's relative-error weights overflowed)."""
+    import contextlib
+
+    from torchmanifold.pipeline import _fast
+
+    c, f, _ = clip
+    c = c.clone()
+    c[1] = black
+    times = [0.0, 1.0, 2.0]
+    with contextlib.nullcontext() if fused else _fast.reference():
+        out = denoise_frames(c, f, FEATURES, settings=DenoiseSettings(temporal_radius=1), frame_times=times,
+                             query_times=times)
+    assert torch.isfinite(out).all()
+    assert float(out[1].abs().max()) < 1e-3 * float(out[0].abs().max())
+    assert float(out[0].mean()) > 0.5 * float(c[0].mean())
+
 def test_constant_and_emission():
     torch.manual_seed(0)
     T, H, W = 2, 24, 28

@@ -606,7 +606,10 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     e, mask = e[idx], mask[idx]
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
-    weight = mask / (lum + _LOG_RADIANCE_OFFSET * mean).clamp_min(1e-30) ** 2
+    # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
+    # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
+    unit = torch.where(mean > 0, mean, torch.ones_like(mean))
+    weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
