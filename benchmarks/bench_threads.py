@@ -7,8 +7,10 @@ its settings once); inside it the thread counts alternate iteration by iteration
 the ratios compare runs under the same machine load. Times are medians, never asserted.
 
 Measured:
-- ``render``: :meth:`ProgressiveRenderer.step` on the render job's defaults (8 frames of 128x96, space-time
-  +-1 frame), split into the tracer's part (llvmpipe) and the rest (filtering, torch).
+- ``render``: :meth:`ProgressiveRenderer.step` on the render job's defaults (its frames and size,
+  ``RENDER_DEFAULTS``, and the loop's own filter settings), split into the tracer's part (llvmpipe, whose
+  threads torch's count does not set) and the rest (filtering, torch); ``render_small``: the same at
+  128x96, the job's former size, where the Python around each small frame's ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
 """
@@ -35,13 +37,14 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
 
     from torchmanifold.pipeline import DenoiseSettings, denoise_frames
 
-    if kind == "render":
+    if kind in RENDER_SIZES:
         from torchmanifold.pipeline.progressive import ProgressiveRenderer
+        from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
         from torchmanifold.render import PathTracer, default_scene
 
-        tracer = PathTracer(default_scene(), 128, 96)
-        pr = ProgressiveRenderer(tracer, [float(t) for t in range(8)],
-                                 settings=DenoiseSettings(temporal_radius=1, mode="spacetime"))
+        size = RENDER_SIZES[kind] or (RENDER_DEFAULTS["width"], RENDER_DEFAULTS["height"])
+        tracer = PathTracer(default_scene(), *size)
+        pr = ProgressiveRenderer(tracer, [float(t) for t in range(RENDER_DEFAULTS["frames"])])
 
         def once():
             st = pr.step()
@@ -69,11 +72,14 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
     out = {}
     for n, r in runs.items():
         out[n] = {"seconds": statistics.median(t for t, _ in r)}
-        if kind == "render":
+        if kind in RENDER_SIZES:
             out[n]["render_seconds"] = statistics.median(x for _, x in r)
             out[n]["filter_seconds"] = statistics.median(t - x for t, x in r)
     return out
 
+
+#: (width, height) of the render kinds: the job's default size (None) and its former one
+RENDER_SIZES = {"render": None, "render_small": (128, 96)}
 
 ENVS = {
     # libgomp's default with OMP_WAIT_POLICY unset: workers spin for a while after each parallel region
@@ -104,7 +110,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    p.add_argument("--kinds", nargs="+", default=["frame_step", "render"], choices=["frame_step", "render"])
+    p.add_argument("--kinds", nargs="+", default=["frame_step", *RENDER_SIZES], choices=["frame_step", *RENDER_SIZES])
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--out", default=str(RESULTS / "threads.json"))
     a = p.parse_args()
@@ -116,6 +122,8 @@ def main() -> None:
             for n in a.threads:
                 row = {"kind": kind, "env": name, "threads": n, **res[n], "speedup_vs_1": base / res[n]["seconds"],
                        "load_average_1min_after": os.getloadavg()[0]}
+                if "filter_seconds" in res[n]:  # the part torch's threads run
+                    row["filter_speedup_vs_1"] = res[a.threads[0]]["filter_seconds"] / res[n]["filter_seconds"]
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     import torch
