@@ -162,6 +162,25 @@ def test_tree_height_is_checked_and_its_default_shown(tmp_path, capsys):
         assert f"(1 to 30; default {height})" in " ".join(sub[command].format_help().split())
 
 
+def test_each_command_filters_with_its_engine_defaults():
+    """Every setting the CLI exposes defaults to what its engine uses: the progressive loop's
+    (PROGRESSIVE_FILTER) for render, DenoiseSettings' for denoise (the command's +-1 space-time aside)."""
+    from dataclasses import replace
+
+    from torchmanifold.cli import _settings, build_parser
+    from torchmanifold.pipeline import DenoiseSettings
+    from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER
+
+    sub = build_parser()._subparsers._group_actions[0].choices
+    render = _settings(sub["render"].parse_args(["--out", "o"]))
+    denoise = _settings(sub["denoise"].parse_args(["x", "--out", "o"]))
+    assert render == DenoiseSettings(**PROGRESSIVE_FILTER)
+    assert denoise == replace(DenoiseSettings(), temporal_radius=1)
+    assert render.selection_softness != denoise.selection_softness
+    args = sub["render"].parse_args(["--out", "o", "--selection-softness", "0.8"])
+    assert _settings(args).selection_softness == 0.8
+
+
 def test_filter_sky_flag():
     """--filter-sky turns the sky rule off (DenoiseSettings.keep_sky), for both commands."""
     from torchmanifold.cli import _settings, build_parser

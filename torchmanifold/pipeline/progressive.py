@@ -46,8 +46,11 @@ __all__ = ["ProgressiveRenderer", "ProgressiveState", "gaussian_baseline", "ESTI
 #: the running estimates the engine keeps per query time, in this order
 ESTIMATES = ("ours", "raw", "gaussian")
 #: the loop's filter where it differs from :class:`DenoiseSettings`' defaults: neighbour frames join in
-#: space-time, and the cheaper tree height, since the estimate is filtered every iteration
-PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2)
+#: space-time; the cheaper tree height, since the estimate is filtered every iteration; a more decisive
+#: bandwidth selection (softness 0.5), which keeps a thin caustic from being blended with the wide
+#: candidates around it (built-in scene, 4 frames: after 10 iterations at 96x96 caustic energy 0.74 ->
+#: 0.81 at -0.01 dB, at 128x128 0.74 -> 0.81 at +0.04 dB; after 4 / 16 iterations +0.08 / -0.01 dB)
+PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2, selection_softness=0.5)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")
