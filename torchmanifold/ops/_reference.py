@@ -12,7 +12,7 @@ values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
  3. Exact constants: per image and value channel, ``c = lo + (hi - lo) / 2`` with lo/hi the min/max of
     f over splat pixels (``c = 0`` if that is not finite or there are none). The filter runs on
     ``f' = (f_s - c) * ms`` and adds ``c`` back, so constant values come back bit-exact.
- 4. df = max(1, 2**floor(log2(min(sigma_s / 4, 256 * sigma_r)))); low-res size ceil(H/df) x ceil(W/df).
+ 4. df = max(1, 2**floor(log2(min(sigma_s / 2, 256 * sigma_r)))); low-res size ceil(H/df) x ceil(W/df).
     down(x): mean over the existing pixels of each df x df block (partial edge blocks average fewer).
     up(x): bilinear at pixel centres, source coordinate u = (x + 0.5) / df - 0.5 clamped to
     [0, size - 1] (PyTorch ``interpolate(scale_factor=df, align_corners=False)`` then crop).
@@ -85,8 +85,8 @@ def s0_floor(dtype: torch.dtype) -> float:
 
 
 # The numbers of steps 4 and 8, with the reasons the C++ side gives them (csrc/ops/adaptive_manifold_common.h):
-#: 4. sigma_s / df lands in [LOW_RES_SIGMA, 2 LOW_RES_SIGMA) low-res pixels (the authors' code, OpenCV's amFilter)
-LOW_RES_SIGMA = 4.0
+#: 4. sigma_s / df lands in [LOW_RES_SIGMA, 2 LOW_RES_SIGMA) low-res pixels (the authors' rule; their 4 is 2 here)
+LOW_RES_SIGMA = 2.0
 #: 4. a narrow range kernel downsamples less: df <= RANGE_DOWNSAMPLE sigma_r (the authors' code, OpenCV's amFilter)
 RANGE_DOWNSAMPLE = 256.0
 #: 8. M sums bands of this many rows
