@@ -110,7 +110,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    p.add_argument("--kinds", nargs="+", default=["frame_step", *RENDER_SIZES], choices=["frame_step", *RENDER_SIZES])
+    kinds = ["frame_step", *RENDER_SIZES]
+    p.add_argument("--kinds", nargs="+", default=kinds, choices=kinds)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--out", default=str(RESULTS / "threads.json"))
     a = p.parse_args()
@@ -123,7 +124,8 @@ def main() -> None:
                 row = {"kind": kind, "env": name, "threads": n, **res[n], "speedup_vs_1": base / res[n]["seconds"],
                        "load_average_1min_after": os.getloadavg()[0]}
                 if "filter_seconds" in res[n]:  # the part torch's threads run
-                    row["filter_speedup_vs_1"] = res[a.threads[0]]["filter_seconds"] / res[n]["filter_seconds"]
+                    one = res[a.threads[0]]["filter_seconds"]
+                    row["filter_speedup_vs_1"] = one / res[n]["filter_seconds"]
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     import torch
