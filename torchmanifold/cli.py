@@ -45,8 +45,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                         "--sigma-s; one value filters at that bandwidth alone (%(default)s)")
     g.add_argument("--selection-softness", type=float,
                    default=d.selection_softness if selection_softness is None else selection_softness,
-                   help="how sure the evidence must be before a bandwidth is left out at a pixel, in standard "
-                        "errors; 0 keeps the least-error bandwidth alone (%(default)s)")
+                   help="how sure the evidence must be before a bandwidth is left out at a pixel, in "
+                        "standard errors; 0 keeps the least-error bandwidth alone (%(default)s)")
     g.add_argument("--tree-height", type=int, default=tree_height,
                    help="manifold tree height (1 to %d; default %%(default)s)" % MAX_TREE_HEIGHT)
     g.add_argument("--guide", nargs="+", default=None, metavar="CHANNEL",
@@ -70,8 +70,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
 def _settings(a):
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
-    return DenoiseSettings(sigma_s=a.sigma_s, bandwidths=tuple(a.bandwidths), selection_softness=a.selection_softness,
-                           tree_height=a.tree_height, guide=a.guide,
+    return DenoiseSettings(sigma_s=a.sigma_s, bandwidths=tuple(a.bandwidths),
+                           selection_softness=a.selection_softness, tree_height=a.tree_height, guide=a.guide,
                            guide_sigmas=_guide_sigmas(a.guide_sigma), firefly=a.firefly, firefly_k=a.firefly_k,
                            demodulate=not a.no_demodulate, keep_sky=not a.filter_sky,
                            temporal_radius=a.temporal_radius,

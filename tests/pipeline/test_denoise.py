@@ -132,7 +132,6 @@ def test_nonfinite_samples_counted_and_kept_out(clip):
     assert M.psnr(out, ref[:1]) > M.psnr(clean, ref[:1]) - 0.2
 
 
-
 @pytest.mark.parametrize("black", [0.0, 1e-30])
 @pytest.mark.parametrize("fused", [True, False])
 def test_black_frame_between_lit_frames(clip, black, fused):
@@ -153,6 +152,7 @@ def test_black_frame_between_lit_frames(clip, black, fused):
     assert torch.isfinite(out).all()
     assert float(out[1].abs().max()) < 1e-3 * float(out[0].abs().max())
     assert float(out[0].mean()) > 0.5 * float(c[0].mean())
+
 
 def test_constant_and_emission():
     torch.manual_seed(0)

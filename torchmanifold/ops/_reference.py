@@ -85,7 +85,8 @@ def s0_floor(dtype: torch.dtype) -> float:
 
 
 # The numbers of steps 4 and 8, with the reasons the C++ side gives them (csrc/ops/adaptive_manifold_common.h):
-#: 4. sigma_s / df lands in [LOW_RES_SIGMA, 2 LOW_RES_SIGMA) low-res pixels (the authors' rule; their 4 is 2 here)
+#: 4. sigma_s / df lands in [LOW_RES_SIGMA, 2 LOW_RES_SIGMA) low-res pixels (the authors' rule with their 4
+#: halved)
 LOW_RES_SIGMA = 2.0
 #: 4. a narrow range kernel downsamples less: df <= RANGE_DOWNSAMPLE sigma_r (the authors' code, OpenCV's amFilter)
 RANGE_DOWNSAMPLE = 256.0
