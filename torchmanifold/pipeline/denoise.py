@@ -420,7 +420,7 @@ class _Filter:
                 y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])[:, 0]
             else:
                 ids = f0._window(q)
-                xw, gw, ftw = x[ids][None], f0.g[ids][None], [f0.ft[i] for i in ids]
+                xw, gw, ftw = _frames(x, ids)[None], _frames(f0.g, ids)[None], [f0.ft[i] for i in ids]
                 if st.mode == "spacetime":
                     y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, st.tree_height,
                                               f0._sigmas_at(q))[:, 0, 0]
@@ -500,7 +500,7 @@ class _Filter:
         for q in self.qt:
             k = frame_at(self.ft, q)
             ids = self._window(q) if self.st.temporal_radius > 0 or k is None else [k]
-            outs.append(x[ids].amax(0))
+            outs.append(_frames(x, ids).amax(0))
         return torch.stack(outs)
 
     def at_queries(self, x: Tensor) -> Tensor:
@@ -511,7 +511,19 @@ class _Filter:
     def at_frames_to_queries(x: Tensor, ft: list[float], qt: list[float]) -> Tensor:
         if list(qt) == list(ft):
             return x
+        at = [frame_at(ft, q) for q in qt]
+        if all(k is not None for k in at):
+            return _frames(x, at)
         return torch.stack([interpolate(x, ft, q) for q in qt])
+
+
+def _frames(x: Tensor, ids: Sequence[int]) -> Tensor:
+    """``x[ids]`` along the frame dimension: a view where the frames are consecutive (a window, one
+    query's frame), a copy otherwise."""
+    ids = list(ids)
+    if ids and ids == list(range(ids[0], ids[0] + len(ids))):
+        return x[ids[0]:ids[0] + len(ids)]
+    return x[ids]
 
 
 def _halves(shape, device) -> Tensor:
@@ -556,7 +568,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     at_frames = all(k is not None for k in query_frames)
     cv_times = qt if at_frames else ft
     idx = query_frames if at_frames else list(range(T))
-    flat_cv = flat[idx]
+    flat_cv = _frames(flat, idx)
     preds, fulls, cv_outs = [], [], []
     filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
     fast = _fast.enabled(e, mask)
@@ -602,8 +614,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     if level is None:
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
-        level = level[idx]
-    e, mask = e[idx], mask[idx]
+        level = _frames(level, idx)
+    e, mask = _frames(e, idx), _frames(mask, idx)
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
     # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
