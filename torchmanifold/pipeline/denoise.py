@@ -27,7 +27,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 8. **Pixel footprint**: a 1-spp pixel shows one point of its area, so thin geometry comes out dotted
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
-   it (:func:`_footprint_average`).
+   it (:func:`_footprint_average`). On a flat surface the albedo, whose detail is texture, gets a
+   narrower footprint than the light (:func:`_remodulate`).
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
 
