@@ -27,7 +27,7 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 8. **Pixel footprint**: a 1-spp pixel shows one point of its area, so thin geometry comes out dotted
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
-   it (:func:`_footprint_average`). On a flat surface the albedo, whose detail is texture, gets a
+   it (:func:`_footprint_average`). On a smooth surface the albedo, whose detail is texture, gets a
    narrower footprint than the light (:func:`_remodulate`).
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
@@ -778,7 +778,7 @@ class FrameState:
         mask: ``(T, 1, H, W)`` sample weights (0 where a sample was not finite).
         flat: ``(T, 1, H, W)`` bool, pixels filtered as radiance (not demodulated).
         albedo: ``(T, 3, H, W)`` the albedo the output is multiplied back by.
-        smooth: ``(T, 1, H, W)`` in [0, 1], how flat the surface is around each pixel (see
+        smooth: ``(T, 1, H, W)`` in [0, 1], how smooth the surface is around each pixel (see
             :func:`_smooth_surface`), or ``None`` without geometry channels in the guide or without a
             known sample count (then :func:`_remodulate` averages the product alone).
         escaped: ``(T, 1, H, W)`` bool, pixels whose camera ray left the scene (see :func:`_escaped`): they
@@ -814,7 +814,8 @@ class FrameState:
             xs = [getattr(s, name) for s in states]
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
-        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "guide", "sigmas")
+        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "guide",
+                   "sigmas")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts, states[0].footprint,
                           states[0].sigma_s)
 
@@ -843,7 +844,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     e = c / alb
     guide, sig = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
-    geometry = [k for k, i in enumerate(_select_guide(names, settings)) if feature_group(names[i]) != "albedo"]
+    geometry = [k for k, i in enumerate(_select_guide(names, settings))
+                if feature_group(names[i]) != "albedo"]
     known = settings.footprint_sigma is None and samples_per_pixel is not None and samples_per_pixel > 0
     smooth = _smooth_surface(guide[:, geometry], sig[:, geometry]) if geometry and known else None
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
@@ -1010,22 +1012,23 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     return k * y / (1.0 - y).clamp_min(1e-6)
 
 
-#: where the surface is flat, the albedo's footprint average is this fraction of the radiance's: texture
+#: where the surface is smooth, the albedo's footprint is this fraction of the radiance's: texture
 #: is sharper than lighting. Frames 0-2 of the validation set, +-1 default, from 1 / 4 spp: +0.09 / +0.04 dB
 #: (tuning part +0.15 / +0.05; `cbox_glossy_tex`'s striped wall +0.47 / +0.14; no scene below -0.02); 0.7:
 #: -0.02 / -0.06 against 0.8 (each frame alone); 1, 0.8 or 0.7 for every pixel: -0.7 to -1.0 dB. Only where
 #: the sample count is known: on 1-spp frames whose count is not, 0.8 of the safe 0.5 px lost 0.56 dB
 _TEXTURE_FOOTPRINT = 0.8
 #: the 3x3 variance of the geometry channels (in units of their range sigmas, squared) at which a surface
-#: counts as flat with weight 1/e: 0.1 to 0.3 measured alike (within 0.01 dB from 1 spp, 0.03 from 4)
+#: counts as smooth with weight 1/e: 0.1 to 0.3 measured alike (within 0.01 dB from 1 spp, 0.03 from 4)
 _SMOOTH_VARIANCE = 0.1
 
 
 def _smooth_surface(geometry: Tensor, sigmas: Tensor) -> Tensor:
-    """How flat the surface is around each pixel, ``(T, 1, H, W)`` in (0, 1]: ``exp(-v / 0.1)`` with ``v``
-    the variance of the geometry guide channels (normals, position or depth; ``(T, G, H, W)`` with range
-    sigmas ``(T, G)``) over the pixel's 3x3 neighbourhood, summed over channels in units of the sigmas.
-    1 on a plane or a gently curved surface, near 0 across a silhouette or a crease."""
+    """How smooth the surface is around each pixel, ``(T, 1, H, W)`` in (0, 1]: ``exp(-v / 0.1)``
+    (:data:`_SMOOTH_VARIANCE`), ``v`` the variance over the pixel's 3x3 neighbourhood of the geometry guide
+    channels (normals, position or depth: ``(T, G, H, W)`` with range sigmas ``(T, G)``), summed over
+    channels in units of the sigmas. 1 on a plane or a gently curved surface, near 0 across a silhouette
+    or a crease."""
     g = geometry / sigmas.to(geometry.dtype)[:, :, None, None]
     m = torch.nn.functional.pad(torch.cat([g, g * g], 1), (1, 1, 1, 1), mode="replicate")
     m = m[..., :, :-2] + m[..., :, 1:-1] + m[..., :, 2:]  # 3x3 box sums by shifted adds (10x avg_pool2d)
@@ -1035,11 +1038,12 @@ def _smooth_surface(geometry: Tensor, sigmas: Tensor) -> Tensor:
     return torch.exp(-v / _SMOOTH_VARIANCE)
 
 
-def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None, sigma: float) -> Tensor:
+def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None,
+                sigma: float) -> Tensor:
     """The filtered irradiance ``(Q, 3, H, W)`` times the albedo, averaged over the pixel footprint.
 
     Across a silhouette, light and albedo change together within a pixel: the product is averaged
-    (:func:`_footprint_average`). On a flat surface (``smooth`` near 1) only the albedo has detail below
+    (:func:`_footprint_average`). On a smooth surface (``smooth`` near 1) only the albedo has detail below
     the footprint, texture: the irradiance is averaged alone and the albedo over a narrower footprint
     (:data:`_TEXTURE_FOOTPRINT`), which keeps a texture's stripes that the full footprint washes out.
     The two blend by ``smooth``; flat-shaded pixels (``flat``, not demodulated) take the product.
@@ -1048,7 +1052,8 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     if smooth is None or sigma <= 0:
         return out
     w = smooth * (~flat).to(smooth.dtype)
-    textured = _footprint_average(irradiance, sigma) * _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
+    texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
+    textured = _footprint_average(irradiance, sigma) * texture
     return out + w * (textured - out)
 
 
