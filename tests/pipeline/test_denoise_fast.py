@@ -107,7 +107,7 @@ def test_bandwidth_selection_blend_equals_reference(frame, with_level):
     st = DenoiseSettings()
     e, m, flat = frame["e"], frame["mask"], frame["flat"].clone()
     flat[..., :20, :20] = True  # both classes
-    guide, sig = D._guide(frame["f"], FEATURES, e, m, st)
+    guide, sig, _ = D._guide(frame["f"], FEATURES, e, m, st)
     level = e.clamp_min(0) if with_level else None
     out, ref = _both(D._select_bandwidth, e, m, flat, guide, sig, st, [0.0], [0.0], st.sigma_s, 1.0, level)
     torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6 * float(ref.abs().mean()))

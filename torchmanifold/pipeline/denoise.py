@@ -308,13 +308,18 @@ _FOOTPRINT_A, _FOOTPRINT_B = 0.17, 0.32
 _FOOTPRINT_UNKNOWN = 0.5
 
 
+def _known_count(samples_per_pixel: float | None) -> bool:
+    """Whether the caller knows how many samples each pixel averages (a missing, 0 or NaN count is none)."""
+    return samples_per_pixel is not None and samples_per_pixel > 0
+
+
 def footprint_width(settings: DenoiseSettings, samples_per_pixel: float | None) -> float:
     """The footprint average's sigma (pixels): ``settings.footprint_sigma`` when set, else from the
     samples per pixel, ``sqrt(0.17 + 0.32 / spp)`` (0.7 from 1 spp, 0.5 from 4, 0.41 in the limit),
     else 0.5."""
     if settings.footprint_sigma is not None:
         return float(settings.footprint_sigma)
-    if samples_per_pixel is None or not samples_per_pixel > 0:
+    if not _known_count(samples_per_pixel):
         return _FOOTPRINT_UNKNOWN
     return math.sqrt(_FOOTPRINT_A + _FOOTPRINT_B / float(samples_per_pixel))
 
@@ -332,7 +337,7 @@ def spatial_sigma(settings: DenoiseSettings, samples_per_pixel: float | None) ->
     """The filter's reference spatial sigma (pixels): ``settings.sigma_s`` (its 1-spp figure) times
     ``spp ** -0.25`` when the samples per pixel are known (4 -> 2.83 from 4 spp), else
     ``settings.sigma_s``."""
-    if samples_per_pixel is None or not samples_per_pixel > 0:
+    if not _known_count(samples_per_pixel):
         return float(settings.sigma_s)
     return float(settings.sigma_s) * float(samples_per_pixel) ** _SIGMA_SPP_EXPONENT
 
@@ -842,11 +847,10 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     alb, flat = _demodulation_albedo(f, names, settings)
     escaped = _escaped(f, names) & (mask > 0) & settings.keep_sky
     e = c / alb
-    guide, sig = _guide(f, names, e, mask, settings)
+    guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
-    geometry = [k for k, i in enumerate(_select_guide(names, settings))
-                if feature_group(names[i]) != "albedo"]
-    known = settings.footprint_sigma is None and samples_per_pixel is not None and samples_per_pixel > 0
+    geometry = [k for k, n in enumerate(gnames) if feature_group(n) != "albedo"]
+    known = settings.footprint_sigma is None and _known_count(samples_per_pixel)
     smooth = _smooth_surface(guide[:, geometry], sig[:, geometry]) if geometry and known else None
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
@@ -1087,7 +1091,8 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
 
 
 def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: DenoiseSettings):
-    """The guide ``(T, G, H, W)`` and its range sigmas ``(T, G)`` per frame."""
+    """The guide ``(T, G, H, W)``, its range sigmas ``(T, G)`` per frame and the names of its feature
+    channels, its first ones (the log-radiance channel, when there is one, comes last)."""
     T, _, H, W = e.shape
     gi = _select_guide(names, settings)
     gnames = [names[k] for k in gi]
@@ -1113,8 +1118,8 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         parts.append(_log_radiance(e, mask))
         sig.append(torch.full((T, 1), _SAMPLE_RADIANCE_WIDENING * rs, dtype=torch.float64))
     if not parts:
-        return e.new_zeros(T, 1, H, W), torch.ones(T, 1, dtype=torch.float64)
-    return torch.cat(parts, 1), torch.cat(sig, 1)
+        return e.new_zeros(T, 1, H, W), torch.ones(T, 1, dtype=torch.float64), gnames
+    return torch.cat(parts, 1), torch.cat(sig, 1), gnames
 
 
 def _radiance_sigma(settings: DenoiseSettings) -> float:
