@@ -35,7 +35,10 @@ class GlyphAtlas:
 
     Attributes:
         image: ``(H, W)`` uint8 alpha.
-        cells: ``cells[size]`` is ``(96, 4)`` float32 ``(u0, v0, u1, v1)`` in pixels per character.
+        cells: ``cells[size]`` is ``(96, 4)`` float32 ``(u0, v0, u1, v1)``: each character's ink box in
+            the atlas, in pixels.
+        ink: ``ink[size]`` is ``(96, 4)`` float32 ``(x, y, w, h)``: that box relative to the character's
+            origin (its top-left at the pen position); empty for a space.
         advance: ``advance[size]`` is ``(96,)`` pen advance in pixels (PIL's ``getlength``).
         cell_size: ``cell_size[size]`` = (w, h) of every cell of that size.
         solid: (u0, v0, u1, v1) of an opaque patch.
@@ -43,7 +46,7 @@ class GlyphAtlas:
 
     def __init__(self):
         chars = [chr(c) for c in range(FIRST, LAST)]
-        self.cells, self.advance, self.cell_size = {}, {}, {}
+        self.cells, self.ink, self.advance, self.cell_size = {}, {}, {}, {}
         rows, y = [], 4  # the first 4 pixel rows hold the solid patch
         for size in SIZES:
             f = font(size)
@@ -52,16 +55,25 @@ class GlyphAtlas:
             self.cell_size[size] = (cw, ch)
             self.advance[size] = np.array([f.getlength(c) for c in chars], np.float32)
             per_row = 32
-            img = Image.new("L", (cw * per_row, ch * -(-len(chars) // per_row)), 0)
-            draw = ImageDraw.Draw(img)
+            alpha = np.zeros((ch * -(-len(chars) // per_row), cw * per_row), np.uint8)
             cells = np.zeros((len(chars), 4), np.float32)
+            ink = np.zeros((len(chars), 4), np.float32)
             for i, c in enumerate(chars):
+                # each glyph drawn alone, so no neighbour's overhang lands in its cell
+                glyph = Image.new("L", (cw, ch), 0)
+                ImageDraw.Draw(glyph).text((0, 0), c, font=f, fill=255)
+                glyph = np.asarray(glyph)
                 cx, cy = (i % per_row) * cw, (i // per_row) * ch
-                draw.text((cx, cy), c, font=f, fill=255)
-                cells[i] = (cx, y + cy, cx + cw, y + cy + ch)
-            self.cells[size] = cells
-            rows.append(np.asarray(img))
-            y += img.height
+                alpha[cy:cy + ch, cx:cx + cw] = glyph
+                # a glyph's quad covers its ink only: on llvmpipe the overlay costs the pixels it blends
+                cols, lines = np.nonzero(glyph.any(0))[0], np.nonzero(glyph.any(1))[0]
+                if len(cols):
+                    x0, x1, y0, y1 = cols[0], cols[-1] + 1, lines[0], lines[-1] + 1
+                    ink[i] = (x0, y0, x1 - x0, y1 - y0)
+                    cells[i] = (cx + x0, y + cy + y0, cx + x1, y + cy + y1)
+            self.cells[size], self.ink[size] = cells, ink
+            rows.append(alpha)
+            y += alpha.shape[0]
         width = max(r.shape[1] for r in rows)
         self.image = np.zeros((y, width), np.uint8)
         self.image[:4, :4] = 255
@@ -84,12 +96,12 @@ def _layout(atlas: GlyphAtlas, text: str, size: int, max_width: float | None) ->
     pen = np.concatenate([[0.0], np.cumsum(adv)]).astype(np.float32)
     keep = len(text) if max_width is None else int(np.searchsorted(pen[1:], max_width, side="right"))
     idx, x = idx[:keep], np.round(pen[:keep])
-    cw, ch = atlas.cell_size[size]
+    ink = atlas.ink[size][idx]
     quads = np.zeros((keep, 8), np.float32)
-    quads[:, 0] = x
-    quads[:, 2], quads[:, 3] = cw, ch
+    quads[:, :4] = ink
+    quads[:, 0] += x
     quads[:, 4:] = atlas.cells[size][idx]
-    quads = quads[idx != 0]  # spaces draw nothing
+    quads = quads[(ink[:, 2] > 0) & (ink[:, 3] > 0)]  # spaces draw nothing
     quads.setflags(write=False)
     return quads, float(pen[keep])
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, ImageDraw
 
 from demo import controls
 from demo.app import create_app, validate_args
@@ -162,15 +162,42 @@ def test_plot_draws_finite_points_two_pixels_thick():
     from demo.overlay import CURVE_COLOURS, Canvas, GlyphAtlas, _plot_mapping, draw_plot
 
     rect = (4, 100, 356, 198)
-    canvas = Canvas(GlyphAtlas())
+    atlas = GlyphAtlas()
+    canvas = Canvas(atlas)
     draw_plot(canvas, rect, {"raw": [(1, 20.0), (2, float("nan")), (3, 22.0)], "ours": [(1, 25.0)]})
     quads, lines = canvas.arrays()
     raw = lines[np.all(np.isclose(lines[:, 2:5] * 255, CURVE_COLOURS["raw"]), 1)]
     to_px = _plot_mapping(rect, 4, 19.0, 26.0)  # axis to the next power of two; values padded to whole dB
     ends = np.stack([to_px(1, 20.0), to_px(3, 22.0)]).astype(np.float32)
     assert np.allclose(raw[:, :2], np.concatenate([ends, ends + (0, 1)]))
-    dots = quads[np.all(np.isclose(quads[:, 8:11] * 255, CURVE_COLOURS["ours"]), 1) & (quads[:, 2] == 4)]
+    solid = np.all(quads[:, 4:8] == atlas.solid, 1)  # boxes, not glyphs
+    dots = quads[np.all(np.isclose(quads[:, 8:11] * 255, CURVE_COLOURS["ours"]), 1) & solid]
     assert len(dots) == 1 and np.allclose(dots[0, :2], to_px(1, 25.0) - 2)
+
+
+def test_glyph_quads_hold_all_of_each_glyphs_ink():
+    """A glyph's quad is cut to its ink: pasting the quads of a string gives the same alpha as pasting
+    each character's whole atlas cell at its pen position (PIL draws every printable character)."""
+    from demo.overlay import FIRST, LAST, SIZES, GlyphAtlas, font
+
+    atlas = GlyphAtlas()
+    text = "".join(chr(c) for c in range(FIRST, LAST))
+    for size in SIZES:
+        cw, ch = atlas.cell_size[size]
+        quads, width = atlas.layout(text, size)
+        assert len(quads) == len(text) - 1  # all but the space
+        assert (quads[:, 2] * quads[:, 3]).sum() < 0.5 * len(text) * cw * ch  # most of a cell is blank
+        cut = np.zeros((ch, int(width) + cw), np.uint8)
+        for x, y, w, h, u0, v0, u1, v1 in quads.astype(int):
+            assert (w, h) == (u1 - u0, v1 - v0)
+            np.maximum(cut[y:y + h, x:x + w], atlas.image[v0:v1, u0:u1], out=cut[y:y + h, x:x + w])
+        whole = np.zeros_like(cut)
+        pen = np.concatenate([[0.0], np.cumsum(atlas.advance[size])]).astype(np.float32)  # as layout() adds
+        for c, x in zip(text, np.round(pen[:-1]).astype(int)):
+            cell = Image.new("L", (cw, ch), 0)
+            ImageDraw.Draw(cell).text((0, 0), c, font=font(size), fill=255)
+            np.maximum(whole[:, x:x + cw], np.asarray(cell), out=whole[:, x:x + cw])
+        assert whole.any() and np.array_equal(cut, whole), size
 
 
 def step_frame(app):
