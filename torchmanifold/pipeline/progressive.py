@@ -288,11 +288,14 @@ class ProgressiveRenderer:
         return window(self.times, q, self._settings.temporal_radius)
 
     def _accumulate(self, k: int, res) -> None:
-        x = torch.cat([res.color, res.features, res.emission], 1)[0].double()
-        if k in self._frame_sums:
-            self._frame_sums[k] += x
-        else:
-            self._frame_sums[k] = x
+        parts = (res.color, res.features, res.emission)
+        if k not in self._frame_sums:
+            self._frame_sums[k] = torch.cat(parts, 1)[0].double()
+            return
+        total, c = self._frame_sums[k], 0
+        for p in parts:  # in place, part by part: no concatenated copy of the frame
+            total[c:c + p.shape[1]] += p[0]
+            c += p.shape[1]
 
     def _render(self, k: int, i: int):
         res = self.tracer.render(times=[self.times[k]], spp=1, seed=self.seed, sample_offset=i - 1)
@@ -357,7 +360,10 @@ class ProgressiveRenderer:
             y = denoise_prepared(state, settings, ft, [q], sig_s, rscale).float()
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
-            return torch.stack([y[0], x, gauss]).double(), state.stats()
+            row = torch.empty((3, *x.shape), dtype=torch.float64)
+            for r, img in zip(row, (y[0], x, gauss)):
+                r.copy_(img)
+            return row, state.stats()
 
         def collect(qi, row, st):  # in time order, so the stats sum in one order for any thread count
             rows[qi] = row
@@ -383,13 +389,15 @@ class ProgressiveRenderer:
                     collect(j, *result)
             for j, result in pool.drain():
                 collect(j, *result)
-        new = torch.stack(rows)
+        ours_row = ESTIMATES.index("ours")
         if self._sums is None:
-            self._sums = new
+            self._sums = torch.stack(rows)
         else:
-            self._sums += new
+            for total, row in zip(self._sums, rows):  # in place: no stacked copy of the clip
+                total += row
         if self.scheme == "accumulate":  # "ours" is the latest filtered mean: i times itself in the sums
-            self._sums[:, ESTIMATES.index("ours")] = new[:, ESTIMATES.index("ours")] * i
+            for total, row in zip(self._sums, rows):
+                torch.mul(row[ours_row], i, out=total[ours_row])
         self.iteration = i
         stats_all["firefly_energy_removed"] = stats_all.get("firefly_energy_removed", 0.0) / len(qt)
         avg = (self._sums / i).float()
