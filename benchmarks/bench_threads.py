@@ -13,6 +13,8 @@ Measured:
   128x96, the job's former size, where the Python around each small frame's ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
+- ``matmul`` / ``copy``: the machine's own ceilings in the same run, what 2 threads can give work that is
+  bound by arithmetic (a 2048x2048 float32 matrix product) or by memory (a 64 MB copy).
 """
 from __future__ import annotations
 
@@ -49,6 +51,14 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
         def once():
             st = pr.step()
             return st.seconds, st.render_seconds
+    elif kind in CEILINGS:
+        x = torch.rand(2048, 2048) if kind == "matmul" else torch.rand(1 << 24)
+        y = torch.empty_like(x)
+
+        def once():
+            t0 = time.perf_counter()
+            torch.mm(x, x, out=y) if kind == "matmul" else y.copy_(x)
+            return time.perf_counter() - t0, 0.0
     else:
         gen = torch.Generator().manual_seed(0)
         color = torch.rand(3, 3, 256, 256, generator=gen)
@@ -80,6 +90,8 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
 
 #: (width, height) of the render kinds: the job's default size (None) and its former one
 RENDER_SIZES = {"render": None, "render_small": (128, 96)}
+#: the machine's ceilings: arithmetic-bound and memory-bound work
+CEILINGS = ("matmul", "copy")
 
 ENVS = {
     # libgomp's default with OMP_WAIT_POLICY unset: workers spin for a while after each parallel region
@@ -110,7 +122,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    kinds = ["frame_step", *RENDER_SIZES]
+    kinds = [*CEILINGS, "frame_step", *RENDER_SIZES]
     p.add_argument("--kinds", nargs="+", default=kinds, choices=kinds)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--out", default=str(RESULTS / "threads.json"))
