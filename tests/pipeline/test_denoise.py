@@ -283,6 +283,34 @@ def test_zero_albedo_object_leaves_no_ring():
     assert (out / truth)[..., rim].amax() < 1.5  # a rim draws pixels far brighter than either side
 
 
+def test_what_a_delta_surface_shows_is_averaged_in_its_own_frame():
+    """Flat (albedo 0) pixels beside demodulated ones are the Gaussian average of their own frame's flat
+    samples at the narrowest bandwidth: what glass shows moves apart from the glass's features, which
+    would join it across frames as if it stood still. A brute-force average is the reference."""
+    T, H, W = 3, 48, 64
+    f, names = _plane(T, H, W, albedo=0.6)
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    disc = ((yy - 24) ** 2 + (xx - 32) ** 2) < 12 ** 2
+    f[:, 0:3, disc] = 0.0
+    truth = torch.full((T, 3, H, W), 0.3)
+    for t in range(T):  # a bright stripe seen through the glass, 10 px further each frame
+        truth[t][:, disc & (xx >= 20 + 10 * t) & (xx < 24 + 10 * t)] = 2.0
+    color = _noisy(truth, 4).double()
+    s = DenoiseSettings(temporal_radius=1, mode="spacetime", firefly="none", footprint_sigma=0.0,
+                        dtype=torch.float64)
+    out = denoise_frames(color, f.double(), names, settings=s, query_times=[1.0])[0]
+    sigma = s.sigma_s * min(s.bandwidths)
+    r = int(np.ceil(3 * sigma))  # the Gaussian's support (three sigmas, as the blur takes it)
+    ys, xs = torch.nonzero(disc, as_tuple=True)
+    d2 = (ys[:, None] - ys[None]) ** 2 + (xs[:, None] - xs[None]) ** 2
+    near = ((ys[:, None] - ys[None]).abs() <= r) & ((xs[:, None] - xs[None]).abs() <= r)
+    w = torch.exp(-d2 / (2 * sigma ** 2)) * near
+    expected = (color[1][:, ys, xs] @ w.T.double()) / w.sum(1)
+    torch.testing.assert_close(out[:, ys, xs], expected, rtol=1e-6, atol=0)
+    ghost = disc & (((xx >= 20) & (xx < 24)) | ((xx >= 40) & (xx < 44)))  # the stripe a frame before, after
+    assert float(out[:, ghost].mean()) < 0.45  # 0.3 plus the stripe's Gaussian tail, no ghost
+
+
 def test_moving_shadow_leaves_no_ghost():
     """A contact shadow moves 8 pixels a frame over a plane whose features never change: joined in
     space-time, the lit ground where the shadow was a frame earlier or later stays lit."""

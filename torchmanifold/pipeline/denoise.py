@@ -9,7 +9,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    before filtering and added back unfiltered, so lights do not bleed into walls.
 3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
    same albedo, so texture stays sharp. Where the albedo is about 0 (delta BSDFs, black surfaces) the
-   radiance itself is filtered, among those pixels only.
+   radiance itself is averaged, among those pixels only and each frame alone: their features do not
+   show what a mirror or glass shows (:func:`_flat_average`).
 4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
    to it, and the clamped samples are filtered linearly. The energy removed is measured and returned
@@ -540,7 +541,7 @@ def _halves(shape, device) -> Tensor:
     return ((yy + xx) % 2 == 0)[None, None]
 
 
-def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigmas: Tensor,
+def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
                       range_scale: float, level: Tensor | None) -> Tensor:
     """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
@@ -552,11 +553,10 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     weighted as relative errors (against ``level``, a radiance estimate, plus a tenth of the frame's
     mean) and pooled over ``selection_blur`` pixels; a bandwidth's weight is the likelihood that its
     excess over the least error is noise (:func:`_excess_error_z2`). Each bandwidth's own output uses
-    all samples (the two halves' sums add up). Flat pixels (see :func:`_demodulation_albedo`) are
-    filtered among themselves, as in :meth:`_Filter.by_class`.
+    all samples (the two halves' sums add up).
 
     Args:
-        e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights; flat ``(T, 1, H, W)`` bool.
+        e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights (0: not filtered here).
         level: ``(T, 3, H, W)`` radiance estimate at the frames, or ``None`` (then the output at
             ``sigma_s`` itself).
 
@@ -565,8 +565,6 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     """
     T, _, H, W = e.shape
     st = settings
-    class_ids = [k for k, c in enumerate((~flat, flat)) if bool(c.any())]  # 0: demodulated, 1: flat
-    classes = [(~flat, flat)[k].to(e.dtype) for k in class_ids]
     half = _halves(e.shape, e.device).to(e.dtype)
     # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
     # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
@@ -574,49 +572,37 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
     at_frames = all(k is not None for k in query_frames)
     cv_times = qt if at_frames else ft
     idx = query_frames if at_frames else list(range(T))
-    flat_cv = _frames(flat, idx)
     preds, fulls, cv_outs = [], [], []
     filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
     fast = _fast.enabled(e, mask)
-    if fast:  # the same stack, prediction and sums in two C++ passes
-        stack = _fast.cv_halves(e, mask, flat, class_ids)
+    if fast:  # the same stack, prediction and sums in two C++ passes (one class: every pixel the mask holds)
+        stack = _fast.cv_halves(e, mask, torch.zeros_like(mask, dtype=torch.bool), [0])
     else:
-        parts = []
-        for c in classes:
-            for h in (half, 1 - half):
-                parts += [e * (mask * c * h), mask * c * h]
-        stack = torch.cat(parts, 1)
-    class_masks = [mask * c for c in classes]
+        stack = torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
     windowed = not filters[0]._per_frame() and e.dtype != torch.float64
-    class_bounds = [filters[0].window_bounds(e, m) if windowed else None for m in class_masks]
+    bounds = filters[0].window_bounds(e, mask) if windowed else None
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
         if fast:
             pred, num, den = _fast.cv_split(y)
+            pred, num, den = pred[:, 0], num[:, 0], den[:, 0]
         else:
-            y = y.view(len(cv_times), len(classes), 2, 4, H, W)
-            num, den = y[:, :, :, :3], y[:, :, :, 3:]
+            y = y.view(len(cv_times), 2, 4, H, W)
+            num, den = y[:, :, :3], y[:, :, 3:]
             # a pixel of the first half is predicted from the second half's samples and the other way round
-            other_num = torch.where(half > 0, num[:, :, 1], num[:, :, 0])
-            other_den = torch.where(half > 0, den[:, :, 1], den[:, :, 0])
+            other_num = torch.where(half > 0, num[:, 1], num[:, 0])
+            other_den = torch.where(half > 0, den[:, 1], den[:, 0])
             ok = other_den > 1e-8
             # NaN where the other half has no sample under the kernel: no support, no error estimate
             pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
-            num, den = num.sum(2), den.sum(2)
-        full = torch.stack([filt.normalise(num[:, k], den[:, k], e, class_masks[k], class_bounds[k])
-                            for k in range(len(classes))], 1)
-        if len(classes) == 2:
-            pred = torch.where(flat_cv, pred[:, 1], pred[:, 0])
-            cv_out = torch.where(flat_cv, full[:, 1], full[:, 0])
-        else:
-            pred, cv_out = pred[:, 0], full[:, 0]
+            num, den = num.sum(1), den.sum(1)
+        cv_out = filt.normalise(num, den, e, mask, bounds)
         preds.append(pred)
         cv_outs.append(cv_out)
         if at_frames:
             fulls.append(cv_out)
         else:
-            fq = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale)
-            fulls.append(fq.by_class(e, mask, flat))
+            fulls.append(_Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale)(e, mask))
     if level is None:
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
@@ -650,6 +636,21 @@ def _select_bandwidth(e: Tensor, mask: Tensor, flat: Tensor, guide: Tensor, sigm
         w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
         w = w.to(e.dtype)
     return (torch.stack(fulls) * w).sum(0)
+
+
+def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
+    """Flat pixels' own estimate, ``(T, 3, H, W)``: the ``weight``-ed average of ``e`` under a Gaussian of
+    ``sigma`` pixels, each frame alone (``e`` itself where no weight lies under it).
+
+    Flat pixels beside demodulated ones are delta surfaces and black ones (:func:`_demodulation_albedo`).
+    Their guide is the surface's own features, which do not show what a mirror or glass shows, nor how
+    that moves between frames, so they are not guided, selected or joined in time. On the validation set
+    this Gaussian at the narrowest bandwidth did better than the guided, selected space-time filter of
+    the other pixels, and the op no longer carries a second class's channels
+    (``benchmarks/validation/findings.md``). It tends to the samples as ``sigma`` shrinks.
+    """
+    y = footprint_blur(torch.cat([e * weight, weight], 1), sigma)
+    return torch.where(y[:, 3:] > 1e-8, y[:, :3] / y[:, 3:].clamp_min(1e-8), e)
 
 
 def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
@@ -894,13 +895,19 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
 
     if s.pilot_only:
         out = at_queries(s.level)
-    elif len(settings.bandwidths) == 1:
-        sigma = base * float(settings.bandwidths[0])
-        filt = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)
-        out = filt.by_class(s.values, s.mask, s.flat)
     else:
-        out = _select_bandwidth(s.values, s.mask, s.flat, s.guide, s.sigmas, settings, ft, qt, base,
-                                range_scale, s.level)
+        # flat pixels beside demodulated ones are averaged apart (_flat_average); alone they are the image
+        apart = bool(s.flat.any()) and not bool(s.flat.all())
+        mask = s.mask * ~s.flat if apart else s.mask
+        if len(settings.bandwidths) == 1:
+            sigma = base * float(settings.bandwidths[0])
+            out = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)(s.values, mask)
+        else:
+            out = _select_bandwidth(s.values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                    s.level)
+        if apart:
+            own = _flat_average(s.values, s.mask * s.flat, base * min(settings.bandwidths))
+            out = torch.where(at_queries(s.flat.to(out.dtype)) > 0.5, at_queries(own), out)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
     out = _remodulate(out, at_queries(s.albedo), at_queries(s.flat.to(out.dtype)) > 0.5,
