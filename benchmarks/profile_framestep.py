@@ -61,7 +61,7 @@ def main(argv=None):
     wrap(D._Filter, "apply", "op calls (_Filter.apply)")
     wrap(D._Filter, "_guard", "_guard (in normalise)")
     wrap(D._Filter, "normalise", "normalise (incl. guard)")
-    wrap(D._Filter, "by_class", "pilot (_Filter.by_class)")
+    wrap(D._Filter, "__call__", "pilot (_Filter.__call__)")
     from torchmanifold.pipeline import _fast
 
     c, f = load_frame()

@@ -466,19 +466,6 @@ class _Filter:
         y = self.apply(torch.cat([values * mask, mask], 1))
         return self.normalise(y[:, :-1], y[:, -1:], values, mask)
 
-    def by_class(self, values: Tensor, mask: Tensor, flat: Tensor) -> Tensor:
-        """Filter demodulated pixels and flat (not demodulated) ones apart: one holds irradiance, the
-        other radiance, and no guide channel tells a black or delta surface from a dark albedo. One op
-        call carries both classes (the op filters channels independently)."""
-        if not bool(flat.any()):
-            return self(values, mask)
-        m = [mask * (~flat).to(mask.dtype), mask * flat.to(mask.dtype)]
-        y = self.apply(torch.cat([values * m[0], m[0], values * m[1], m[1]], 1))
-        c = values.shape[1] + 1
-        out, own = (self.normalise(y[:, k * c:(k + 1) * c - 1], y[:, (k + 1) * c - 1:(k + 1) * c], values, m[k])
-                    for k in range(2))
-        return torch.where(self.at_queries(flat.to(values.dtype)) > 0.5, own, out)
-
     def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
         """At each query, the largest valid value of its window's frames and the largest minus valid value
         (``-max`` of the dtype where none): what the guard's box maxima start from."""
@@ -638,16 +625,23 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     return (torch.stack(fulls) * w).sum(0)
 
 
+def _flat_apart(flat: Tensor) -> bool:
+    """Whether flat pixels stand beside demodulated ones: then the filters leave them out (weight 0) and
+    :func:`_flat_average` gives theirs. A frame of flat pixels alone (no albedo) is filtered whole."""
+    return bool(flat.any()) and not bool(flat.all())
+
+
 def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
     """Flat pixels' own estimate, ``(T, 3, H, W)``: the ``weight``-ed average of ``e`` under a Gaussian of
     ``sigma`` pixels, each frame alone (``e`` itself where no weight lies under it).
 
     Flat pixels beside demodulated ones are delta surfaces and black ones (:func:`_demodulation_albedo`).
     Their guide is the surface's own features, which do not show what a mirror or glass shows, nor how
-    that moves between frames, so they are not guided, selected or joined in time. On the validation set
-    this Gaussian at the narrowest bandwidth did better than the guided, selected space-time filter of
-    the other pixels, and the op no longer carries a second class's channels
-    (``benchmarks/validation/findings.md``). It tends to the samples as ``sigma`` shrinks.
+    that moves between frames, so they are not guided, selected or joined in time: the result takes this
+    average at the narrowest bandwidth, the firefly pilot at its own. On the validation set that did
+    better than the guided, selected space-time filter of the other pixels, and the op no longer carries
+    a second class's channels (``benchmarks/validation/findings.md``). It tends to the samples as
+    ``sigma`` shrinks.
     """
     y = footprint_blur(torch.cat([e * weight, weight], 1), sigma)
     return torch.where(y[:, 3:] > 1e-8, y[:, :3] / y[:, 3:].clamp_min(1e-8), e)
@@ -869,7 +863,12 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
         # the log domain compresses what is bright for the frame, whatever the exposure
         level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
-        pe = level * torch.expm1(pf.by_class(torch.log1p(e.clamp_min(0.0) / level), mask, flat))
+        x = torch.log1p(e.clamp_min(0.0) / level)
+        if _flat_apart(flat):
+            x = torch.where(flat, _flat_average(x, mask * flat, base), pf(x, mask * ~flat))
+        else:
+            x = pf(x, mask)
+        pe = level * torch.expm1(x)
     state.level = pe
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
@@ -896,8 +895,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     if s.pilot_only:
         out = at_queries(s.level)
     else:
-        # flat pixels beside demodulated ones are averaged apart (_flat_average); alone they are the image
-        apart = bool(s.flat.any()) and not bool(s.flat.all())
+        apart = _flat_apart(s.flat)
         mask = s.mask * ~s.flat if apart else s.mask
         if len(settings.bandwidths) == 1:
             sigma = base * float(settings.bandwidths[0])
