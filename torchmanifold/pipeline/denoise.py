@@ -625,10 +625,16 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     return (torch.stack(fulls) * w).sum(0)
 
 
-def _flat_apart(flat: Tensor) -> bool:
-    """Whether flat pixels stand beside demodulated ones: then the filters leave them out (weight 0) and
-    :func:`_flat_average` gives theirs. A frame of flat pixels alone (no albedo) is filtered whole."""
-    return bool(flat.any()) and not bool(flat.all())
+def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
+                       at_queries) -> Tensor:
+    """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
+    ones are left out of it (weight 0) and take :func:`_flat_average` at ``flat_sigma``, brought to the
+    queries by ``at_queries``. A frame of flat pixels alone (no albedo) is filtered whole."""
+    if not (bool(flat.any()) and not bool(flat.all())):
+        return filt(values, mask)
+    out = filt(values, mask * ~flat)
+    own = _flat_average(values, mask * flat, flat_sigma)
+    return torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
 
 
 def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
@@ -864,11 +870,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         # the log domain compresses what is bright for the frame, whatever the exposure
         level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
         x = torch.log1p(e.clamp_min(0.0) / level)
-        if _flat_apart(flat):
-            x = torch.where(flat, _flat_average(x, mask * flat, base), pf(x, mask * ~flat))
-        else:
-            x = pf(x, mask)
-        pe = level * torch.expm1(x)
+        pe = level * torch.expm1(_filter_flat_apart(pf, x, mask, flat, base, pf.at_queries))
     state.level = pe
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
@@ -895,17 +897,14 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     if s.pilot_only:
         out = at_queries(s.level)
     else:
-        apart = _flat_apart(s.flat)
-        mask = s.mask * ~s.flat if apart else s.mask
         if len(settings.bandwidths) == 1:
             sigma = base * float(settings.bandwidths[0])
-            out = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)(s.values, mask)
+            filt = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)
         else:
-            out = _select_bandwidth(s.values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                    s.level)
-        if apart:
-            own = _flat_average(s.values, s.mask * s.flat, base * min(settings.bandwidths))
-            out = torch.where(at_queries(s.flat.to(out.dtype)) > 0.5, at_queries(own), out)
+            def filt(values, mask):
+                return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                         s.level)
+        out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
     out = _remodulate(out, at_queries(s.albedo), at_queries(s.flat.to(out.dtype)) > 0.5,
