@@ -43,7 +43,7 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // mask (T, 1, H, W) (1 where all of a pixel's values are finite), counts int64 (3,): non-finite colour
   // values, non-finite feature values, masked pixels.
   m.def("_sanitize(Tensor c, Tensor f) -> (Tensor, Tensor, Tensor, Tensor)");
-  // denoise._footprint_albedo: alb (T, 3, H, W) blurred (footprint_blur, sigma > 0) over the pixels that are
-  // not flat (T, 1, H, W) bool, normalised; 1 where flat -> (T, 3, H, W).
-  m.def("_footprint_albedo(Tensor alb, Tensor flat, float sigma) -> Tensor");
+  // denoise._normalised_blur: blur(x w) / blur(w) (footprint_blur, sigma > 0) for x (T, C, H, W) and
+  // weights w (T, 1, H, W), x where blur(w) <= 1e-8 -> (T, C, H, W).
+  m.def("_normalised_blur(Tensor x, Tensor weight, float sigma) -> Tensor");
 }

@@ -154,6 +154,36 @@ def test_footprint_albedo_equals_reference(frame):
             torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-7)
 
 
+def test_normalised_blur_equals_reference(frame):
+    """Sparse weights (flat pixels' own average), none at all, non-finite values under weight 0, one
+    channel and float64, against the PyTorch stage and a brute-force normalised Gaussian."""
+    e, g = frame["e"], torch.Generator().manual_seed(9)
+    w = (torch.rand(e.shape[0], 1, *e.shape[2:], generator=g) > 0.97).to(e.dtype)
+    bad = e.clone()
+    bad[:, :, 5, 5] = math.nan
+    bad[:, :, 6, 6] = math.inf
+    w_bad = w.clone()
+    w_bad[:, :, 5:7, 5:7] = 0.0
+    for x, wt, sigma in ((e, w, 2.0), (e, w * 0, 1.0), (bad, w_bad, 4.0), (e[:, :1], w + 0.5, 0.7),
+                         (e.double(), w.double(), 2.0)):
+        out, ref = _both(D._normalised_blur, x, wt, sigma)
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6, equal_nan=True)
+        assert bool(torch.isfinite(out[wt.expand_as(out) > 0]).all())
+    x, wt, sigma = e[:1, :, :12, :10].double(), w[:1, :, :12, :10].double() + 0.1, 1.5
+    H, W = x.shape[-2:]
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    k = D._gaussian_taps(sigma, torch.float64)
+    r = (k.numel() - 1) // 2
+    brute = torch.zeros_like(x)
+    for i in range(H):
+        for j in range(W):  # replicate borders: an outside tap reads the nearest edge pixel
+            ys, xs = (torch.arange(-r, r + 1) + i).clamp(0, H - 1), (torch.arange(-r, r + 1) + j).clamp(0, W - 1)
+            kk = k[:, None] * k[None, :]
+            wv = wt[0, 0][ys][:, xs] * kk
+            brute[0, :, i, j] = (x[0][:, ys][:, :, xs] * wv).sum((1, 2)) / wv.sum()
+    torch.testing.assert_close(D._normalised_blur(x, wt, sigma), brute)
+
+
 def test_quantiles_equal_torch_bitwise():
     g = torch.Generator().manual_seed(2)
     for v in (torch.randn(3, 2, generator=g), torch.randn(3, 1001, generator=g), torch.zeros(2, 50),
@@ -178,7 +208,10 @@ def test_frame_step_equals_reference(frame, name):
         f[0, 3, 70, 70] = math.nan
         f[0, :3, 80:100, 80:100] = 0.0  # albedo 0: flat pixels, filtered among themselves
     out, ref = _both(denoise_frames, c, f, FEATURES)
-    torch.testing.assert_close(out, ref, rtol=1e-4, atol=1e-4 * float(ref.abs().mean()))
+    # beside the flat block, a discrete choice downstream of the flat pixels' blur (whose order of sums
+    # differs: a few ulp) can turn those ulp into a 2e-4 step at a pixel
+    tol = 1e-4 if name == "rendered" else 1e-3
+    torch.testing.assert_close(out, ref, rtol=tol, atol=tol * float(ref.abs().mean()))
 
 
 def test_kernels_thread_count_invariant(frame):
@@ -191,7 +224,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
         lambda: _fast.cv_halves(e, m, frame["flat"], [0, 1]),
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
-        lambda: _fast.footprint_albedo(e, frame["flat"], 0.5),
+        lambda: _fast.normalised_blur(e, m, 0.5),
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
     ]
     old = torch.get_num_threads()
@@ -249,7 +282,7 @@ def _op_samples():
             ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0)),
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m, flat, [0, 1])),
             ("_cv_halves_out", (e, m, flat, [0, 1], torch.empty(T, 16, H, W))), ("_cv_split", (y,)),
-            ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_footprint_albedo", (e, flat, 0.5))]
+            ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5))]
 
 
 @pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])

@@ -20,7 +20,7 @@ from torch import Tensor
 from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
-           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "footprint_albedo"]
+           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -139,10 +139,10 @@ def sanitize(c: Tensor, f: Tensor) -> tuple[Tensor, Tensor, Tensor, dict]:
 
 
 @parallel
-def footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
-    """``denoise._footprint_albedo`` (``sigma > 0``): alb ``(T, 3, H, W)``, flat ``(T, 1, H, W)`` bool ->
-    ``(T, 3, H, W)``."""
-    return torch.ops.torchmanifold._footprint_albedo(alb, flat, float(sigma))
+def normalised_blur(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
+    """``denoise._normalised_blur`` (``sigma > 0``): x ``(T, C, H, W)``, weight ``(T, 1, H, W)`` ->
+    ``(T, C, H, W)``."""
+    return torch.ops.torchmanifold._normalised_blur(x, weight, float(sigma))
 
 
 def _register_fakes() -> None:
@@ -193,9 +193,9 @@ def _register_fakes() -> None:
                 torch.empty_like(f, memory_format=torch.contiguous_format),
                 c.new_empty((c.shape[0], 1, *c.shape[2:])), c.new_empty((3,), dtype=torch.int64))
 
-    @torch.library.register_fake(lib + "_footprint_albedo")
-    def _(alb, flat, sigma):
-        return torch.empty_like(alb, memory_format=torch.contiguous_format)
+    @torch.library.register_fake(lib + "_normalised_blur")
+    def _(x, weight, sigma):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
 
 
 if _have_ops():

@@ -649,8 +649,7 @@ def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
     a second class's channels (``benchmarks/validation/findings.md``). It tends to the samples as
     ``sigma`` shrinks.
     """
-    y = footprint_blur(torch.cat([e * weight, weight], 1), sigma)
-    return torch.where(y[:, 3:] > 1e-8, y[:, :3] / y[:, 3:].clamp_min(1e-8), e)
+    return _normalised_blur(e, weight, sigma)
 
 
 def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
@@ -969,11 +968,18 @@ def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
     (a normalised blur), and 1 where the colour was not demodulated."""
     if sigma <= 0:
         return alb
-    if _fast.enabled(alb) and flat.shape == (alb.shape[0], 1, *alb.shape[2:]):
-        return _fast.footprint_albedo(alb, flat, sigma)
-    keep = (~flat).to(alb.dtype)
-    avg = footprint_blur(alb * keep, sigma) / footprint_blur(keep, sigma).clamp_min(1e-6)
-    return torch.where(flat, 1.0, avg)
+    return torch.where(flat, 1.0, _normalised_blur(alb, (~flat).to(alb.dtype), sigma))
+
+
+def _normalised_blur(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
+    """``blur(x w) / blur(w)`` for ``x`` ``(T, C, H, W)`` and weights ``w`` ``(T, 1, H, W)``: a Gaussian of
+    ``sigma`` pixels (:func:`footprint_blur`) over the weighted pixels alone; ``x`` itself where no weight
+    lies under the kernel. A pixel of weight 0 takes nothing of its value, NaN or inf included."""
+    if _fast.enabled(x, weight) and weight.shape == (x.shape[0], 1, *x.shape[2:]) and sigma > 0:
+        return _fast.normalised_blur(x, weight, sigma)
+    y = footprint_blur(torch.cat([torch.where(weight != 0, x * weight, 0.0), weight], 1), sigma)
+    den = y[:, -1:]
+    return torch.where(den > 1e-8, y[:, :-1] / den.clamp_min(1e-8), x)
 
 
 #: the footprint average's tone-mapping knee, in frame-mean luminances (validation set's tuning part: 3

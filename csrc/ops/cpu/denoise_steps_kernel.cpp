@@ -896,65 +896,66 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> sanitize_cpu(const at
   return {co, fo, mask, counts};
 }
 
-// ------------------------------------------------------------------------- footprint albedo
-// denoise._footprint_albedo: the albedo (T, 3, H, W) blurred over demodulated pixels only (a normalised
-// Gaussian blur of sigma, footprint_blur's taps and replicate borders), 1 where flat (T, 1, H, W) bool.
-at::Tensor footprint_albedo_cpu(const at::Tensor& alb_, const at::Tensor& flat_, double sigma) {
-  const char* op = "_footprint_albedo";
-  check_float(alb_, "alb", op);
-  check_shape(alb_, "alb", op, 4);
-  TORCH_CHECK_VALUE(alb_.size(1) == 3, op, ": alb must be (T, 3, H, W), got ", alb_.sizes());
-  const int64_t Tn = alb_.size(0), H = alb_.size(2), W = alb_.size(3), HW = H * W;
-  TORCH_CHECK_VALUE(flat_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && flat_.scalar_type() == at::kBool, op,
-                    ": flat must be a (T, 1, H, W) bool tensor, got ", flat_.sizes(), " ", flat_.scalar_type());
+// ------------------------------------------------------------------------- normalised blur
+// denoise._normalised_blur: blur(x w) / blur(w) (footprint_blur's taps and replicate borders) for x
+// (T, C, H, W) and weights w (T, 1, H, W), x itself where blur(w) <= 1e-8. A weight of 0 takes nothing
+// of its value, so NaN or inf there stays out.
+at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, double sigma) {
+  const char* op = "_normalised_blur";
+  check_float(x_, "x", op);
+  check_shape(x_, "x", op, 4);
+  const int64_t Tn = x_.size(0), C = x_.size(1), H = x_.size(2), W = x_.size(3), HW = H * W;
+  TORCH_CHECK_VALUE(w_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && w_.scalar_type() == x_.scalar_type(), op,
+                    ": weight must be (T, 1, H, W) = (", Tn, ", 1, ", H, ", ", W, ") of x's dtype, got ",
+                    w_.sizes(), " ", w_.scalar_type());
   TORCH_CHECK_VALUE(sigma > 0, op, ": sigma must be > 0, got ", sigma);
-  const at::Tensor alb = alb_.contiguous(), flat = flat_.contiguous();
-  at::Tensor out = at::empty_like(alb, at::MemoryFormat::Contiguous);
+  const at::Tensor x = x_.contiguous(), wt = w_.contiguous();
+  at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
   if (out.numel() == 0) return out;
-  const int64_t r = gaussian_radius(sigma);
-  AT_DISPATCH_FLOATING_TYPES(alb.scalar_type(), "footprint_albedo_cpu", [&] {
+  const int64_t r = gaussian_radius(sigma), P = C + 1;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "normalised_blur_cpu", [&] {
     using T = scalar_t;
     const std::vector<T> taps = gaussian_taps<T>(sigma, r);
-    const T* pa = alb.data_ptr<T>();
-    const bool* pf = flat.data_ptr<bool>();
+    const T* px = x.data_ptr<T>();
+    const T* pw = wt.data_ptr<T>();
     T* po = out.data_ptr<T>();
-    Scratch<T> hbuf;  // (T, 4, H, W): alb * keep (3 planes) and keep, blurred along x
-    hbuf.resize(Tn * 4 * HW);
+    Scratch<T> hbuf;  // (T, C + 1, H, W): x w (C planes) and w, blurred along x
+    hbuf.resize(Tn * P * HW);
     T* hb = hbuf.data();
-    at::parallel_for(0, Tn * 4 * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
+    at::parallel_for(0, Tn * P * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
       Scratch<T> srcb;
       srcb.resize(W + 2 * r);
       T* src = srcb.data();
       for (int64_t pr = r0; pr < r1; ++pr) {
-        const int64_t t = pr / (4 * H), c = (pr / H) % 4, y = pr % H;
-        const bool* f = pf + t * HW + y * W;
-        const T* a = pa + (t * 3 + std::min<int64_t>(c, 2)) * HW + y * W;
-        for (int64_t x = 0; x < W; ++x) {
-          const T keep = f[x] ? T(0) : T(1);
-          src[r + x] = c < 3 ? a[x] * keep : keep;
+        const int64_t t = pr / (P * H), c = (pr / H) % P, y = pr % H;
+        const T* w = pw + t * HW + y * W;
+        if (c < C) {
+          const T* a = px + (t * C + c) * HW + y * W;
+          for (int64_t j = 0; j < W; ++j) src[r + j] = w[j] != T(0) ? a[j] * w[j] : T(0);
+        } else {
+          std::copy(w, w + W, src + r);
         }
         std::fill(src, src + r, src[r]);
         std::fill(src + r + W, src + 2 * r + W, src[r + W - 1]);
-        T* o = hb + (t * 4 + c) * HW + y * W;
+        T* o = hb + (t * P + c) * HW + y * W;
         std::fill(o, o + W, T(0));
         for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], src + r + i, W, o);
       }
     });
-    at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * 4), [&](int64_t r0, int64_t r1) {
+    at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * P), [&](int64_t r0, int64_t r1) {
       Scratch<T> buf;
-      buf.resize(4 * W);
+      buf.resize(P * W);
       T* acc = buf.data();
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H;
-        std::fill(acc, acc + 4 * W, T(0));
-        for (int64_t c = 0; c < 4; ++c)
-          for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + (t * 4 + c) * HW + clampi(y + i, H) * W, W, acc + c * W);
-        T* den = acc + 3 * W;
-        for (int64_t x = 0; x < W; ++x) den[x] = den[x] < T(1e-6) ? T(1e-6) : den[x];
-        const bool* f = pf + t * HW + y * W;
-        for (int64_t c = 0; c < 3; ++c) {
-          T* o = po + (t * 3 + c) * HW + y * W;
-          for (int64_t x = 0; x < W; ++x) o[x] = f[x] ? T(1) : acc[c * W + x] / den[x];
+        std::fill(acc, acc + P * W, T(0));
+        for (int64_t c = 0; c < P; ++c)
+          for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + (t * P + c) * HW + clampi(y + i, H) * W, W, acc + c * W);
+        const T* den = acc + C * W;
+        for (int64_t c = 0; c < C; ++c) {
+          const T* a = px + (t * C + c) * HW + y * W;
+          T* o = po + (t * C + c) * HW + y * W;
+          for (int64_t j = 0; j < W; ++j) o[j] = den[j] > T(1e-8) ? acc[c * W + j] / den[j] : a[j];
         }
       }
     });
@@ -975,7 +976,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_cv_halves_out", &cv_halves_out_cpu);
   m.impl("_cv_split", &cv_split_cpu);
   m.impl("_sanitize", &sanitize_cpu);
-  m.impl("_footprint_albedo", &footprint_albedo_cpu);
+  m.impl("_normalised_blur", &normalised_blur_cpu);
 }
 
 }  // namespace cpu
