@@ -30,14 +30,13 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
         "float softness, float error_cut) -> Tensor");
   // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.
   m.def("_quantiles(Tensor v, float[] q) -> Tensor");
-  // denoise._select_bandwidth's stack for one op call: e (T, 3, H, W), mask (T, 1, H, W), flat (T, 1, H, W)
-  // bool, classes (0: not flat, 1: flat) -> (T, 8 len(classes), H, W): per class and checkerboard half
-  // [e * m, m], m = mask * class * half.
-  m.def("_cv_halves(Tensor e, Tensor mask, Tensor flat, int[] classes) -> Tensor");
+  // denoise._select_bandwidth's stack for one op call: e (T, 3, H, W), mask (T, 1, H, W) -> (T, 8, H, W): per
+  // checkerboard half [e * m, m], m = mask * half.
+  m.def("_cv_halves(Tensor e, Tensor mask) -> Tensor");
   // The same written into out, a workspace the caller reuses across calls (fresh pages cost more than the pass).
-  m.def("_cv_halves_out(Tensor e, Tensor mask, Tensor flat, int[] classes, Tensor(a!) out) -> ()");
-  // The op's output on that stack, y (T, 8 K, H, W) -> per class: the prediction from the other half
-  // (T, K, 3, H, W), and both halves' sums num (T, K, 3, H, W), den (T, K, 1, H, W).
+  m.def("_cv_halves_out(Tensor e, Tensor mask, Tensor(a!) out) -> ()");
+  // The op's output on that stack, y (T, 8, H, W) -> the prediction from the other half (T, 3, H, W), and
+  // both halves' sums num (T, 3, H, W), den (T, 1, H, W).
   m.def("_cv_split(Tensor y) -> (Tensor, Tensor, Tensor)");
   // denoise._sanitize's finite check: c (T, C, H, W), f (T, D, H, W) -> c and f with non-finite values 0,
   // mask (T, 1, H, W) (1 where all of a pixel's values are finite), counts int64 (3,): non-finite colour

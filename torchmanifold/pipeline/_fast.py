@@ -107,25 +107,26 @@ def quantiles(v: Tensor, q: list[float]) -> Tensor:
 
 
 @parallel
-def cv_halves(e: Tensor, mask: Tensor, flat: Tensor, classes: list[int]) -> Tensor:
-    """``_select_bandwidth``'s op input: per class (0 not flat, 1 flat) and checkerboard half ``[e * m, m]``:
-    e ``(T, 3, H, W)``, mask ``(T, 1, H, W)``, flat ``(T, 1, H, W)`` bool -> ``(T, 8 K, H, W)``."""
-    shape = (e.shape[0], 8 * len(classes), *e.shape[2:])
+def cv_halves(e: Tensor, mask: Tensor) -> Tensor:
+    """``_select_bandwidth``'s op input: per checkerboard half ``[e * m, m]``, ``m = mask * half``:
+    e ``(T, 3, H, W)``, mask ``(T, 1, H, W)`` -> ``(T, 8, H, W)``."""
+    shape = (e.shape[0], 8, *e.shape[2:])
     if math.prod(shape) > _MAX_WORKSPACE:
-        return torch.ops.torchmanifold._cv_halves(e, mask, flat, [int(k) for k in classes])
+        return torch.ops.torchmanifold._cv_halves(e, mask)
     # one workspace per thread, reused by every bandwidth and frame: the op reads it and returns a new
     # tensor, so the stack is dead by the next call
     buf = getattr(_state, "halves", None)
     if buf is None or buf.shape != shape or buf.dtype != e.dtype:
         buf = _state.halves = torch.empty(shape, dtype=e.dtype)
-    torch.ops.torchmanifold._cv_halves_out(e, mask, flat, [int(k) for k in classes], buf)
+    torch.ops.torchmanifold._cv_halves_out(e, mask, buf)
     return buf
 
 
 @parallel
 def cv_split(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The op's output on :func:`cv_halves` ``(T, 8 K, H, W)`` -> per class the other half's prediction
-    ``(T, K, 3, H, W)``, and the halves' sums num ``(T, K, 3, H, W)`` and den ``(T, K, 1, H, W)``."""
+    """The op's output on :func:`cv_halves` ``(T, 8, H, W)`` -> the other half's prediction ``(T, 3, H, W)``
+    (NaN where the other half has no weight), and the halves' sums num ``(T, 3, H, W)`` and den
+    ``(T, 1, H, W)``."""
     return torch.ops.torchmanifold._cv_split(y)
 
 
@@ -175,17 +176,17 @@ def _register_fakes() -> None:
         return v.new_empty((v.shape[0], len(q)), dtype=torch.float64)
 
     @torch.library.register_fake(lib + "_cv_halves")
-    def _(e, mask, flat, classes):
-        return e.new_empty((e.shape[0], 8 * len(classes), *e.shape[2:]))
+    def _(e, mask):
+        return e.new_empty((e.shape[0], 8, *e.shape[2:]))
 
     @torch.library.register_fake(lib + "_cv_halves_out")
-    def _(e, mask, flat, classes, out):
+    def _(e, mask, out):
         return None
 
     @torch.library.register_fake(lib + "_cv_split")
     def _(y):
-        T, K, H, W = y.shape[0], y.shape[1] // 8, y.shape[2], y.shape[3]
-        return y.new_empty((T, K, 3, H, W)), y.new_empty((T, K, 3, H, W)), y.new_empty((T, K, 1, H, W))
+        T, H, W = y.shape[0], y.shape[2], y.shape[3]
+        return y.new_empty((T, 3, H, W)), y.new_empty((T, 3, H, W)), y.new_empty((T, 1, H, W))
 
     @torch.library.register_fake(lib + "_sanitize")
     def _(c, f):

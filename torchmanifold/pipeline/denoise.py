@@ -562,8 +562,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     preds, fulls, cv_outs = [], [], []
     filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
     fast = _fast.enabled(e, mask)
-    if fast:  # the same stack, prediction and sums in two C++ passes (one class: every pixel the mask holds)
-        stack = _fast.cv_halves(e, mask, torch.zeros_like(mask, dtype=torch.bool), [0])
+    if fast:  # the same stack, prediction and sums in two C++ passes
+        stack = _fast.cv_halves(e, mask)
     else:
         stack = torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
@@ -572,7 +572,6 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
         if fast:
             pred, num, den = _fast.cv_split(y)
-            pred, num, den = pred[:, 0], num[:, 0], den[:, 0]
         else:
             y = y.view(len(cv_times), 2, 4, H, W)
             num, den = y[:, :, :3], y[:, :, 3:]

@@ -714,18 +714,13 @@ at::Tensor quantiles_cpu(const at::Tensor& v_, at::ArrayRef<double> q) {
 }
 
 // ------------------------------------------------------------------ cross-validation halves and split
+// m * h, h the half or 1 - half (rounded as PyTorch rounds them: exactly)
 template <typename T>
-void class_row(const bool* __restrict flat, bool want_flat, int64_t n, T* __restrict out) {
-  for (int64_t i = 0; i < n; ++i) out[i] = flat[i] == want_flat ? T(1) : T(0);
-}
-// (mask * class) * h, h the half or 1 - half (rounded as PyTorch rounds them: exactly)
-template <typename T>
-void half_mask_row(const T* __restrict m, const T* __restrict c, const T* __restrict half, bool other, int64_t n,
-                   T* __restrict out) {
+void half_mask_row(const T* __restrict m, const T* __restrict half, bool other, int64_t n, T* __restrict out) {
   if (other) {
-    for (int64_t i = 0; i < n; ++i) out[i] = (m[i] * c[i]) * (T(1) - half[i]);
+    for (int64_t i = 0; i < n; ++i) out[i] = m[i] * (T(1) - half[i]);
   } else {
-    for (int64_t i = 0; i < n; ++i) out[i] = (m[i] * c[i]) * half[i];
+    for (int64_t i = 0; i < n; ++i) out[i] = m[i] * half[i];
   }
 }
 template <typename T>
@@ -733,101 +728,88 @@ void times_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __res
   for (int64_t i = 0; i < n; ++i) out[i] = a[i] * b[i];
 }
 
-// denoise._select_bandwidth's channel stack for one op call: per class (0: demodulated pixels, ~flat; 1:
-// flat ones) and per checkerboard half h ((y + x) even, then odd), [e * m, m] with m = (mask * class) * h,
-// the same float products as the PyTorch stack.
-void cv_halves_into(const at::Tensor& e_, const at::Tensor& mask_, const at::Tensor& flat_, at::IntArrayRef classes,
-                    at::Tensor& out) {
+// denoise._select_bandwidth's channel stack for one op call: per checkerboard half h ((y + x) even, then
+// odd), [e * m, m] with m = mask * h, the same float products as the PyTorch stack.
+void cv_halves_into(const at::Tensor& e_, const at::Tensor& mask_, at::Tensor& out) {
   const char* op = "_cv_halves";
   check_float(e_, "e", op);
   check_shape(e_, "e", op, 4);
-  const int64_t Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W, K = static_cast<int64_t>(classes.size());
+  const int64_t Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W;
   TORCH_CHECK_VALUE(e_.size(1) == 3, op, ": e must be (T, 3, H, W), got ", e_.sizes());
   TORCH_CHECK_VALUE(mask_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && mask_.scalar_type() == e_.scalar_type(), op,
                     ": mask must be (T, 1, H, W) of e's dtype, got ", mask_.sizes());
-  TORCH_CHECK_VALUE(flat_.sizes() == mask_.sizes() && flat_.scalar_type() == at::kBool, op,
-                    ": flat must be a (T, 1, H, W) bool tensor, got ", flat_.sizes(), " ", flat_.scalar_type());
-  for (int64_t k : classes) TORCH_CHECK_VALUE(k == 0 || k == 1, op, ": classes must be 0 or 1, got ", k);
-  const at::Tensor e = e_.contiguous(), mask = mask_.contiguous(), flat = flat_.contiguous();
-  if (!out.defined()) out = at::empty({Tn, 8 * K, H, W}, e.options());
-  TORCH_CHECK_VALUE(out.sizes() == at::IntArrayRef({Tn, 8 * K, H, W}) && out.scalar_type() == e.scalar_type() &&
-                    out.is_contiguous() && out.device().is_cpu(), op, ": out must be a contiguous (T, 8 K, H, W) = (",
-                    Tn, ", ", 8 * K, ", ", H, ", ", W, ") CPU tensor of e's dtype, got ", out.sizes());
+  const at::Tensor e = e_.contiguous(), mask = mask_.contiguous();
+  if (!out.defined()) out = at::empty({Tn, 8, H, W}, e.options());
+  TORCH_CHECK_VALUE(out.sizes() == at::IntArrayRef({Tn, 8, H, W}) && out.scalar_type() == e.scalar_type() &&
+                    out.is_contiguous() && out.device().is_cpu(), op, ": out must be a contiguous (T, 8, H, W) = (",
+                    Tn, ", 8, ", H, ", ", W, ") CPU tensor of e's dtype, got ", out.sizes());
   if (out.numel() == 0) return;
   AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_halves_cpu", [&] {
     using T = scalar_t;
     const T* pe = e.data_ptr<T>();
     const T* pm = mask.data_ptr<T>();
-    const bool* pf = flat.data_ptr<bool>();
     T* po = out.data_ptr<T>();
-    at::parallel_for(0, Tn * H, row_grain(W * 8 * K), [&](int64_t r0, int64_t r1) {
+    at::parallel_for(0, Tn * H, row_grain(W * 8), [&](int64_t r0, int64_t r1) {
       Scratch<T> hb;
-      hb.resize(3 * W);
+      hb.resize(2 * W);
       T* half = hb.data();  // the row's checkerboard: 1 where (y + x) is even
-      T* cls = half + W;    // the row's class indicator
-      T* mch = cls + W;     // (mask * class) * half
+      T* mh = half + W;     // mask * half
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H, i0 = y * W;
         const T* er = pe + t * 3 * HW + i0;
         for (int64_t x = 0; x < W; ++x) half[x] = ((y + x) & 1) ? T(0) : T(1);
-        for (int64_t k = 0; k < K; ++k) {
-          class_row(pf + t * HW + i0, classes[k] == 1, W, cls);
-          for (int64_t j = 0; j < 2; ++j) {
-            half_mask_row(pm + t * HW + i0, cls, half, j == 1, W, mch);
-            T* o = po + (t * 8 * K + k * 8 + j * 4) * HW + i0;
-            times_row(er, mch, W, o);
-            times_row(er + HW, mch, W, o + HW);
-            times_row(er + 2 * HW, mch, W, o + 2 * HW);
-            std::copy(mch, mch + W, o + 3 * HW);
-          }
+        for (int64_t j = 0; j < 2; ++j) {
+          half_mask_row(pm + t * HW + i0, half, j == 1, W, mh);
+          T* o = po + (t * 8 + j * 4) * HW + i0;
+          times_row(er, mh, W, o);
+          times_row(er + HW, mh, W, o + HW);
+          times_row(er + 2 * HW, mh, W, o + 2 * HW);
+          std::copy(mh, mh + W, o + 3 * HW);
         }
       }
     });
   });
 }
 
-at::Tensor cv_halves_cpu(const at::Tensor& e, const at::Tensor& mask, const at::Tensor& flat, at::IntArrayRef classes) {
+at::Tensor cv_halves_cpu(const at::Tensor& e, const at::Tensor& mask) {
   at::Tensor out;
-  cv_halves_into(e, mask, flat, classes, out);
+  cv_halves_into(e, mask, out);
   return out;
 }
 
-void cv_halves_out_cpu(const at::Tensor& e, const at::Tensor& mask, const at::Tensor& flat, at::IntArrayRef classes,
-                       at::Tensor out) {
-  cv_halves_into(e, mask, flat, classes, out);
-}
+void cv_halves_out_cpu(const at::Tensor& e, const at::Tensor& mask, at::Tensor out) { cv_halves_into(e, mask, out); }
 
-// The op's output y (T, 8 K, H, W) on that stack -> each class's prediction of every pixel from the other
-// half (T, K, 3, H, W) (0 where the other half has no weight), and the sums of both halves: num
-// (T, K, 3, H, W), den (T, K, 1, H, W).
+// The op's output y (T, 8, H, W) on that stack -> the prediction of every pixel from the other half
+// (T, 3, H, W) (NaN where the other half has no weight), and the sums of both halves: num (T, 3, H, W),
+// den (T, 1, H, W).
 std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_) {
   const char* op = "_cv_split";
   check_float(y_, "y", op);
   check_shape(y_, "y", op, 4);
-  TORCH_CHECK_VALUE(y_.size(1) % 8 == 0 && y_.size(1) > 0, op, ": y must be (T, 8 K, H, W), got ", y_.sizes());
+  TORCH_CHECK_VALUE(y_.size(1) == 8, op, ": y must be (T, 8, H, W), got ", y_.sizes());
   const at::Tensor y = y_.contiguous();
-  const int64_t Tn = y.size(0), K = y.size(1) / 8, H = y.size(2), W = y.size(3), HW = H * W;
-  at::Tensor pred = at::empty({Tn, K, 3, H, W}, y.options());
-  at::Tensor num = at::empty({Tn, K, 3, H, W}, y.options());
-  at::Tensor den = at::empty({Tn, K, 1, H, W}, y.options());
+  const int64_t Tn = y.size(0), H = y.size(2), W = y.size(3), HW = H * W;
+  at::Tensor pred = at::empty({Tn, 3, H, W}, y.options());
+  at::Tensor num = at::empty({Tn, 3, H, W}, y.options());
+  at::Tensor den = at::empty({Tn, 1, H, W}, y.options());
   if (y.numel() == 0) return {pred, num, den};
   AT_DISPATCH_FLOATING_TYPES(y.scalar_type(), "cv_split_cpu", [&] {
     using T = scalar_t;
     const T* py = y.data_ptr<T>();
     T *pp = pred.data_ptr<T>(), *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>();
-    at::parallel_for(0, Tn * K * H, row_grain(W * 8), [&](int64_t r0, int64_t r1) {
+    at::parallel_for(0, Tn * H, row_grain(W * 8), [&](int64_t r0, int64_t r1) {
       for (int64_t row = r0; row < r1; ++row) {
-        const int64_t tk = row / H, yy = row % H, i0 = yy * W;
-        const T* a = py + tk * 8 * HW + i0;  // half 0: num 0..2, den 3; half 1: num 4..6, den 7
+        const int64_t t = row / H, yy = row % H, i0 = yy * W;
+        const T* a = py + t * 8 * HW + i0;  // half 0: num 0..2, den 3; half 1: num 4..6, den 7
         const T* da = a + 3 * HW;
         const T* db = a + 7 * HW;
-        T* d = pd + tk * HW + i0;
+        T* d = pd + t * HW + i0;
         for (int64_t x = 0; x < W; ++x) d[x] = da[x] + db[x];
         for (int64_t c = 0; c < 3; ++c) {
           const T* na = a + c * HW;
           const T* nb = a + (4 + c) * HW;
-          T* n = pn + (tk * 3 + c) * HW + i0;
-          T* p = pp + (tk * 3 + c) * HW + i0;
+          T* n = pn + (t * 3 + c) * HW + i0;
+          T* p = pp + (t * 3 + c) * HW + i0;
           for (int64_t x = 0; x < W; ++x) {
             n[x] = na[x] + nb[x];
             const bool first_half = (yy + x) % 2 == 0;  // predicted from the second half, and the other way round
