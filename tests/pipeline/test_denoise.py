@@ -6,6 +6,7 @@ from _pipeline_data import FEATURES, load_clip
 from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
 from torchmanifold.features import feature
+from torchmanifold.pipeline import denoise as D
 from torchmanifold.pipeline.denoise import default_guide_sigmas
 from torchmanifold.pipeline.progressive import gaussian_baseline
 
@@ -192,6 +193,45 @@ def test_firefly_clamped_and_energy_reported():
     assert ours.max() < 1.5 * bg
     assert st["firefly_clamped_samples"] >= 1 and st["firefly_energy_removed"] > 0.5
     assert st0["firefly_energy_removed"] == 0.0
+
+
+def test_light_through_rare_bright_samples_is_not_clamped_away():
+    """Bounce light alone: a fifth of the samples carry all of it (the rest are black). The log-domain pilot
+    sits far below their mean, so a plain clamp at k times it took 46% of the frame's energy; clamping no
+    more than a few percent of the samples keeps it (as bright as the unclamped filter), while the lone
+    firefly of the test above is still clamped."""
+    g = torch.Generator().manual_seed(3)
+    H = W = 64
+    alb = torch.full((1, 3, H, W), 0.5)
+    nrm = torch.zeros(1, 3, H, W)
+    nrm[:, 2] = 1
+    bright = (torch.rand(1, 1, H, W, generator=g) < 0.2).float()
+    color = 0.5 * bright * 1.0 / 0.2 * torch.ones(1, 3, H, W)  # irradiance 1 on average
+    feats = torch.cat([alb, nrm], 1)
+    out, st = denoise_frames(color, feats, FEATURES[:6], return_stats=True)
+    linear = denoise_frames(color, feats, FEATURES[:6], settings=DenoiseSettings(firefly="none"))
+    assert st["firefly_energy_removed"] < 0.02
+    assert abs(float(out.mean()) / float(linear.mean()) - 1) < 0.03
+
+
+def test_clamp_scale_lets_the_allowed_share_through():
+    """The raised bound is the least one that at most the allowed share of valid samples exceed
+    (brute force over candidate factors)."""
+    g = torch.Generator().manual_seed(4)
+    ratio = torch.rand(2, 1, 20, 30, generator=g) * 3  # about two thirds above the bound
+    ratio[1] = torch.rand(1, 20, 30, generator=g) * 1.01  # a few above it: at most the allowed share
+    mask = torch.ones(2, 1, 20, 30)
+    mask[0, :, :5] = 0.0
+    ratio = ratio * mask
+    s = D._clamp_scale(ratio, mask).flatten()
+    for t in range(2):
+        allowed = max(1, int(D._FIREFLY_MAX_SHARE * float(mask[t].sum())))
+        r = ratio[t].flatten()
+        assert int((r > s[t]).sum()) <= allowed
+        if s[t] > 1:  # and any lower bound lets more through
+            assert int((r > torch.nextafter(s[t], torch.tensor(0.0))).sum()) > allowed
+        else:
+            assert int((r > 1).sum()) <= allowed
 
 
 def test_guide_sigmas_and_errors():

@@ -90,12 +90,14 @@ def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
     the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
     scales with the exposure."""
-    # in float64, row by row: a one-pass sum over a whole frame splits across threads, and its last
-    # bits (hence a Kuwahara choice or a clamp decision downstream) would follow the thread count
-    def total(x):
-        return x.double().sum(-1, keepdim=True).sum(-2, keepdim=True).sum(-3, keepdim=True)
+    return (_frame_total(lum * mask) / _frame_total(mask).clamp_min(1.0)).to(lum.dtype)
 
-    return (total(lum * mask) / total(mask).clamp_min(1.0)).to(lum.dtype)
+
+def _frame_total(x: Tensor) -> Tensor:
+    """Sum of each frame of ``(T, C, H, W)`` in float64: ``(T, 1, 1, 1)``."""
+    # row by row: a one-pass sum over a whole frame splits across threads, and its last bits (hence a
+    # Kuwahara choice or a clamp decision downstream) would follow the thread count
+    return x.double().sum(-1, keepdim=True).sum(-2, keepdim=True).sum(-3, keepdim=True)
 
 
 def _gaussian_taps(sigma: float, dtype: torch.dtype, device=None) -> Tensor:
@@ -164,6 +166,12 @@ _SELECTION_ERROR_CUT = 2.0
 _LEFT_OUT = 1e30
 #: firefly clamp floor as a fraction of the frame's mean pilot luminance
 _FIREFLY_FLOOR = 0.25
+#: the largest share of a frame's samples the firefly clamp may take down: fireflies are rare. On the
+#: validation set's frames it takes at most 1.6% from 1 spp (0.1% from 4); a scene lit by bounce light
+#: alone, whose light reaches most pixels through rare bright paths that the log-domain pilot sees as
+#: fireflies, had 8.6% of its samples clamped from 1 spp and lost half its energy
+#: (``benchmarks/validation/findings.md``)
+_FIREFLY_MAX_SHARE = 0.02
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 #: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
@@ -1156,11 +1164,14 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     where ``keep`` (bool ``(T, 1, H, W)``); the energy, the energy removed and the samples clamped are added
     to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
     noise-free black do not clamp every lit sample (measured on shared/data; on the validation set's
-    tuning part 0.1 to 1 are within 0.05 dB)."""
+    tuning part 0.1 to 1 are within 0.05 dB). Where more than :data:`_FIREFLY_MAX_SHARE` of a frame's
+    samples exceed it, the frame's bound rises until no more do (:func:`_clamp_scale`): so many
+    "fireflies" are the light itself."""
     lp = luminance(pe).clamp_min(0.0)
     floor = _FIREFLY_FLOOR * _frame_mean(lp, mask)
     thr = k * (lp + floor)
     L = luminance(e)
+    thr = thr * _clamp_scale(torch.where(~keep & (mask > 0), L / thr, 0.0), mask)
     scale = torch.where((L > thr) & ~keep, thr / L.clamp_min(1e-30), torch.ones_like(L))
     ec = e * scale
     with torch.no_grad():  # counts, not part of a gradient
@@ -1168,6 +1179,20 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
         stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
         stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
     return ec
+
+
+def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:
+    """Per frame, the least factor ``s >= 1`` by which the clamp's bound must rise so that at most
+    :data:`_FIREFLY_MAX_SHARE` of the frame's valid samples (at least one) exceed it: ``(T, 1, 1, 1)``.
+    ``ratio`` ``(T, 1, H, W)`` is each sample's luminance over its bound (0 where none applies)."""
+    with torch.no_grad():
+        r = ratio.detach().flatten(1)
+        out = torch.ones(r.shape[0], dtype=r.dtype, device=r.device)
+        for t in range(r.shape[0]):
+            allowed = max(1, int(_FIREFLY_MAX_SHARE * float((mask[t] > 0).sum())))
+            if int((r[t] > 1).sum()) > allowed:  # the (allowed + 1)-th largest: `allowed` lie above it
+                out[t] = torch.topk(r[t], allowed + 1).values[-1].clamp_min(1.0)
+        return out.view(-1, 1, 1, 1)
 
 
 class Denoiser(nn.Module):
