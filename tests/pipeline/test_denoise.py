@@ -214,6 +214,37 @@ def test_light_through_rare_bright_samples_is_not_clamped_away():
     assert abs(float(out.mean()) / float(linear.mean()) - 1) < 0.03
 
 
+def test_pilot_noise_is_the_spread_of_the_held_out_difference():
+    g = torch.Generator().manual_seed(6)
+    pilot = torch.full((2, 3, 40, 50), 2.0)
+    n = torch.randn(2, 1, 40, 50, generator=g) * torch.tensor([0.02, 0.2]).view(2, 1, 1, 1)
+    held = pilot * torch.exp(n)
+    valid = torch.ones(2, 1, 40, 50, dtype=torch.bool)
+    valid[1, :, :10] = False
+    held[1, :, :10] = float("nan")  # no estimate there: left out with the invalid pixels
+    # the channel is log(L + 0.1 mean): a relative change n moves it by n / 1.1
+    expected = torch.tensor([0.02, 0.2], dtype=torch.float64) / 1.1
+    torch.testing.assert_close(D._pilot_noise(pilot, held, valid), expected, rtol=0.06, atol=0)
+
+
+def test_a_noisy_pilot_no_longer_steers():
+    """Sparse bright samples (a twentieth carry all the light): the pilot is mostly its own sample where
+    one is bright, so the log-radiance channel took those samples far from every manifold and lost 31%
+    of the light. Its sigma now follows the pilot's noise: off here, unchanged where samples are dense."""
+    g = torch.Generator().manual_seed(3)
+    H = W = 64
+    alb = torch.full((1, 3, H, W), 0.5)
+    nrm = torch.zeros(1, 3, H, W)
+    nrm[:, 2] = 1
+    feats = torch.cat([alb, nrm], 1)
+    sparse = 0.5 * (torch.rand(1, 1, H, W, generator=g) < 0.05).float() / 0.05 * torch.ones(1, 3, H, W)
+    dense = 0.5 * (1 + 0.3 * torch.randn(1, 3, H, W, generator=g)).clamp_min(0)
+    st = DenoiseSettings()
+    assert float(D.prepare_frames(sparse, feats, FEATURES[:6], None, st).sigmas[0, -1]) >= 1e3
+    assert float(D.prepare_frames(dense, feats, FEATURES[:6], None, st).sigmas[0, -1]) == st.radiance_sigma
+    assert float(denoise_frames(sparse, feats, FEATURES[:6]).mean()) > 0.8 * float(sparse.mean())
+
+
 def test_clamp_scale_lets_the_allowed_share_through():
     """The raised bound is the least one that at most the allowed share of valid samples exceed
     (brute force over candidate factors)."""

@@ -254,7 +254,8 @@ class DenoiseSettings:
         radiance_sigma: range sigma of the log-radiance guide channel, which keeps lights, shadows
             and what is seen through glass apart where the renderer's features cannot; 0 leaves it out.
             The channel comes from the firefly pilot where there is one, else from the samples
-            (:func:`_log_radiance`, at twice this sigma). 0.5 measured best on the tuning part.
+            (:func:`_log_radiance`, at twice this sigma). 0.5 measured best on the tuning part. Where the
+            pilot's own noise is a quarter of it or more, the sigma widens (:func:`_radiance_widening`).
         demodulate: divide by albedo when albedo channels are present.
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
@@ -474,6 +475,13 @@ class _Filter:
         y = self.apply(torch.cat([values * mask, mask], 1))
         return self.normalise(y[:, :-1], y[:, -1:], values, mask)
 
+    def with_held_out(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+        """``self(values, mask)`` of 3-channel values, and each pixel's filter of the other checkerboard
+        half's samples alone (NaN where that half has none under the kernel), from one op call of both
+        halves (:func:`_halves_stack`)."""
+        pred, num, den = _split_halves(self.apply(_halves_stack(values, mask)))
+        return self.normalise(num, den, values, mask), pred
+
     def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
         """At each query, the largest valid value of its window's frames and the largest minus valid value
         (``-max`` of the dtype where none): what the guard's box maxima start from."""
@@ -536,6 +544,35 @@ def _halves(shape, device) -> Tensor:
     return ((yy + xx) % 2 == 0)[None, None]
 
 
+def _halves_stack(e: Tensor, mask: Tensor) -> Tensor:
+    """The op's input for cross-validation, ``(T, 8, H, W)``: per checkerboard half ``h`` (:func:`_halves`,
+    then its complement) ``[e m h, m h]``, for samples ``e`` ``(T, 3, H, W)`` of weights ``m``
+    ``(T, 1, H, W)``. The op's output on it holds each half's filter apart (:func:`_split_halves`)."""
+    if _fast.enabled(e, mask):
+        return _fast.cv_halves(e, mask)
+    half = _halves(e.shape, e.device).to(e.dtype)
+    return torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
+
+
+def _split_halves(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The op's output on :func:`_halves_stack` ``(Q, 8, H, W)`` -> each pixel's prediction from the other
+    half's samples alone ``(Q, 3, H, W)`` (NaN where that half has no sample under the kernel: no support,
+    no estimate), and both halves' sums ``num`` ``(Q, 3, H, W)``, ``den`` ``(Q, 1, H, W)``: the unnormalised
+    filter of all samples."""
+    if _fast.enabled(y):
+        return _fast.cv_split(y)
+    Q, _, H, W = y.shape
+    half = _halves(y.shape, y.device)
+    y = y.view(Q, 2, 4, H, W)
+    num, den = y[:, :, :3], y[:, :, 3:]
+    # a pixel of the first half is predicted from the second half's samples and the other way round
+    other_num = torch.where(half, num[:, 1], num[:, 0])
+    other_den = torch.where(half, den[:, 1], den[:, 0])
+    ok = other_den > 1e-8
+    pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
+    return pred, num.sum(1), den.sum(1)
+
+
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
                       range_scale: float, level: Tensor | None) -> Tensor:
@@ -560,7 +597,6 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     """
     T, _, H, W = e.shape
     st = settings
-    half = _halves(e.shape, e.device).to(e.dtype)
     # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
     # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
     query_frames = [frame_at(ft, q) for q in qt]
@@ -569,27 +605,12 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     idx = query_frames if at_frames else list(range(T))
     preds, fulls, cv_outs = [], [], []
     filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
-    fast = _fast.enabled(e, mask)
-    if fast:  # the same stack, prediction and sums in two C++ passes
-        stack = _fast.cv_halves(e, mask)
-    else:
-        stack = torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
+    stack = _halves_stack(e, mask)
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
     windowed = not filters[0]._per_frame() and e.dtype != torch.float64
     bounds = filters[0].window_bounds(e, mask) if windowed else None
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
-        if fast:
-            pred, num, den = _fast.cv_split(y)
-        else:
-            y = y.view(len(cv_times), 2, 4, H, W)
-            num, den = y[:, :, :3], y[:, :, 3:]
-            # a pixel of the first half is predicted from the second half's samples and the other way round
-            other_num = torch.where(half > 0, num[:, 1], num[:, 0])
-            other_den = torch.where(half > 0, den[:, 1], den[:, 0])
-            ok = other_den > 1e-8
-            # NaN where the other half has no sample under the kernel: no support, no error estimate
-            pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
-            num, den = num.sum(1), den.sum(1)
+        pred, num, den = _split_halves(y)
         cv_out = filt.normalise(num, den, e, mask, bounds)
         preds.append(pred)
         cv_outs.append(cv_out)
@@ -876,14 +897,21 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         # the log domain compresses what is bright for the frame, whatever the exposure
         level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
         x = torch.log1p(e.clamp_min(0.0) / level)
-        pe = level * torch.expm1(_filter_flat_apart(pf, x, mask, flat, base, pf.at_queries))
+        held = {}
+
+        def pilot_filter(values, weights):  # keeps the held-out estimate (flat pixels apart have none)
+            out, held["x"] = pf.with_held_out(values, weights)
+            return out
+        px = _filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries)
+        pe = level * torch.expm1(px)
+        noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
     state.level = pe
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
     state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
-        state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings)
+        state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
     return state
 
 
@@ -1143,19 +1171,65 @@ def _radiance_sigma(settings: DenoiseSettings) -> float:
     return float(dict(settings.guide_sigmas).get(RADIANCE_GUIDE, settings.radiance_sigma))
 
 
-def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor, settings: DenoiseSettings):
+def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor,
+                         settings: DenoiseSettings, noise: Tensor | None = None):
     """The guide with its log-radiance channel (the last, see :func:`_guide`) taken from the pilot
     estimate ``(T, 3, H, W)`` instead of the samples: it tells a light, a shadow or what glass shows from
-    their surroundings without resolving the noise of single samples."""
+    their surroundings without resolving the noise of single samples. ``noise`` ``(T,)``: the pilot's own
+    noise in the channel's units (:func:`_pilot_noise`); where it reaches a quarter of the channel's
+    sigma the sigma widens, and at half of it the channel no longer steers (:func:`_radiance_widening`)."""
     rs = _radiance_sigma(settings)
     if rs <= 0:
         return guide, sigmas
     L = luminance(pilot).clamp_min(0.0)
     mean = _frame_mean(L, mask)
-    guide = torch.cat([guide[:, :-1], torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))], 1)
+    guide = torch.cat([guide[:, :-1], _log_radiance_of(L, mean)], 1)
     sigmas = sigmas.clone()
     sigmas[:, -1] = rs
+    if noise is not None:
+        sigmas[:, -1] = rs * _radiance_widening(noise.to(sigmas.dtype) / rs)
     return guide, sigmas
+
+
+def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:
+    """The log-radiance guide channel of luminance ``L`` ``(T, 1, H, W)`` whose frame means are ``mean``."""
+    return torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))
+
+
+#: the widening of the log-radiance channel's sigma where the pilot is noisy; its largest value leaves
+#: the channel without effect
+_RADIANCE_OFF = 1e6
+
+
+def _radiance_widening(relative_noise: Tensor) -> Tensor:
+    """The factor on the log-radiance channel's sigma for the pilot's noise in units of that sigma: 1 up
+    to 1/4 (two pixels of the same radiance then differ by a third of the sigma, typically, and weigh
+    each other 0.94), rising as 1 / (2 - 4 n) to :data:`_RADIANCE_OFF` from 1/2 (they differ by 0.7 of the
+    sigma: the channel steers by noise). Where the pilot is that noisy, its sample is the larger part of
+    it at a bright sample: such a sample lands far from every manifold and its light is lost (the
+    validation set: the pilot's noise is at most 0.09 on every scene but one, lit by bounce light alone,
+    where it is 0.25 and the channel cost 1.9 / 3.1 dB from 1 / 4 spp; ``findings.md``)."""
+    w = ((0.5 - relative_noise) / 0.25).clamp(0.0, 1.0)
+    return torch.where(w > 0, 1.0 / w.clamp_min(1.0 / _RADIANCE_OFF), _RADIANCE_OFF)
+
+
+def _pilot_noise(pilot: Tensor, held_out: Tensor, valid: Tensor) -> Tensor:
+    """The pilot's noise per frame in the log-radiance channel's units, ``(T,)``: the robust spread
+    (1.4826 times the median absolute deviation) of the channel of ``pilot`` ``(T, 3, H, W)`` minus that of
+    ``held_out``, each pixel's estimate from the other checkerboard half alone, over the ``valid``
+    ``(T, 1, H, W)`` pixels where both exist. The pilot is about the mean of the two halves' estimates, so
+    the difference is half the halves' difference: its spread is the pilot's own. 0 where a frame has
+    no such pixel."""
+    with torch.no_grad():
+        L, Lh = luminance(pilot).clamp_min(0.0), luminance(held_out).clamp_min(0.0)
+        mean = _frame_mean(L, valid.to(L.dtype))
+        d = _log_radiance_of(L, mean) - _log_radiance_of(Lh, mean)
+        ok = valid & torch.isfinite(d)
+        out = []
+        for t in range(d.shape[0]):
+            v = d[t][ok[t]].double()
+            out.append(1.4826 * float((v - v.median()).abs().median()) if v.numel() else 0.0)
+        return torch.tensor(out, dtype=torch.float64)
 
 
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict,
