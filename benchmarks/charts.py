@@ -232,7 +232,8 @@ def validation_section(rel: str) -> list:
     res = json.loads(path.read_text())
     meta = res.get("meta", {})
     lines = ["## Validation set: renders from Mitsuba 3 and Blender Cycles", "",
-             "Seven clips from two renderers this project did not write (`benchmarks/README.md`: what each covers, "
+             f"{len(res['scenes'])} clips from two renderers this project did not write (`benchmarks/README.md`: what "
+             "each covers, "
              "how to regenerate them); tuned on the `tune` scenes only, `test` scenes held out. Full tables with "
              "relMSE, FLIP, ms/frame and moving-object masks: `benchmarks/results/validation/scores.md`; regenerate "
              "with `.venv/bin/python benchmarks/validation/score.py` (it needs `pyoidn`, installed by the set-up), "
