@@ -93,11 +93,12 @@ def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     return (_frame_total(lum * mask) / _frame_total(mask).clamp_min(1.0)).to(lum.dtype)
 
 
-def _frame_total(x: Tensor) -> Tensor:
-    """Sum of each frame of ``(T, C, H, W)`` in float64: ``(T, 1, 1, 1)``."""
+def _frame_total(x: Tensor, per_channel: bool = False) -> Tensor:
+    """Sum of each frame of ``(T, C, H, W)`` in float64: ``(T, 1, 1, 1)``, or ``(T, C, 1, 1)`` per channel."""
     # row by row: a one-pass sum over a whole frame splits across threads, and its last bits (hence a
     # Kuwahara choice or a clamp decision downstream) would follow the thread count
-    return x.double().sum(-1, keepdim=True).sum(-2, keepdim=True).sum(-3, keepdim=True)
+    rows = x.double().sum(-1, keepdim=True).sum(-2, keepdim=True)
+    return rows if per_channel else rows.sum(-3, keepdim=True)
 
 
 def _gaussian_taps(sigma: float, dtype: torch.dtype, device=None) -> Tensor:
@@ -1230,11 +1231,8 @@ def _trusted_level(pilot: Tensor, mask: Tensor, trust: Tensor) -> Tensor:
     w = trust.to(pilot.dtype).view(-1, 1, 1, 1)
     if bool((w >= 1).all()):
         return pilot
-    def total(x):  # per frame and channel, row by row (as _frame_total)
-        return x.double().sum(-1, keepdim=True).sum(-2, keepdim=True)
-
-    mean = (total(pilot * mask) / total(mask).clamp_min(1.0)).to(pilot.dtype)
-    return w * pilot + (1 - w) * mean
+    mean = _frame_total(pilot * mask, per_channel=True) / _frame_total(mask).clamp_min(1.0)
+    return w * pilot + (1 - w) * mean.to(pilot.dtype)
 
 
 def _pilot_noise(pilot: Tensor, held_out: Tensor, valid: Tensor) -> Tensor:
