@@ -630,6 +630,12 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
     unit = torch.where(mean > 0, mean, torch.ones_like(mean))
     weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
+    # the residuals in units of the clip's largest frame mean (a query's prediction mixes its window's
+    # frames), so that the z statistics, which square their squares, do not overflow float32 on a clip of
+    # values about 1e10
+    top = mean.detach().amax()  # a unit: z does not depend on it, and no gradient should pass it
+    scale = torch.where(top > 0, top, torch.ones_like(top))
+    e, preds = e / scale, [p / scale for p in preds]
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
