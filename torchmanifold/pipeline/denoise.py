@@ -167,12 +167,13 @@ _SELECTION_ERROR_CUT = 2.0
 _LEFT_OUT = 1e30
 #: firefly clamp floor as a fraction of the frame's mean pilot luminance
 _FIREFLY_FLOOR = 0.25
-#: the largest share of a frame's samples the firefly clamp may take down: fireflies are rare. On the
-#: validation set's frames it takes at most 1.6% from 1 spp (0.1% from 4); a scene lit by bounce light
-#: alone, whose light reaches most pixels through rare bright paths that the log-domain pilot sees as
-#: fireflies, had 8.6% of its samples clamped from 1 spp and lost half its energy
+#: the largest share of a frame's samples the firefly clamp may take down: fireflies are rare. A scene lit
+#: by bounce light alone, whose light reaches most pixels through rare bright paths that the log-domain
+#: pilot sees as fireflies, had 8.6% of its samples clamped from 1 spp and lost half its energy; the other
+#: scenes' frames had at most 1.6%. On the tuning part, frames 0-2, from 1 / 4 spp: 2% 27.318 / 30.603,
+#: 1% 27.483 / 30.626, 0.5% 27.536 / 30.629, 0.25% 27.542 / 30.624, 0.1% 27.531 / 30.617
 #: (``benchmarks/validation/findings.md``)
-_FIREFLY_MAX_SHARE = 0.02
+_FIREFLY_MAX_SHARE = 0.005
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 #: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
