@@ -494,6 +494,22 @@ template <typename T>
 void axpy(T a, const T* __restrict x, int64_t n, T* __restrict y) {
   for (int64_t i = 0; i < n; ++i) y[i] += a * x[i];
 }
+// A row of W values blurred along x by the taps (radius r), replicate borders, into out; pad holds
+// W + 2 r values.
+template <typename T>
+void blur_row(const T* row, const std::vector<T>& taps, int64_t r, int64_t W, T* pad, T* out) {
+  std::copy(row, row + W, pad + r);
+  std::fill(pad, pad + r, pad[r]);
+  std::fill(pad + r + W, pad + 2 * r + W, pad[r + W - 1]);
+  std::fill(out, out + W, T(0));
+  for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], pad + r + i, W, out);
+}
+// Row y of an (H, W) plane blurred along y by the taps (radius r), replicate borders, into out.
+template <typename T>
+void blur_column(const T* plane, int64_t H, int64_t W, int64_t y, const std::vector<T>& taps, int64_t r, T* out) {
+  std::fill(out, out + W, T(0));
+  for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], plane + clampi(y + i, H) * W, W, out);
+}
 template <typename T>
 void divide_row(const T* __restrict d, int64_t n, T* __restrict y) {
   for (int64_t i = 0; i < n; ++i) y[i] = y[i] / d[i];
@@ -558,11 +574,7 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
       T* src = srcb.data();  // a row, replicate-padded by the taps' radius
       T* sqr = sqb.data();   // the K residual rows, then the mask row
       auto hblur = [&](const T* row, const std::vector<T>& tp, int64_t rr, T* o) {
-        std::copy(row, row + W, src + rr);
-        std::fill(src, src + rr, src[rr]);
-        std::fill(src + rr + W, src + 2 * rr + W, src[rr + W - 1]);
-        std::fill(o, o + W, T(0));
-        for (int64_t i = -rr; i <= rr; ++i) axpy(tp[i + rr], src + rr + i, W, o);
+        blur_row(row, tp, rr, W, src, o);
       };
       std::vector<T> d(W);
       for (int64_t tr = r0; tr < r1; ++tr) {
@@ -603,9 +615,7 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
       T* wts = pl + NP * W;
       T* wsum = wts + K * W;
       auto vblur = [&](int64_t t, int64_t p, int64_t y, const std::vector<T>& tp, int64_t rr, T* dst) {
-        std::fill(dst, dst + W, T(0));
-        for (int64_t i = -rr; i <= rr; ++i)
-          axpy(tp[i + rr], hb + (t * NP + p) * HW + clampi(y + i, H) * W, W, dst);
+        blur_column(hb + (t * NP + p) * HW, H, W, y, tp, rr, dst);
       };
       std::vector<int64_t> pair_index(K * K, -1);
       for (int64_t k = 0; k < npairs; ++k)
@@ -905,23 +915,18 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
     hbuf.resize(Tn * P * HW);
     T* hb = hbuf.data();
     at::parallel_for(0, Tn * P * H, row_grain(W * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
-      Scratch<T> srcb;
-      srcb.resize(W + 2 * r);
-      T* src = srcb.data();
+      Scratch<T> padb, xwb;
+      padb.resize(W + 2 * r);
+      xwb.resize(W);
+      T* xw = xwb.data();  // x w, 0 where w is
       for (int64_t pr = r0; pr < r1; ++pr) {
         const int64_t t = pr / (P * H), c = (pr / H) % P, y = pr % H;
         const T* w = pw + t * HW + y * W;
         if (c < C) {
           const T* a = px + (t * C + c) * HW + y * W;
-          for (int64_t j = 0; j < W; ++j) src[r + j] = w[j] != T(0) ? a[j] * w[j] : T(0);
-        } else {
-          std::copy(w, w + W, src + r);
+          for (int64_t j = 0; j < W; ++j) xw[j] = w[j] != T(0) ? a[j] * w[j] : T(0);
         }
-        std::fill(src, src + r, src[r]);
-        std::fill(src + r + W, src + 2 * r + W, src[r + W - 1]);
-        T* o = hb + (t * P + c) * HW + y * W;
-        std::fill(o, o + W, T(0));
-        for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], src + r + i, W, o);
+        blur_row(c < C ? xw : w, taps, r, W, padb.data(), hb + (t * P + c) * HW + y * W);
       }
     });
     at::parallel_for(0, Tn * H, row_grain(W * (2 * r + 1) * P), [&](int64_t r0, int64_t r1) {
@@ -930,9 +935,7 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
       T* acc = buf.data();
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, y = row % H;
-        std::fill(acc, acc + P * W, T(0));
-        for (int64_t c = 0; c < P; ++c)
-          for (int64_t i = -r; i <= r; ++i) axpy(taps[i + r], hb + (t * P + c) * HW + clampi(y + i, H) * W, W, acc + c * W);
+        for (int64_t c = 0; c < P; ++c) blur_column(hb + (t * P + c) * HW, H, W, y, taps, r, acc + c * W);
         const T* den = acc + C * W;
         for (int64_t c = 0; c < C; ++c) {
           const T* a = px + (t * C + c) * HW + y * W;
