@@ -597,7 +597,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     Returns:
         ``(Q, 3, H, W)`` at the query times.
     """
-    T, _, H, W = e.shape
+    T = e.shape[0]
     st = settings
     # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
     # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
@@ -910,15 +910,14 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         def pilot_filter(values, weights):  # keeps the held-out estimate (flat pixels apart have none)
             out, held["x"] = pf.with_held_out(values, weights)
             return out
-        px = _filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries)
-        pe = level * torch.expm1(px)
-        noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
+        pe = level * torch.expm1(_filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries))
     state.level = pe
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
     state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
+        noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
     return state
@@ -1194,9 +1193,7 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     mean = _frame_mean(L, mask)
     guide = torch.cat([guide[:, :-1], _log_radiance_of(L, mean)], 1)
     sigmas = sigmas.clone()
-    sigmas[:, -1] = rs
-    if noise is not None:
-        sigmas[:, -1] = rs * _radiance_widening(noise.to(sigmas.dtype) / rs)
+    sigmas[:, -1] = rs if noise is None else rs * _radiance_widening(noise.to(sigmas.dtype) / rs)
     return guide, sigmas
 
 
