@@ -56,12 +56,12 @@ def main(argv=None):
         setattr(owner, name, timed)
 
     for name in ("_sanitize", "_demodulation_albedo", "_footprint_albedo", "_guide", "_extent", "_log_radiance",
-                 "_clamp_fireflies", "_radiance_from_pilot", "_select_bandwidth", "_footprint_average"):
+                 "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth", "_footprint_average"):
         wrap(D, name, name)
     wrap(D._Filter, "apply", "op calls (_Filter.apply)")
     wrap(D._Filter, "_guard", "_guard (in normalise)")
     wrap(D._Filter, "normalise", "normalise (incl. guard)")
-    wrap(D._Filter, "__call__", "pilot (_Filter.__call__)")
+    wrap(D._Filter, "with_held_out", "pilot (_Filter.with_held_out)")
     from torchmanifold.pipeline import _fast
 
     c, f = load_frame()
