@@ -56,7 +56,8 @@ def main(argv=None):
         setattr(owner, name, timed)
 
     for name in ("_sanitize", "_demodulation_albedo", "_footprint_albedo", "_guide", "_extent", "_log_radiance",
-                 "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth", "_footprint_average"):
+                 "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth",
+                 "_footprint_average"):
         wrap(D, name, name)
     wrap(D._Filter, "apply", "op calls (_Filter.apply)")
     wrap(D._Filter, "_guard", "_guard (in normalise)")
