@@ -168,7 +168,6 @@ def test_normalised_blur_equals_reference(frame):
         assert bool(torch.isfinite(out[wt.expand_as(out) > 0]).all())
     x, wt, sigma = e[:1, :, :12, :10].double(), w[:1, :, :12, :10].double() + 0.1, 1.5
     H, W = x.shape[-2:]
-    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     k = D._gaussian_taps(sigma, torch.float64)
     r = (k.numel() - 1) // 2
     brute = torch.zeros_like(x)
