@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 HERE = Path(__file__).resolve().parent
 MITSUBA_CLIPS = ("mi_ceiling_light", "mi_glass_mirror", "mi_env_thin", "mi_indirect_dof", "mi_dark_glossy")
-BLENDER_CLIPS = ("bl_glass_caustic", "bl_moving_metal", "bl_env_thin", "bl_indirect_dof")
+BLENDER_CLIPS = ("bl_glass_caustic", "bl_moving_metal", "bl_env_thin", "bl_indirect_dof", "bl_motion_blur")
 LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"  # what Debian 12's libllvm19 package installs
 
 
