@@ -223,6 +223,16 @@ FINDINGS = ROOT / "benchmarks" / "validation" / "findings.md"
 CLASSIC = ("gaussian", "joint-bilateral", "opencv-am")
 
 
+def score_earlier_runs(res: dict) -> str:
+    """``validation/score.py``'s sentence on the earlier runs whose scenes ``res`` kept."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks" / "validation"))
+    from score import earlier_runs
+
+    return earlier_runs(res)
+
+
 def validation_section(rel: str) -> list:
     """Per-scene table of ``results/validation/scores.json`` (written by ``validation/score.py``) and the
     findings behind the denoiser's defaults (``validation/findings.md``)."""
@@ -244,7 +254,7 @@ def validation_section(rel: str) -> list:
              "over all frames); ours: each frame alone; ours +-1: the `denoise` command's default (the frames within "
              "+-1 joined in space-time); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
              "scene, an oracle choice) and OpenCV `amFilter`; ms: median per frame of ours and OIDN in the same "
-             "process, from 1 spp.", "",
+             "process, from 1 spp." + score_earlier_runs(res), "",
              "| scene | split | raw 1 spp | best classic | OIDN | ours | ours +-1 | ours - OIDN | raw 4 spp | "
              "best classic | OIDN | ours | ours +-1 | ms ours / OIDN |", "|---" * 14 + "|"]
     cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours", "st")} for spp in ("1", "4")}

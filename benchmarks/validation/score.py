@@ -242,11 +242,21 @@ def family_row(scene: dict) -> dict:
     return {f: scene["methods"][scene["best_of_family"][f]] for f in FAMILIES if f in scene["best_of_family"]}
 
 
+def earlier_runs(results: dict) -> str:
+    """A sentence naming the runs (``--merge``) whose scenes a results dict kept, or ``""``."""
+    runs = results.get("meta_previous_runs", [])
+    if not runs:
+        return ""
+    return " Scenes not scored in this run come from earlier runs: " + ", ".join(
+        f"commit {m.get('git_commit', '?')[:10]} ({m.get('date_utc', '?')})" for m in runs) + "."
+
+
 def markdown(results: dict, split: dict) -> str:
     lines = ["# Validation set: per-scene scores", "",
              f"Run {results['meta']['date_utc']}, commit {results['meta']['git_commit'][:10]}, "
              f"{results['meta']['cpu_count']} cores ({results['meta']['cpu']}), load {results['meta']['load_average']}, "
-             f"torch threads {results['meta']['torch_threads']}. Produced by `benchmarks/validation/score.py`.", "",
+             f"torch threads {results['meta']['torch_threads']}. Produced by `benchmarks/validation/score.py`."
+             + earlier_runs(results), "",
              "PSNR: clamped sRGB, mean over frames (dB, higher is better). relMSE: linear. FLIP: LDR sRGB (lower is "
              "better). Gaussian and joint bilateral: the best of their settings on each scene (an oracle choice). "
              "`ours`: each frame alone; `ours-spacetime`: the `denoise` command's default, +-1 frame joined in "
