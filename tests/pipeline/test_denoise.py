@@ -87,6 +87,31 @@ def test_a_room_lit_by_bounce_light_keeps_its_light():
     assert M.psnr(out, ref) > max(M.psnr(gaussian_baseline(c, s), ref) for s in (2.0, 4.0, 8.0))
 
 
+def test_texture_steers_only_where_the_pilot_can_be_trusted(clip, monkeypatch):
+    """The same held-out room: its walls and floor are textured and its pilot too noisy to trust. There
+    the albedo no longer steers the filter (its sigma widens as the log-radiance channel's does), since a
+    textured surface split by its albedo averaged each part's few samples alone; on the shared clip, whose
+    pilot is clean, it keeps its sigma. The room's frames gain from it against the albedo kept."""
+    c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1])
+    settings = DenoiseSettings()
+
+    def albedo_sigmas(c, f, names):
+        state = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1)
+        guide = [names[k] for k in D._select_guide(names, settings)]
+        return state.sigmas[:, [k for k, n in enumerate(guide) if D.feature_group(n) == "albedo"]]
+
+    albedo = D.GROUP_SIGMAS["albedo"]
+    assert bool((albedo_sigmas(c, f, names) > 1e3 * albedo).all())
+    clean = albedo_sigmas(clip[0], clip[1], FEATURES)
+    assert clean.numel() == 3 * clip[0].shape[0]
+    torch.testing.assert_close(clean, torch.full_like(clean, albedo))
+
+    widened = M.psnr(denoise_frames(c, f, names, samples_per_pixel=1), ref)
+    monkeypatch.setattr(D, "_albedo_widened", lambda sigmas, names, noise: sigmas)
+    kept = M.psnr(denoise_frames(c, f, names, samples_per_pixel=1), ref)
+    assert widened > kept + 0.3, (widened, kept)
+
+
 def test_bandwidth_selection_beats_every_bandwidth_it_blends(clip):
     """Per-pixel cross-validated blending of the bandwidths beats each of them alone on real frames: the
     shared Mitsuba crop (where 4 px alone is nearly as good) and a held-out scene of thin rods."""

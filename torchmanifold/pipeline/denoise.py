@@ -18,7 +18,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 5. **Guide**: each feature group gets its own range sigma (albedo, normals, world position or depth
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
-   set in a surface, shadows, what glass shows.
+   set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
+   channel and the albedo stop steering (:func:`_noise_widening`).
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends
    them by their error, estimated by cross-validation between two interleaved halves of the samples
    (see :func:`_select_bandwidth`): wide where the light is smooth and the samples noisy, narrow at
@@ -257,7 +258,7 @@ class DenoiseSettings:
             and what is seen through glass apart where the renderer's features cannot; 0 leaves it out.
             The channel comes from the firefly pilot where there is one, else from the samples
             (:func:`_log_radiance`, at twice this sigma). 0.5 measured best on the tuning part. Where the
-            pilot's own noise is a quarter of it or more, the sigma widens (:func:`_radiance_widening`).
+            pilot's own noise is a quarter of it or more, the sigma widens (:func:`_noise_widening`).
         demodulate: divide by albedo when albedo channels are present.
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
@@ -919,6 +920,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
+        state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
     return state
 
@@ -1185,7 +1187,7 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     estimate ``(T, 3, H, W)`` instead of the samples: it tells a light, a shadow or what glass shows from
     their surroundings without resolving the noise of single samples. ``noise`` ``(T,)``: the pilot's own
     noise in the channel's units (:func:`_pilot_noise`); where it reaches a quarter of the channel's
-    sigma the sigma widens, and at half of it the channel no longer steers (:func:`_radiance_widening`)."""
+    sigma the sigma widens, and at half of it the channel no longer steers (:func:`_noise_widening`)."""
     rs = _radiance_sigma(settings)
     if rs <= 0:
         return guide, sigmas
@@ -1193,7 +1195,7 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     mean = _frame_mean(L, mask)
     guide = torch.cat([guide[:, :-1], _log_radiance_of(L, mean)], 1)
     sigmas = sigmas.clone()
-    sigmas[:, -1] = rs if noise is None else rs * _radiance_widening(noise.to(sigmas.dtype) / rs)
+    sigmas[:, -1] = rs if noise is None else rs * _noise_widening(noise.to(sigmas.dtype) / rs)
     return guide, sigmas
 
 
@@ -1216,15 +1218,35 @@ def _pilot_trust(relative_noise: Tensor) -> Tensor:
     return ((0.5 - relative_noise) / 0.25).clamp(0.0, 1.0)
 
 
-def _radiance_widening(relative_noise: Tensor) -> Tensor:
-    """The factor on the log-radiance channel's sigma for the pilot's noise in units of that sigma: 1 over
-    :func:`_pilot_trust`, up to :data:`_RADIANCE_OFF` where it is not trusted at all. Where the pilot is
+def _noise_widening(relative_noise: Tensor) -> Tensor:
+    """The factor on a guide channel's sigma for the pilot's noise in units of a range sigma: 1 over
+    :func:`_pilot_trust`, up to :data:`_RADIANCE_OFF` where it is not trusted at all (the log-radiance
+    channel's, :func:`_radiance_from_pilot`; the albedo's, :func:`_albedo_widened`). Where the pilot is
     that noisy, its sample is the larger part of it at a bright sample: such a sample lands far from every
     manifold and its light is lost (the validation set: the pilot's noise is at most 0.11 on every scene
     but one, lit by bounce light alone, where it is 0.26 and the channel cost 1.9 / 3.1 dB from 1 / 4 spp;
     ``findings.md``)."""
     w = _pilot_trust(relative_noise)
     return torch.where(w > 0, 1.0 / w.clamp_min(1.0 / _RADIANCE_OFF), _RADIANCE_OFF)
+
+
+def _albedo_widened(sigmas: Tensor, names: Sequence[str], noise: Tensor) -> Tensor:
+    """The guide's range sigmas ``(T, G)`` with those of its albedo channels (named by ``names``, the
+    guide's first channels) widened for the pilot's noise ``(T,)`` as the log-radiance channel's are
+    (:func:`_noise_widening`, in units of :data:`_PILOT_NOISE_SCALE`).
+
+    The filtered values are demodulated: on a diffuse surface they do not depend on the albedo, which
+    there only tells texture apart, and a textured surface split by its albedo averages each part's
+    samples alone. Where the pilot is too noisy to trust, the samples are too few for that: the two rooms
+    lit by bounce light alone (textured walls and floors, the pilot's noise 0.26-0.36, at most 0.11 on every
+    other scene) gain 0.3 / 0.8 dB (``mi_indirect_dof``, tuning part) and 0.8 / 1.3 dB (``bl_indirect_dof``,
+    held out) from 1 / 4 spp, every other scene keeps its bits (``findings.md``)."""
+    ai = [k for k, n in enumerate(names) if feature_group(n) == "albedo"]
+    if not ai:
+        return sigmas
+    out = sigmas.clone()
+    out[:, ai] *= _noise_widening(noise.to(sigmas.dtype) / _PILOT_NOISE_SCALE)[:, None]
+    return out
 
 
 def _trusted_level(pilot: Tensor, mask: Tensor, trust: Tensor) -> Tensor:
