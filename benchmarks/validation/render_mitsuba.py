@@ -333,6 +333,91 @@ def clip_dark_glossy(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def stripes(n: int, count: int, axis: int = 1) -> np.ndarray:
+    """(n, n) of 0/1: ``count`` sharp stripes across the texture (along its columns for ``axis`` 1, rows for 0)."""
+    k = (np.arange(n) * count // n) % 2
+    return np.broadcast_to(k[None, :] if axis == 1 else k[:, None], (n, n)).astype(np.float64)
+
+
+def clip_still_textures(f: int, n: int) -> tuple[dict, dict]:
+    """Closed room full of fine textures seen by a camera that never moves; a small sphere light; a box slides."""
+    rng = np.random.default_rng(16)
+    m = 512
+    # Striped wallpaper on the back wall: 20 stripes over its 2 units (about 2.5 px each at 64x64), a thin dark
+    # pinstripe (a third of a pixel) in every light stripe, value noise on top.
+    wall_noise = C.value_noise(m, m, 7, rng)
+    paper = stripes(m, 20)
+    pin = ((np.arange(m) % (m // 20)) < 3)[None, :] * (1 - paper)
+    base = np.where(paper[..., None] > 0, [0.55, 0.18, 0.14], [0.78, 0.72, 0.58])
+    base = base * (0.8 + 0.35 * wall_noise)[..., None]
+    back = base * (1 - 0.7 * pin[..., None])
+    # Wood floor: 8 planks along z, grain lines (1-2 px) warped by noise, plank ends at random z.
+    grain_noise = C.value_noise(m, m, 6, rng)
+    col = np.arange(m)[None, :]
+    row = np.arange(m)[:, None]
+    grain = (np.sin(2 * np.pi * (col * 30 / m + 2.5 * grain_noise)) > 0.2).astype(np.float64)
+    plank = col // (m // 8)
+    tone = (0.75 + 0.5 * rng.random(8))[plank]
+    ends = (row + (rng.integers(0, m, 8)[plank])) % (m // 3) < 2
+    wood = np.stack([0.42 - 0.2 * grain, 0.27 - 0.13 * grain, 0.12 - 0.06 * grain], -1) * tone[..., None]
+    wood = wood * (1 - 0.75 * (ends | (col % (m // 8) < 2))[..., None])
+    # Left wall (3.6 x 2 units): a fine checker of 0.075 (about 2 px), square on the wall; right wall: fine noise.
+    nz, ny = 48, 27
+    u = np.arange(m)
+    chk = ((u[:, None] * ny // m + u[None, :] * nz // m) % 2)[..., None]
+    left = np.where(chk, [0.75, 0.75, 0.7], [0.12, 0.2, 0.35])
+    fine = C.value_noise(m, m, 8, rng)
+    fine = np.clip((fine - 0.5) * 3 + 0.5, 0, 1)  # more contrast at the finest octaves
+    right = np.stack([0.15 + 0.55 * fine, 0.35 + 0.4 * fine, 0.2 + 0.2 * fine], -1)
+    ceil_noise = C.value_noise(128, 128, 5, rng)
+    ceiling = np.stack([0.7 + 0.15 * ceil_noise] * 3, -1)
+    # Objects: a sphere with stripes round it and noise, a box with a fine checker, the mover with fine stripes.
+    sph_noise = C.value_noise(256, 256, 6, rng)
+    sph = np.where(stripes(256, 40)[..., None] > 0, [0.8, 0.65, 0.2], [0.15, 0.3, 0.55])
+    sph = sph * (0.7 + 0.5 * sph_noise)[..., None]
+    mover_tex = np.where(stripes(256, 8, 0)[..., None] > 0, [0.85, 0.85, 0.8], [0.6, 0.1, 0.1])
+    t = f / max(1, n - 1)
+    mover_x = -0.55 + 0.4 * t  # about 2 px per frame
+    origin, target = [0.3, -0.1, 2.3], [-0.12, -0.45, -0.4]
+    zc, hz = 0.8, 1.8  # closed room, z from -1 to 2.6, the camera inside
+    scene = {
+        "type": "scene",
+        "floor": {"type": "rectangle", "to_world": T().translate([0, -1, zc]).rotate([1, 0, 0], -90).scale(
+            [1, hz, 1]), "bsdf": bitmap_bsdf(wood)},
+        "ceiling": {"type": "rectangle", "to_world": T().translate([0, 1, zc]).rotate([1, 0, 0], 90).scale(
+            [1, hz, 1]), "bsdf": bitmap_bsdf(ceiling)},
+        "back": {"type": "rectangle", "to_world": T().translate([0, 0, -1]), "bsdf": bitmap_bsdf(back)},
+        "left": {"type": "rectangle", "to_world": T().translate([-1, 0, zc]).rotate([0, 1, 0], 90).scale(
+            [hz, 1, 1]), "bsdf": bitmap_bsdf(left)},
+        "right": {"type": "rectangle", "to_world": T().translate([1, 0, zc]).rotate([0, 1, 0], -90).scale(
+            [hz, 1, 1]), "bsdf": bitmap_bsdf(right)},
+        "front": {"type": "rectangle", "to_world": T().translate([0, 0, 2 * zc + 1]).rotate([0, 1, 0], 180),
+                  "bsdf": diffuse([0.7, 0.7, 0.7])},
+        # The only light, in view near the top of the frame, 0.7 in front of the wallpaper.
+        "lamp": {"type": "sphere", "center": [0.05, 0.42, -0.3], "radius": 0.05,
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [300.0, 270.0, 230.0]}}},
+        "checker_box": {"type": "cube", "to_world": T().translate([0.45, -0.7, -0.45]).rotate([0, 1, 0], -30).scale(
+            [0.22, 0.3, 0.22]), "bsdf": checker_bsdf([0.8, 0.78, 0.7], [0.1, 0.1, 0.12], 5)},
+        "striped_ball": {"type": "sphere", "center": [-0.5, -0.68, -0.5], "radius": 0.32, "bsdf": bitmap_bsdf(sph)},
+        "mover": {"type": "cube", "to_world": T().translate([mover_x, -0.86, 0.25]).rotate([0, 1, 0], 25).scale(
+            [0.14, 0.14, 0.14]), "bsdf": bitmap_bsdf(mover_tex)},
+        "sensor": sensor(origin, target, 42),
+    }
+    info = {"description": ("Closed box room (z from -1 to 2.6, the camera inside) seen by a camera that does not "
+                            "move, every surface finely textured with numpy-made bitmaps, so that each pixel's 1-spp "
+                            "albedo is a point sample of texture that varies inside the pixel: striped wallpaper on "
+                            "the back wall (20 stripes, about 2.5 px each, sub-pixel pinstripes, noise), a wood floor "
+                            "(planks, noise-warped grain lines of 1-2 px, plank ends), a fine checker (about 2 px) on "
+                            "the left wall, 8-octave value noise on the right wall, a striped noisy sphere, a fine "
+                            "checker box (squares about 1 px). Lit by one small sphere light (radius 0.05, radiance "
+                            "300) seen near the top of the frame: direct light and shadows plus bounce light. A box "
+                            "with fine stripes slides about 2 px per frame over the floor (moving object, contact "
+                            "shadow); all else static. 64x64."),
+            "moving": {"mover": {"x": mover_x}},
+            "camera": {"static": True, "origin": origin, "target": target, "fov": 42}}
+    return scene, info
+
+
 CLIPS = {
     # name: (builder, clip id for seeds, hazards, moving shape keys, reference spp, frame of the second reference).
     # 512 spp at 128x128 keeps a clip near 3 min of rendering on the 2 shared cores here (0.4 Mpaths/s measured
@@ -351,7 +436,17 @@ CLIPS = {
     "mi_dark_glossy": (clip_dark_glossy, 5, ["dark_scene", "high_dynamic_range", "small_bright_lights",
                                              "glossy_floor_reflections", "fireflies", "camera_pan", "textures"],
                        [], 2048, 4),
+    # A camera that never moves over fine textures (the albedo of each 1-spp sample is a point sample of texture
+    # that varies inside the pixel); 64x64 (see SIZE), so 1024 spp stays cheap.
+    "mi_still_textures": (clip_still_textures, 6, ["still_camera", "textures", "moving_object", "contact_shadow",
+                                                   "small_bright_light"], ["mover"], 1024, 4),
 }
+
+# Clips rendered at another size than C.WIDTH x C.HEIGHT (as render_blender.py's SIZE): the film of the builder's
+# sensor is resized. mi_still_textures: Mitsuba's float32 R,G,B (1 spp, 4 spp, reference) does not compress at all
+# (12 bytes a pixel) and fine textures make the features dear too: at 80x80 the clip took 3.2 MB, at 64x64 2.1 MB.
+# The point of the clip (texture varying inside a pixel, a still camera) needs no more pixels.
+SIZE = {"mi_still_textures": (64, 64)}
 
 
 # ---------------------------------------------------------------------------------------------------- rendering
@@ -389,6 +484,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     if ref_spp % ref_chunk:
         raise ValueError(f"ref_spp {ref_spp} must be a multiple of ref_chunk {ref_chunk}")
     variant = pick_variant()
+    width, height = SIZE.get(name, (C.WIDTH, C.HEIGHT))
     out = Path(out_root) / name
     out.mkdir(parents=True, exist_ok=True)
     noisy = mi.load_dict({"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}})
@@ -399,6 +495,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     hdr = {"renderer": f"Mitsuba {mi.__version__} (drjit {dr.__version__}), variant {variant}"}
     for f in tqdm(range(frames), desc=name, unit="frame"):
         scene_dict, info = builder(f, frames)
+        scene_dict["sensor"]["film"].update(width=width, height=height)
         per_frame.append({k: v for k, v in info.items() if k != "description"})
         scene = mi.load_dict(copy.copy(scene_dict))
         for pass_name, spp, fname in (("noisy1", 1, "frame"), ("noisy4", 4, "frame4spp")):
@@ -413,7 +510,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         if ref_b_frame is not None and f == ref_b_frame:
             refs.append(("ref_b", f"ref_b_{f:04d}.exr", ref_spp))
         for pass_name, fname, spp in refs:
-            acc = np.zeros((C.HEIGHT, C.WIDTH, 3))
+            acc = np.zeros((height, width, 3))
             t0 = time.perf_counter()
             chunk_seeds = []
             for c in range(spp // ref_chunk):
@@ -437,11 +534,11 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     manifest = {
         "scene": name,
         "renderer": hdr["renderer"],
-        "frames": frames, "width": C.WIDTH, "height": C.HEIGHT,
+        "frames": frames, "width": width, "height": height,
         "spp": {"noisy1": 1, "noisy4": 4, "reference": ref_spp, "ref_chunk_spp": ref_chunk, "mask": 16 if moving else 0},
         "integrator_noisy": {"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}},
         "integrator_ref": {"type": "path", "max_depth": MAX_DEPTH},
-        "film": f"hdrfilm {C.WIDTH}x{C.HEIGHT} rgb float32, rfilter box; sampler independent",
+        "film": f"hdrfilm {width}x{height} rgb float32, rfilter box; sampler independent",
         "description": info0["description"],
         "hazards": hazards,
         "moving_objects": moving,
