@@ -698,3 +698,41 @@ def test_texture_on_a_flat_surface_keeps_its_detail(monkeypatch):
     old = denoise_frames(c, f, names, samples_per_pixel=1)
     assert error(new) < 0.92 * error(old) < 0.92 * error(c)
     assert torch.equal(unknown, denoise_frames(c, f, names))
+
+
+def _plane_positions(H, W, shift=(0.0, 0.0), seed=0, lift=0.0):
+    """World positions of 1-spp samples on the plane z = lift seen straight on, one world unit per 10
+    pixels: each pixel's sample at its own uniform jitter, the view moved by ``shift`` pixels."""
+    g = torch.Generator().manual_seed(seed)
+    y, x = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                          indexing="ij")
+    jx, jy = torch.rand(H, W, generator=g, dtype=torch.float64), torch.rand(H, W, generator=g, dtype=torch.float64)
+    return torch.stack([(x + jx + shift[1]) / 10, (y + jy + shift[0]) / 10, torch.full_like(x, lift)])
+
+
+@pytest.mark.parametrize("shift,lift,expect", [((0.0, 0.0), 0.0, True),     # a still view: its own pixel
+                                               ((0.0, 3.0), 0.0, False),    # a pan of 3 pixels
+                                               ((0.6, 0.0), 0.0, False),    # a pan of 0.6 pixel
+                                               ((0.0, 0.0), 0.3, False)])   # another surface behind
+def test_same_pixel_finds_the_samples_of_a_still_pixel(shift, lift, expect):
+    """Which samples of another frame belong to a pixel, from world positions alone: those of a still
+    view of the same surface (their jitters differ by under a pixel), not those of a moved view, however
+    little it moved, nor those of another surface."""
+    H, W = 24, 30
+    p = _plane_positions(H, W)
+    other = _plane_positions(H, W, shift, seed=1, lift=lift)
+    found = float(D._same_pixel(p, [other])[0][0, 3:-3, 3:-3].double().mean())
+    # a still pixel's two jitters may differ by nearly a pixel, and its axes come from jittered samples too
+    assert found > 0.95 if expect else found == 0.0, found
+
+
+def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
+    """A still camera samples every pixel's texture at another point in each frame: the window's
+    samples of the same pixel make its albedo the pixel's average (`mi_still_textures`, held out: a still
+    camera over fine textures, real Mitsuba frames with world positions)."""
+    c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2])
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
+    averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
+    monkeypatch.setattr(D, "_window_albedo", lambda albedo, *args: albedo)
+    own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
+    assert averaged > own + 0.5, (averaged, own)

@@ -30,7 +30,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
    it (:func:`_footprint_average`). On a smooth surface the albedo, whose detail is texture, gets a
-   narrower footprint than the light (:func:`_remodulate`).
+   narrower footprint than the light (:func:`_remodulate`). Where the view is still and the renderer gives
+   world positions, the window's other frames add their samples of each pixel's albedo
+   (:func:`_window_albedo`).
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
 
@@ -826,6 +828,9 @@ class FrameState:
         escaped: ``(T, 1, H, W)`` bool, pixels whose camera ray left the scene (see :func:`_escaped`): they
             keep their samples.
         emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
+        position: ``(T, 3, H, W)`` the samples' world positions (``P``), or ``None`` where the renderer
+            gives none: they tell which samples of the window's other frames fall in a pixel
+            (:func:`_window_albedo`).
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         counts: sums over the frames: non-finite samples, clamped samples, energy and energy clamped.
@@ -842,6 +847,7 @@ class FrameState:
     smooth: Tensor | None
     escaped: Tensor
     emission: Tensor | None
+    position: Tensor | None
     guide: Tensor
     sigmas: Tensor
     pilot_only: bool
@@ -856,8 +862,8 @@ class FrameState:
             xs = [getattr(s, name) for s in states]
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
-        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "guide",
-                   "sigmas")
+        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
+                   "guide", "sigmas")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts, states[0].footprint,
                           states[0].sigma_s)
 
@@ -891,7 +897,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     smooth = _smooth_surface(guide[:, geometry], sig[:, geometry]) if geometry and known else None
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, guide, sig, False, counts, fp, base)
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, _position(f, names), guide, sig, False,
+                       counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -951,7 +958,10 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
-    out = _remodulate(out, at_queries(s.albedo), at_queries(s.flat.to(out.dtype)) > 0.5,
+    albedo = at_queries(s.albedo)
+    if s.position is not None and settings.temporal_radius > 0:
+        albedo = _window_albedo(albedo, s, ft, qt, settings.temporal_radius)
+    out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
@@ -1095,6 +1105,107 @@ def _smooth_surface(geometry: Tensor, sigmas: Tensor) -> Tensor:
     m1, m2 = m.chunk(2, 1)
     v = (m2 - m1 * m1).clamp_min(0.0).sum(1, keepdim=True)
     return torch.exp(-v / _SMOOTH_VARIANCE)
+
+
+def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
+    """The world position channels ``P.X/Y/Z`` of features ``f`` ``(T, D, H, W)`` named ``names``, in that
+    order: ``(T, 3, H, W)``, or ``None`` where they are not all there."""
+    canon = [canonical_name(n) for n in names]
+    want = [c for c in feature_table.feature("P").channels]
+    if not all(c in canon for c in want):
+        return None
+    return torch.stack([f[:, canon.index(c)] for c in want], 1)
+
+
+#: how far (pixels, along each image axis) a sample of another frame may lie from a pixel's own sample to
+#: count as a sample of that pixel: two samples of one pixel of a still view differ by the difference of
+#: their jitters, under a pixel (frames 0-2, the ``denoise`` default, from 1 / 4 spp, the gains of the two
+#: still views summed: 0.75 +0.78 / +1.43, 1 +0.90 / +1.46, 1.5 +0.92 / +1.51 dB; every other scene within
+#: 0.001 dB)
+_SAME_PIXEL = 1.0
+#: the largest mean offset (pixels) of a neighbourhood's samples from the other frame's that still counts
+#: as a still view, and the neighbourhood's radius (frames 0-2, the ``denoise`` default, from 1 / 4 spp:
+#: without it ``mi_env_thin``, whose camera dollies, lost 0.11 / 0.12 dB and ``cbox_glossy_tex``, a pan,
+#: 0.04 / 0.09; with it every scene but the still views within 0.001 dB; 0.15 / 0.35: the two still views
+#: +0.76 / +1.43 and +0.91 / +1.51 dB summed, against +0.90 / +1.46 at 0.25, the middle)
+_STILL, _STILL_RADIUS = 0.25, 2
+
+
+def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[float], radius: int) -> Tensor:
+    """The albedo ``(Q, 3, H, W)`` at the queries averaged with the samples of the window's other frames
+    that land in the same pixel of the same surface (:func:`_same_pixel`), each of equal weight.
+
+    A 1-spp pixel's albedo is one point of its area, and the reference is the pixel's average: texture
+    under the footprint is the error left where the light is clean. Where the view is still, each frame
+    samples the pixel at another point, so the window holds a few samples of every pixel's albedo. Only
+    at queries that are frames; flat pixels (not demodulated) and pixels without a valid sample keep their
+    own."""
+    out = []
+    for qi, q in enumerate(qt):
+        k = frame_at(ft, q)
+        a = albedo[qi]
+        if k is None:
+            out.append(a)
+            continue
+        own = (s.mask[k] > 0) & ~s.flat[k]
+        total, count = a.clone(), torch.ones_like(a[:1])
+        others = [j for j in window(ft, q, radius) if j != k]
+        for j, same in zip(others, _same_pixel(s.position[k], [s.position[j] for j in others])):
+            ok = own & (s.mask[j] > 0) & ~s.flat[j] & same
+            total += torch.where(ok, s.albedo[j], 0.0)
+            count += ok.to(count.dtype)
+        out.append(total / count)
+    return torch.stack(out)
+
+
+def _box_mean(x: Tensor, r: int) -> Tensor:
+    """Mean of ``(C, H, W)`` over the (2r+1)^2 box around each pixel, the border replicated (separable
+    differences of running sums: several times faster than pooling here)."""
+    for dim in (-1, -2):
+        n = x.shape[dim]
+        zero = torch.zeros_like(x.narrow(dim, 0, 1))
+        xp = torch.cat([zero] + [x.narrow(dim, 0, 1)] * r + [x] + [x.narrow(dim, n - 1, 1)] * r, dim)
+        c = xp.cumsum(dim)
+        x = (c.narrow(dim, 2 * r + 1, n) - c.narrow(dim, 0, n)) / (2 * r + 1)
+    return x
+
+
+def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:
+    """Where each world position of ``others`` (``(3, H, W)``, samples of other frames) lies within
+    :data:`_SAME_PIXEL` pixels of ``p`` along each image axis, on its surface, where the view is still:
+    one ``(1, H, W)`` bool per other frame.
+
+    The image axes in world units are the position's derivatives along x and y (central differences,
+    averaged over 3x3 against the samples' jitter); an offset is taken into those axes by least squares,
+    and what is left of it, off the surface, must stay under half a pixel. Across a moving surface or a
+    moving view, the samples of one pixel lie on another part of the surface; their offsets, averaged
+    over the pixels around (:data:`_STILL_RADIUS`), where the jitters cancel, show it: that mean must stay
+    under :data:`_STILL` pixels."""
+    gx, gy = torch.zeros_like(p), torch.zeros_like(p)
+    gx[:, :, 1:-1] = (p[:, :, 2:] - p[:, :, :-2]) / 2
+    gy[:, 1:-1, :] = (p[:, 2:, :] - p[:, :-2, :]) / 2
+    gx, gy = _box_mean(gx, 1), _box_mean(gy, 1)
+
+    def dot(a: Tensor, b: Tensor) -> Tensor:  # over the 3 coordinates
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    a11, a12, a22 = dot(gx, gx), dot(gx, gy), dot(gy, gy)
+    det = a11 * a22 - a12 * a12
+    solvable = det > 1e-12 * (a11 + a22) ** 2
+    det = torch.where(solvable, det, 1.0)
+    out = []
+    for other in others:
+        d = other - p
+        b1, b2 = dot(gx, d), dot(gy, d)
+        u, v = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+        rest = d - u * gx - v * gy
+        on_surface = solvable & (dot(rest, rest) < 0.125 * (a11 + a22))  # under half a pixel
+        w = on_surface.to(u.dtype)
+        mean = _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
+        n = mean[0].clamp_min(1e-6)
+        still = (mean[1].abs() < _STILL * n) & (mean[2].abs() < _STILL * n)
+        out.append((on_surface & still & (u.abs() < _SAME_PIXEL) & (v.abs() < _SAME_PIXEL))[None])
+    return out
 
 
 def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None,
