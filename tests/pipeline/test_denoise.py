@@ -736,3 +736,31 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     monkeypatch.setattr(D, "_window_albedo", lambda albedo, *args: albedo)
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.5, (averaged, own)
+
+
+@pytest.mark.parametrize("positions", ["zero", "nonfinite", "huge", "one_line"])
+def test_window_albedo_survives_degenerate_positions(positions):
+    """World positions that tell nothing (all 0, NaN and inf, 1e30, every pixel on one line) leave no
+    pixel of a still clip's result non-finite (a guide of 1e30 overflowed the filter's float32 squares and
+    turned whole frames NaN), and where they have no extent the albedo average finds no sample."""
+    torch.manual_seed(5)
+    T, H, W = 3, 20, 24
+    c = torch.rand(1, 3, H, W).expand(T, -1, -1, -1) ** 2 + 0.01 * torch.rand(T, 3, H, W)
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    f = torch.rand(T, len(names), H, W).clamp_min(0.05)
+    p = f[:, 6:9]
+    if positions == "zero":
+        p.zero_()
+    elif positions == "nonfinite":
+        p[:, :, ::3] = float("nan")
+        p[:, :, 1::3] = float("inf")
+    elif positions == "huge":
+        p.fill_(1e30)
+    else:
+        p[:] = torch.linspace(0, 1, W).view(1, 1, 1, W)
+    out = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
+    assert bool(torch.isfinite(out).all())
+    if positions != "nonfinite":  # (the finite columns there are random positions)
+        state = D.prepare_frames(c, f, names, None, DenoiseSettings(), samples_per_pixel=1)
+        same = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
+        assert not any(bool(m.any()) for m in same)

@@ -1273,10 +1273,17 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         for k, n in enumerate(gnames):
             if canonical_name(n) in over:
                 s[:, k] = over[canonical_name(n)]
+        guide = guide.clone()
         ai = [k for k, n in enumerate(gnames) if feature_group(n) == "albedo"]
         if ai:  # renderer albedo may exceed 1 (conductors); the guide only needs its colour
-            guide = guide.clone()
             guide[:, ai] = guide[:, ai].clamp(0.0, 1.0)
+        # scene units: centred on each frame's mean, which leaves every range difference as it is, so that
+        # a scene far from the origin (positions of 1e30) does not overflow the filter's float32 squares
+        xi = [k for k, n in enumerate(gnames) if feature_table.feature(feature_group(n)).sigma_of_extent]
+        if xi:
+            m = mask.to(torch.float64)
+            centre = _frame_total(guide[:, xi] * mask, per_channel=True) / _frame_total(m).clamp_min(1.0)
+            guide[:, xi] = (guide[:, xi].double() - centre).to(guide.dtype)
         parts.append(guide)
         sig.append(s)
     rs = _radiance_sigma(settings)
