@@ -265,7 +265,9 @@ class DenoiseSettings:
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
             reads depth 0 and its colour is noisy in-scattered light.
-        temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
+        temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where the
+            renderer gives world positions, their samples of a still pixel's albedo join it too
+            (:func:`_window_albedo`).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
