@@ -706,7 +706,7 @@ def _plane_positions(H, W, shift=(0.0, 0.0), seed=0, lift=0.0):
     g = torch.Generator().manual_seed(seed)
     y, x = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
                           indexing="ij")
-    jx, jy = torch.rand(H, W, generator=g, dtype=torch.float64), torch.rand(H, W, generator=g, dtype=torch.float64)
+    jx, jy = torch.rand(2, H, W, generator=g, dtype=torch.float64)
     return torch.stack([(x + jx + shift[1]) / 10, (y + jy + shift[0]) / 10, torch.full_like(x, lift)])
 
 

@@ -111,7 +111,7 @@ def test_bandwidth_selection_blend_equals_reference(frame, with_level):
     level = e.clamp_min(0) if with_level else None
     out, ref = _both(D._select_bandwidth, e, m, guide, sig, st, [0.0], [0.0], st.sigma_s, 1.0, level)
     # float32 weights exp(-z^2 / 2) of pooled errors summed in another order: a blend may move by a few
-    # 1e-5 (2 of this frame's 49152 pixels by 1.2e-5 once the guide's positions were centred)
+    # 1e-5 (2 of this frame's 49152 values by 1.2e-5 once the guide's positions were centred)
     torch.testing.assert_close(out * m, ref * m, rtol=3e-5, atol=1e-6 * float(ref.abs().mean()))
 
 

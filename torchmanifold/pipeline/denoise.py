@@ -1113,7 +1113,7 @@ def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
     """The world position channels ``P.X/Y/Z`` of features ``f`` ``(T, D, H, W)`` named ``names``, in that
     order: ``(T, 3, H, W)``, or ``None`` where they are not all there."""
     canon = [canonical_name(n) for n in names]
-    want = [c for c in feature_table.feature("P").channels]
+    want = feature_table.feature("P").channels
     if not all(c in canon for c in want):
         return None
     return torch.stack([f[:, canon.index(c)] for c in want], 1)
