@@ -574,6 +574,21 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads
                                                 query_times=[3])[0])
 
 
+def test_whole_clip_equals_each_window_alone(mitsuba_dir):
+    """A clip filtered in one call gives each frame the bytes of that frame's window filtered alone, also
+    where the frames' brightness differs (a scale taken over the call's frames, not the window's, moved
+    results by up to 5e-4)."""
+    c, f = load_clip(mitsuba_dir, "frame", [0, 1, 2, 3, 4], (slice(96, 144), slice(64, 120)))
+    c = c * torch.tensor([1.0, 1.0, 3.0, 1.0, 0.5]).view(-1, 1, 1, 1)
+    st = DenoiseSettings(temporal_radius=1)
+    whole = denoise_frames(c, f, FEATURES, settings=st, samples_per_pixel=1)
+    for t in range(5):
+        ids = list(range(max(0, t - 1), min(5, t + 2)))
+        alone = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
+                               samples_per_pixel=1)[0]
+        assert torch.equal(whole[t], alone), t
+
+
 def test_excess_error_z_against_explicit_sums():
     """z of a candidate's excess error at one pixel, against the sums written out over the kernel's
     taps; a candidate without support and one with a catastrophic residual are left out."""

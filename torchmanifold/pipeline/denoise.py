@@ -629,6 +629,13 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
         level = _frames(level, idx)
+    # the residuals in units of the brightest frame mean of each query's window (its prediction mixes the
+    # window's frames), so that the z statistics, which square their squares, overflow float32 neither on
+    # a clip of values about 1e10 nor on a black frame between lit ones; per window, not per call, so that
+    # a frame's bytes do not depend on which other frames share the call (a unit: no gradient passes it)
+    brightness = _frame_mean(luminance(e.detach()).clamp_min(0.0), mask)[:, 0, 0, 0]
+    top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
+    scale = torch.where(top > 0, top, torch.ones_like(top))
     e, mask = _frames(e, idx), _frames(mask, idx)
     lum = luminance(level).clamp_min(0.0)
     mean = _frame_mean(lum, mask)
@@ -636,11 +643,6 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
     unit = torch.where(mean > 0, mean, torch.ones_like(mean))
     weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
-    # the residuals in units of the clip's largest frame mean (a query's prediction mixes its window's
-    # frames), so that the z statistics, which square their squares, do not overflow float32 on a clip of
-    # values about 1e10
-    top = mean.detach().amax()  # a unit: z does not depend on it, and no gradient should pass it
-    scale = torch.where(top > 0, top, torch.ones_like(top))
     e, preds = e / scale, [p / scale for p in preds]
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
