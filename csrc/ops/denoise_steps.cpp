@@ -45,4 +45,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // denoise._normalised_blur: blur(x w) / blur(w) (footprint_blur, sigma > 0) for x (T, C, H, W) and
   // weights w (T, 1, H, W), x where blur(w) <= 1e-8 -> (T, C, H, W).
   m.def("_normalised_blur(Tensor x, Tensor weight, float sigma) -> Tensor");
+  // denoise._same_pixel: world positions p (3, H, W) against others (K, 3, H, W) -> bool (K, 1, H, W), where
+  // the other sample lies within same_pixel pixels along each image axis, on the surface, and the mean
+  // offset over the (2 radius + 1)^2 pixels around stays under still pixels.
+  m.def("_same_pixel(Tensor p, Tensor others, float same_pixel, float still, int radius) -> Tensor");
 }

@@ -218,6 +218,29 @@ def test_frame_step_equals_reference(frame, name):
     assert float(((out - ref).abs() / scale).max()) < 0.03
 
 
+def test_same_pixel_equals_reference_bitwise(mitsuba_dir):
+    """_same_pixel in C++, step by step in the PyTorch stage's float operations: the same decisions, bit for
+    bit, on rendered world positions (a panning clip's frames), on a still plane's jittered samples and on
+    degenerate ones (NaN, all equal, one line)."""
+    from test_denoise import _plane_positions
+
+    _, f = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=(slice(64, 192), slice(64, 192)))
+    P = f[:, FEATURES.index("P.X"):FEATURES.index("P.Z") + 1]
+    plane = _plane_positions(24, 30).float()
+    still = _plane_positions(24, 30, seed=1).float()
+    panned = _plane_positions(24, 30, (0.0, 0.6), seed=2).float()
+    holes = torch.where(still > 1.0, still, math.nan)
+    cases = [(P[1], [P[0], P[2]]), (plane, [still, panned]), (plane.double(), [still.double()]),
+             (torch.zeros(3, 8, 9), [torch.zeros(3, 8, 9)]), (plane, [holes]),
+             (torch.ones(3, 1, 5) * torch.arange(5.0), [plane[:, :1, :5]])]
+    for p, others in cases:
+        out, ref = _both(D._same_pixel, p, others)
+        assert len(out) == len(ref) == len(others)
+        for a, b in zip(out, ref):
+            assert a.dtype == b.dtype == torch.bool and torch.equal(a, b)
+    assert bool(_both(D._same_pixel, plane, [still])[0][0].any())  # a still view is found at all
+
+
 def test_kernels_thread_count_invariant(frame):
     e, m = frame["e"], frame["mask"]
     calls = [
@@ -230,6 +253,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
         lambda: _fast.normalised_blur(e, m, 0.5),
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
+        lambda: _fast.same_pixel(e[0], e[:1] + 0.01 * m[:1], 1.0, 0.25, 2),
     ]
     old = torch.get_num_threads()
     try:
@@ -285,7 +309,8 @@ def _op_samples():
             ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0)),
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m)),
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
-            ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5))]
+            ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
+            ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2))]
 
 
 @pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])

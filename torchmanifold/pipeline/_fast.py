@@ -20,7 +20,7 @@ from torch import Tensor
 from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
-           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur"]
+           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "same_pixel"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -146,6 +146,13 @@ def normalised_blur(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
     return torch.ops.torchmanifold._normalised_blur(x, weight, float(sigma))
 
 
+@parallel
+def same_pixel(p: Tensor, others: Tensor, same: float, still: float, radius: int) -> Tensor:
+    """``denoise._same_pixel``: positions p ``(3, H, W)`` against others ``(K, 3, H, W)`` -> bool
+    ``(K, 1, H, W)``."""
+    return torch.ops.torchmanifold._same_pixel(p, others, float(same), float(still), int(radius))
+
+
 def _register_fakes() -> None:
     """Shapes and dtypes of the private ops for fake tensors (``torch.compile``, ``opcheck``); each matches
     its CPU kernel's outputs."""
@@ -197,6 +204,10 @@ def _register_fakes() -> None:
     @torch.library.register_fake(lib + "_normalised_blur")
     def _(x, weight, sigma):
         return torch.empty_like(x, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_same_pixel")
+    def _(p, others, same, still, radius):
+        return others.new_empty((others.shape[0], 1, *others.shape[2:]), dtype=torch.bool)
 
 
 if _have_ops():

@@ -1163,14 +1163,12 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
 
 
 def _box_mean(x: Tensor, r: int) -> Tensor:
-    """Mean of ``(C, H, W)`` over the (2r+1)^2 box around each pixel, the border replicated (separable
-    differences of running sums: several times faster than pooling here)."""
+    """Mean of ``(C, H, W)`` over the (2r+1)^2 box around each pixel, the border replicated: sums of
+    shifted views along x, then along y, in the order the C++ kernel of :func:`_same_pixel` sums them."""
     for dim in (-1, -2):
         n = x.shape[dim]
-        zero = torch.zeros_like(x.narrow(dim, 0, 1))
-        xp = torch.cat([zero] + [x.narrow(dim, 0, 1)] * r + [x] + [x.narrow(dim, n - 1, 1)] * r, dim)
-        c = xp.cumsum(dim)
-        x = (c.narrow(dim, 2 * r + 1, n) - c.narrow(dim, 0, n)) / (2 * r + 1)
+        xp = torch.cat([x.narrow(dim, 0, 1)] * r + [x] + [x.narrow(dim, n - 1, 1)] * r, dim)
+        x = sum(xp.narrow(dim, k, n) for k in range(2 * r + 1)) / (2 * r + 1)
     return x
 
 
@@ -1184,7 +1182,10 @@ def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:
     and what is left of it, off the surface, must stay under half a pixel. Across a moving surface or a
     moving view, the samples of one pixel lie on another part of the surface; their offsets, averaged
     over the pixels around (:data:`_STILL_RADIUS`), where the jitters cancel, show it: that mean must stay
-    under :data:`_STILL` pixels."""
+    under :data:`_STILL` pixels. On CPU a C++ kernel takes the same steps, bit for bit."""
+    if others and _fast.enabled(p, *others):
+        stacked = torch.stack(list(others))
+        return list(_fast.same_pixel(p, stacked, _SAME_PIXEL, _STILL, _STILL_RADIUS).unbind(0))
     gx, gy = torch.zeros_like(p), torch.zeros_like(p)
     gx[:, :, 1:-1] = (p[:, :, 2:] - p[:, :, :-2]) / 2
     gy[:, 1:-1, :] = (p[:, 2:, :] - p[:, :-2, :]) / 2

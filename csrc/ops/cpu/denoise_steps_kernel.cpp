@@ -948,6 +948,129 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
   return out;
 }
 
+// ------------------------------------------------------------------------------ same pixel
+// denoise._box_mean of one (H, W) plane: the mean over the (2r+1)^2 box, the border replicated, summed
+// along x then along y in the same order as the PyTorch sums of shifted views.
+// Whole rows at a time (each pixel's terms still added in that order), so the lanes vectorise.
+template <typename T>
+void box_mean_plane(const T* src, int64_t H, int64_t W, int64_t r, T* tmp, T* dst) {
+  const T n = T(2 * r + 1);
+  for (int64_t y = 0; y < H; ++y) {
+    const T* s = src + y * W;
+    T* t = tmp + y * W;
+    std::fill(t, t + W, T(0));
+    for (int64_t k = -r; k <= r; ++k) {
+      const int64_t lo = std::min<int64_t>(W, std::max<int64_t>(0, -k)), hi = std::max<int64_t>(lo, W - k);
+      for (int64_t x = 0; x < lo; ++x) t[x] += s[0];
+      for (int64_t x = lo; x < std::min(hi, W); ++x) t[x] += s[x + k];
+      for (int64_t x = std::min(hi, W); x < W; ++x) t[x] += s[W - 1];
+    }
+    for (int64_t x = 0; x < W; ++x) t[x] = t[x] / n;
+  }
+  for (int64_t y = 0; y < H; ++y) {
+    T* o = dst + y * W;
+    std::fill(o, o + W, T(0));
+    for (int64_t k = -r; k <= r; ++k) {
+      const T* row = tmp + clampi(y + k, H) * W;
+      for (int64_t x = 0; x < W; ++x) o[x] += row[x];
+    }
+    for (int64_t x = 0; x < W; ++x) o[x] = o[x] / n;
+  }
+}
+
+// denoise._same_pixel, step by step in its float operations.
+at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double same_pixel, double still,
+                          int64_t radius) {
+  const char* op = "_same_pixel";
+  check_float(p_, "p", op);
+  check_shape(p_, "p", op, 3);
+  check_shape(o_, "others", op, 4);
+  TORCH_CHECK_VALUE(p_.size(0) == 3, op, ": p must be (3, H, W), got ", p_.sizes());
+  TORCH_CHECK_VALUE(o_.size(1) == 3 && o_.size(2) == p_.size(1) && o_.size(3) == p_.size(2) &&
+                        o_.scalar_type() == p_.scalar_type(),
+                    op, ": others must be (K, 3, H, W) of p's shape and dtype, got ", o_.sizes());
+  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+  const at::Tensor p = p_.contiguous(), o = o_.contiguous();
+  const int64_t K = o.size(0), H = p.size(1), W = p.size(2), HW = H * W;
+  at::Tensor out = at::zeros({K, 1, H, W}, p.options().dtype(at::kBool));
+  if (HW == 0 || K == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "same_pixel_cpu", [&] {
+    using T = scalar_t;
+    const T* pp = p.data_ptr<T>();
+    // the image axes: central differences (0 on the border columns / rows), then their 3x3 means
+    std::vector<T> g(6 * HW, T(0));
+    for (int64_t c = 0; c < 3; ++c) {
+      const T* pc = pp + c * HW;
+      T* gx = g.data() + c * HW;
+      T* gy = g.data() + (3 + c) * HW;
+      for (int64_t y = 0; y < H; ++y)
+        for (int64_t x = 1; x + 1 < W; ++x) gx[y * W + x] = (pc[y * W + x + 1] - pc[y * W + x - 1]) / T(2);
+      for (int64_t y = 1; y + 1 < H; ++y)
+        for (int64_t x = 0; x < W; ++x) gy[y * W + x] = (pc[(y + 1) * W + x] - pc[(y - 1) * W + x]) / T(2);
+    }
+    std::vector<T> ax(6 * HW);
+    at::parallel_for(0, 6, 1, [&](int64_t c0, int64_t c1) {
+      std::vector<T> t(HW);
+      for (int64_t c = c0; c < c1; ++c)
+        box_mean_plane(g.data() + c * HW, H, W, 1, t.data(), ax.data() + c * HW);
+    });
+    auto dot = [&](const T* a, const T* b, int64_t i) {
+      return a[i] * b[i] + a[HW + i] * b[HW + i] + a[2 * HW + i] * b[2 * HW + i];
+    };
+    const T* gx = ax.data();
+    const T* gy = ax.data() + 3 * HW;
+    std::vector<T> a11(HW), a12(HW), a22(HW), det(HW);
+    std::vector<char> solvable(HW);
+    for (int64_t i = 0; i < HW; ++i) {
+      a11[i] = dot(gx, gx, i);
+      a12[i] = dot(gx, gy, i);
+      a22[i] = dot(gy, gy, i);
+      const T d = a11[i] * a22[i] - a12[i] * a12[i];
+      const T s = a11[i] + a22[i];
+      solvable[i] = d > T(1e-12) * (s * s);
+      det[i] = solvable[i] ? d : T(1);
+    }
+    std::vector<T> u(HW), v(HW), w3(3 * HW), m3(3 * HW);
+    std::vector<char> on(HW);
+    bool* po = out.data_ptr<bool>();
+    for (int64_t k = 0; k < K; ++k) {
+      const T* pk = o.data_ptr<T>() + k * 3 * HW;
+      at::parallel_for(0, H, row_grain(W * 20), [&](int64_t y0, int64_t y1) {
+        for (int64_t i = y0 * W; i < y1 * W; ++i) {
+          const T d0 = pk[i] - pp[i], d1 = pk[HW + i] - pp[HW + i], d2 = pk[2 * HW + i] - pp[2 * HW + i];
+          const T b1 = gx[i] * d0 + gx[HW + i] * d1 + gx[2 * HW + i] * d2;
+          const T b2 = gy[i] * d0 + gy[HW + i] * d1 + gy[2 * HW + i] * d2;
+          const T uu = (a22[i] * b1 - a12[i] * b2) / det[i];
+          const T vv = (a11[i] * b2 - a12[i] * b1) / det[i];
+          const T r0 = (d0 - uu * gx[i]) - vv * gy[i];
+          const T r1 = (d1 - uu * gx[HW + i]) - vv * gy[HW + i];
+          const T r2 = (d2 - uu * gx[2 * HW + i]) - vv * gy[2 * HW + i];
+          const bool ok = solvable[i] && (r0 * r0 + r1 * r1 + r2 * r2 < T(0.125) * (a11[i] + a22[i]));
+          const T w = ok ? T(1) : T(0);
+          u[i] = uu;
+          v[i] = vv;
+          on[i] = ok;
+          w3[i] = w;
+          w3[HW + i] = uu * w;
+          w3[2 * HW + i] = vv * w;
+        }
+      });
+      at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
+        std::vector<T> t(HW);
+        for (int64_t c = c0; c < c1; ++c)
+          box_mean_plane(w3.data() + c * HW, H, W, radius, t.data(), m3.data() + c * HW);
+      });
+      const T sp = T(same_pixel), st = T(still);
+      for (int64_t i = 0; i < HW; ++i) {
+        const T n = std::max(m3[i], T(1e-6));
+        const bool is_still = std::abs(m3[HW + i]) < st * n && std::abs(m3[2 * HW + i]) < st * n;
+        po[k * HW + i] = on[i] && is_still && std::abs(u[i]) < sp && std::abs(v[i]) < sp;
+      }
+    }
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -962,6 +1085,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_cv_split", &cv_split_cpu);
   m.impl("_sanitize", &sanitize_cpu);
   m.impl("_normalised_blur", &normalised_blur_cpu);
+  m.impl("_same_pixel", &same_pixel_cpu);
 }
 
 }  // namespace cpu
