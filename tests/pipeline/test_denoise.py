@@ -776,6 +776,6 @@ def test_window_albedo_survives_degenerate_positions(positions):
     out = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
     assert bool(torch.isfinite(out).all())
     if positions != "nonfinite":  # (the finite columns there are random positions)
-        state = D.prepare_frames(c, f, names, None, DenoiseSettings(), samples_per_pixel=1)
+        state = D.prepare_frames(c, f, names, None, DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
         same = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
         assert not any(bool(m.any()) for m in same)

@@ -93,7 +93,13 @@ def _frame_mean(lum: Tensor, mask: Tensor) -> Tensor:
     """Mean of ``lum`` ``(T, 1, H, W)`` over each frame's valid samples: ``(T, 1, 1, 1)``. Every level
     the denoiser sets (log offsets, firefly floor, tone-mapping knee) is relative to it, so the result
     scales with the exposure."""
-    return (_frame_total(lum * mask) / _frame_total(mask).clamp_min(1.0)).to(lum.dtype)
+    return _channel_means(lum, mask).to(lum.dtype)
+
+
+def _channel_means(x: Tensor, mask: Tensor) -> Tensor:
+    """Mean of each channel of ``(T, C, H, W)`` over each frame's valid samples (weights ``mask``
+    ``(T, 1, H, W)``), in float64: ``(T, C, 1, 1)``."""
+    return _frame_total(x * mask, per_channel=True) / _frame_total(mask).clamp_min(1.0)
 
 
 def _frame_total(x: Tensor, per_channel: bool = False) -> Tensor:
@@ -833,8 +839,8 @@ class FrameState:
             keep their samples.
         emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
         position: ``(T, 3, H, W)`` the samples' world positions (``P``), or ``None`` where the renderer
-            gives none: they tell which samples of the window's other frames fall in a pixel
-            (:func:`_window_albedo`).
+            gives none or no time window is used: they tell which samples of the window's other frames
+            fall in a pixel (:func:`_window_albedo`).
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         counts: sums over the frames: non-finite samples, clamped samples, energy and energy clamped.
@@ -901,8 +907,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     smooth = _smooth_surface(guide[:, geometry], sig[:, geometry]) if geometry and known else None
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, _position(f, names), guide, sig, False,
-                       counts, fp, base)
+    position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, counts, fp,
+                       base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -1278,7 +1285,7 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         for k, n in enumerate(gnames):
             if canonical_name(n) in over:
                 s[:, k] = over[canonical_name(n)]
-        guide = guide.clone()
+        # (guide is a copy: f indexed by a list)
         ai = [k for k, n in enumerate(gnames) if feature_group(n) == "albedo"]
         if ai:  # renderer albedo may exceed 1 (conductors); the guide only needs its colour
             guide[:, ai] = guide[:, ai].clamp(0.0, 1.0)
@@ -1286,9 +1293,7 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         # a scene far from the origin (positions of 1e30) does not overflow the filter's float32 squares
         xi = [k for k, n in enumerate(gnames) if feature_table.feature(feature_group(n)).sigma_of_extent]
         if xi:
-            m = mask.to(torch.float64)
-            centre = _frame_total(guide[:, xi] * mask, per_channel=True) / _frame_total(m).clamp_min(1.0)
-            guide[:, xi] = (guide[:, xi].double() - centre).to(guide.dtype)
+            guide[:, xi] = (guide[:, xi].double() - _channel_means(guide[:, xi], mask)).to(guide.dtype)
         parts.append(guide)
         sig.append(s)
     rs = _radiance_sigma(settings)
@@ -1380,8 +1385,7 @@ def _trusted_level(pilot: Tensor, mask: Tensor, trust: Tensor) -> Tensor:
     w = trust.to(pilot.dtype).view(-1, 1, 1, 1)
     if bool((w >= 1).all()):
         return pilot
-    mean = _frame_total(pilot * mask, per_channel=True) / _frame_total(mask).clamp_min(1.0)
-    return w * pilot + (1 - w) * mean.to(pilot.dtype)
+    return w * pilot + (1 - w) * _channel_means(pilot, mask).to(pilot.dtype)
 
 
 def _pilot_noise(pilot: Tensor, held_out: Tensor, valid: Tensor) -> Tensor:
