@@ -1110,10 +1110,7 @@ def _smooth_surface(geometry: Tensor, sigmas: Tensor) -> Tensor:
     channels in units of the sigmas. 1 on a plane or a gently curved surface, near 0 across a silhouette
     or a crease."""
     g = geometry / sigmas.to(geometry.dtype)[:, :, None, None]
-    m = torch.nn.functional.pad(torch.cat([g, g * g], 1), (1, 1, 1, 1), mode="replicate")
-    m = m[..., :, :-2] + m[..., :, 1:-1] + m[..., :, 2:]  # 3x3 box sums by shifted adds (10x avg_pool2d)
-    m = (m[..., :-2, :] + m[..., 1:-1, :] + m[..., 2:, :]) / 9.0
-    m1, m2 = m.chunk(2, 1)
+    m1, m2 = _box_mean(torch.cat([g, g * g], 1), 1).chunk(2, 1)
     v = (m2 - m1 * m1).clamp_min(0.0).sum(1, keepdim=True)
     return torch.exp(-v / _SMOOTH_VARIANCE)
 
@@ -1170,13 +1167,17 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
 
 
 def _box_mean(x: Tensor, r: int) -> Tensor:
-    """Mean of ``(C, H, W)`` over the (2r+1)^2 box around each pixel, the border replicated: sums of
-    shifted views along x, then along y, in the order the C++ kernel of :func:`_same_pixel` sums them."""
+    """Mean of ``(..., H, W)`` over the (2r+1)^2 box around each pixel, the border replicated: sums of
+    shifted views along x, then along y (about 10x faster than ``avg_pool2d`` for these small boxes),
+    divided once, in the order the C++ kernel of :func:`_same_pixel` sums them."""
     for dim in (-1, -2):
         n = x.shape[dim]
         xp = torch.cat([x.narrow(dim, 0, 1)] * r + [x] + [x.narrow(dim, n - 1, 1)] * r, dim)
-        x = sum(xp.narrow(dim, k, n) for k in range(2 * r + 1)) / (2 * r + 1)
-    return x
+        total = xp.narrow(dim, 0, n)
+        for k in range(1, 2 * r + 1):
+            total = total + xp.narrow(dim, k, n)
+        x = total
+    return x / float((2 * r + 1) ** 2)
 
 
 def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:

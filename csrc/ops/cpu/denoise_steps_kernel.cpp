@@ -950,27 +950,32 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
 
 // ------------------------------------------------------------------------------ same pixel
 // denoise._box_mean of one (H, W) plane: the mean over the (2r+1)^2 box, the border replicated, summed
-// along x then along y in the same order as the PyTorch sums of shifted views.
-// Whole rows at a time (each pixel's terms still added in that order), so the lanes vectorise.
+// along x then along y and divided once, in the same order as the PyTorch sums of shifted views (each
+// pixel's first term assigned, the others added). Whole rows at a time, so the lanes vectorise.
 template <typename T>
 void box_mean_plane(const T* src, int64_t H, int64_t W, int64_t r, T* tmp, T* dst) {
-  const T n = T(2 * r + 1);
+  const T n = T((2 * r + 1) * (2 * r + 1));
   for (int64_t y = 0; y < H; ++y) {
     const T* s = src + y * W;
     T* t = tmp + y * W;
-    std::fill(t, t + W, T(0));
     for (int64_t k = -r; k <= r; ++k) {
       const int64_t lo = std::min<int64_t>(W, std::max<int64_t>(0, -k)), hi = std::max<int64_t>(lo, W - k);
-      for (int64_t x = 0; x < lo; ++x) t[x] += s[0];
-      for (int64_t x = lo; x < std::min(hi, W); ++x) t[x] += s[x + k];
-      for (int64_t x = std::min(hi, W); x < W; ++x) t[x] += s[W - 1];
+      const int64_t mid = std::min(hi, W);
+      if (k == -r) {
+        for (int64_t x = 0; x < lo; ++x) t[x] = s[0];
+        for (int64_t x = lo; x < mid; ++x) t[x] = s[x + k];
+        for (int64_t x = mid; x < W; ++x) t[x] = s[W - 1];
+      } else {
+        for (int64_t x = 0; x < lo; ++x) t[x] += s[0];
+        for (int64_t x = lo; x < mid; ++x) t[x] += s[x + k];
+        for (int64_t x = mid; x < W; ++x) t[x] += s[W - 1];
+      }
     }
-    for (int64_t x = 0; x < W; ++x) t[x] = t[x] / n;
   }
   for (int64_t y = 0; y < H; ++y) {
     T* o = dst + y * W;
-    std::fill(o, o + W, T(0));
-    for (int64_t k = -r; k <= r; ++k) {
+    std::copy(tmp + clampi(y - r, H) * W, tmp + clampi(y - r, H) * W + W, o);
+    for (int64_t k = -r + 1; k <= r; ++k) {
       const T* row = tmp + clampi(y + k, H) * W;
       for (int64_t x = 0; x < W; ++x) o[x] += row[x];
     }
