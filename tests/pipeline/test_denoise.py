@@ -753,6 +753,52 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     assert averaged > own + 0.5, (averaged, own)
 
 
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (0.4, 0.7), (0.0, 3.0), (-2.6, 1.3)])
+def test_footprint_samples_are_the_other_views_samples_in_the_pixel(shift):
+    """Which samples of another frame fall in a pixel's footprint, from world positions alone, against
+    where each sample truly lies: for a still view and for views moved by a fraction of a pixel and by
+    several, the pixels find as many samples as their squares hold, and each one found lies in the square
+    or beside its edge (the square's centre is estimated from the 3x3 jittered samples around it, about
+    0.1 pixel off, so a sample that near an edge may fall either way); none of another surface."""
+    H, W = 24, 30
+    p = _plane_positions(H, W)
+    other = _plane_positions(H, W, shift, seed=1)
+    x, y = other[0] * 10, other[1] * 10  # where each sample lies, in the first view's pixels
+    truth = torch.zeros(H + 20, W + 20, dtype=torch.float64)  # how many samples each pixel's square holds
+    truth.index_put_((torch.floor(y).long() + 10, torch.floor(x).long() + 10), torch.ones(H, W, dtype=torch.float64),
+                     accumulate=True)
+    truth = truth[10:10 + H, 10:10 + W]
+    albedo = torch.stack([x, y, torch.ones_like(x)])[None]  # the sums of one sample: where it lies
+    sums, counts = D._footprint_samples(p, other[None], albedo, torch.ones(1, H, W, dtype=torch.float64))
+    inner = (slice(4, -4), slice(4, -4))
+    n, held = counts[0, 0][inner], truth[inner]
+    assert abs(float(n.mean() - held.mean())) < 0.1 and float((n == held).double().mean()) > 0.6
+    px = torch.arange(W, dtype=torch.float64).view(1, W).expand(H, W)[inner]
+    py = torch.arange(H, dtype=torch.float64).view(H, 1).expand(H, W)[inner]
+    one = n == 1
+    assert bool(one.any())
+    for at, lo in ((sums[0, 0][inner], px), (sums[0, 1][inner], py)):
+        assert bool(((at[one] > lo[one] - 0.35) & (at[one] < lo[one] + 1.35)).all())
+    behind = _plane_positions(H, W, shift, seed=1, lift=0.3)
+    assert not bool(D._footprint_samples(p, behind[None], albedo, torch.ones(1, H, W, dtype=torch.float64))[1].any())
+
+
+def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
+    """A moving camera samples each pixel's area at other points in the other frames too: the samples of
+    the window's frames that fall in a pixel's footprint make its albedo the pixel's average on a pan
+    (`mi_glass_mirror`, held out: a textured wall behind glass and a mirror, the camera panning), where the
+    still test finds nothing."""
+    c, f, names, ref = _validation_clip("mi_glass_mirror", [0, 1, 2])
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
+    state = D.prepare_frames(c, f, names, None, DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
+    still = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
+    assert float(sum(m.double().mean() for m in still)) < 0.01  # a pan: the still test finds nothing
+    averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
+    monkeypatch.setattr(D, "_footprint_samples", lambda p, o, a, v: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
+    own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
+    assert averaged > own + 0.05, (averaged, own)
+
+
 @pytest.mark.parametrize("positions", ["zero", "nonfinite", "huge", "one_line"])
 def test_window_albedo_survives_degenerate_positions(positions):
     """World positions that tell nothing (all 0, NaN and inf, 1e30, every pixel on one line) leave no
@@ -779,3 +825,6 @@ def test_window_albedo_survives_degenerate_positions(positions):
         state = D.prepare_frames(c, f, names, None, DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
         same = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
         assert not any(bool(m.any()) for m in same)
+        others = torch.stack([state.position[0], state.position[2]])
+        _, counts = D._footprint_samples(state.position[1], others, others, torch.ones(2, H, W))
+        assert not bool(counts.any())

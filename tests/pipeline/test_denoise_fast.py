@@ -241,6 +241,35 @@ def test_same_pixel_equals_reference_bitwise(mitsuba_dir):
     assert bool(_both(D._same_pixel, plane, [still])[0][0].any())  # a still view is found at all
 
 
+def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
+    """_footprint_samples in C++, step by step in the PyTorch stage's float operations: the same sums and
+    counts, bit for bit, on rendered world positions (a panning clip's frames), on jittered planes panned by
+    a fraction of a pixel and by several, and on degenerate ones (NaN, all equal, one line, one pixel)."""
+    from test_denoise import _plane_positions
+
+    _, f = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=(slice(64, 192), slice(64, 192)))
+    P = f[:, FEATURES.index("P.X"):FEATURES.index("P.Z") + 1]
+    alb = f[:, :3]
+    plane = _plane_positions(24, 30).float()
+    panned = torch.stack([_plane_positions(24, 30, (0.4, 0.6), seed=1), _plane_positions(24, 30, (-2.3, 3.5), seed=2)])
+    holes = torch.where(plane > 1.0, plane, math.nan)
+    g = torch.Generator().manual_seed(3)
+    cases = [(P[1], P[[0, 2]], alb[[0, 2]]), (plane, panned.float(), None), (plane.double(), panned, None),
+             (torch.zeros(3, 8, 9), torch.zeros(1, 3, 8, 9), None), (holes, panned[:1].float(), None),
+             (torch.ones(3, 1, 5) * torch.arange(5.0), plane[None, :, :1, :5], None),
+             (plane[:, :1, :1], panned[:, :, :1, :1].float(), None)]
+    for p, others, albedo in cases:
+        if albedo is None:
+            albedo = torch.rand(others.shape, generator=g, dtype=others.dtype)
+        valid = (torch.rand(others[:, 0].shape, generator=g) > 0.2).to(p.dtype)
+        (sums, counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo, valid)
+        assert sums.shape == others.shape and counts.shape == (others.shape[0], 1, *others.shape[2:])
+        _same(sums, ref_sums)
+        _same(counts, ref_counts)
+    assert float(_both(D._footprint_samples, plane, panned.float(), panned.float(),
+                       torch.ones(2, 24, 30))[0][1].mean()) > 0.5  # the moved views' samples are found
+
+
 def test_kernels_thread_count_invariant(frame):
     e, m = frame["e"], frame["mask"]
     calls = [
@@ -254,6 +283,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.normalised_blur(e, m, 0.5),
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
         lambda: _fast.same_pixel(e[0], e[:1] + 0.01 * m[:1], 1.0, 0.25, 2),
+        lambda: _fast.footprint_samples(e[0], e[:1] + 0.01 * m[:1], e[:1], m[:1, 0], 2),
     ]
     old = torch.get_num_threads()
     try:
@@ -310,7 +340,8 @@ def _op_samples():
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m)),
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
-            ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2))]
+            ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2)),
+            ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], 2))]
 
 
 @pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])

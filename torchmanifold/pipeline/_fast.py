@@ -20,7 +20,8 @@ from torch import Tensor
 from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
-           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "same_pixel"]
+           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "same_pixel",
+           "footprint_samples"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -153,6 +154,13 @@ def same_pixel(p: Tensor, others: Tensor, same: float, still: float, radius: int
     return torch.ops.torchmanifold._same_pixel(p, others, float(same), float(still), int(radius))
 
 
+@parallel
+def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor, radius: int) -> tuple[Tensor, Tensor]:
+    """``denoise._footprint_samples``: positions p ``(3, H, W)``, others and their albedo ``(K, 3, H, W)``,
+    valid ``(K, H, W)`` -> albedo sums ``(K, 3, H, W)`` and counts ``(K, 1, H, W)``."""
+    return torch.ops.torchmanifold._footprint_samples(p, others, albedo, valid, int(radius))
+
+
 def _register_fakes() -> None:
     """Shapes and dtypes of the private ops for fake tensors (``torch.compile``, ``opcheck``); each matches
     its CPU kernel's outputs."""
@@ -208,6 +216,10 @@ def _register_fakes() -> None:
     @torch.library.register_fake(lib + "_same_pixel")
     def _(p, others, same, still, radius):
         return others.new_empty((others.shape[0], 1, *others.shape[2:]), dtype=torch.bool)
+
+    @torch.library.register_fake(lib + "_footprint_samples")
+    def _(p, others, albedo, valid, radius):
+        return others.new_empty(others.shape), others.new_empty((others.shape[0], 1, *others.shape[2:]))
 
 
 if _have_ops():

@@ -843,6 +843,8 @@ class FrameState:
             fall in a pixel (:func:`_window_albedo`).
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
+        point_samples: each pixel holds one sample (a known count of 1), so its features are one point of
+            the pixel's footprint (:func:`_window_albedo` looks for other frames' points in it).
         counts: sums over the frames: non-finite samples, clamped samples, energy and energy clamped.
         footprint: the footprint average's sigma (pixels), from the settings and the sample count.
         sigma_s: the reference spatial sigma (pixels) the frames were prepared with: the caller's, or
@@ -861,6 +863,7 @@ class FrameState:
     guide: Tensor
     sigmas: Tensor
     pilot_only: bool
+    point_samples: bool
     counts: dict
     footprint: float
     sigma_s: float
@@ -874,8 +877,8 @@ class FrameState:
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
                    "guide", "sigmas")
-        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, counts, states[0].footprint,
-                          states[0].sigma_s)
+        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
+                          states[0].footprint, states[0].sigma_s)
 
     def stats(self) -> dict:
         """Non-finite samples, masked pixels, clamped samples and the fraction of energy clamped."""
@@ -908,8 +911,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, counts, fp,
-                       base)
+    point = known and float(samples_per_pixel) == 1
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, point, counts,
+                       fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -1141,13 +1145,17 @@ _STILL, _STILL_RADIUS = 0.25, 2
 
 def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[float], radius: int) -> Tensor:
     """The albedo ``(Q, 3, H, W)`` at the queries averaged with the samples of the window's other frames
-    that land in the same pixel of the same surface (:func:`_same_pixel`), each of equal weight.
+    that land in the pixel, on the same surface, each of equal weight.
 
     A 1-spp pixel's albedo is one point of its area, and the reference is the pixel's average: texture
     under the footprint is the error left where the light is clean. Where the view is still, each frame
-    samples the pixel at another point, so the window holds a few samples of every pixel's albedo. Only
-    at queries that are frames; flat pixels (not demodulated) and pixels without a valid sample keep their
-    own."""
+    samples the pixel at another point, so the window holds a few samples of every pixel's albedo
+    (:func:`_same_pixel`). Where it moves and each pixel holds one sample (``s.point_samples``), the other
+    frames' samples that fall in the pixel's footprint are points of the same area too
+    (:func:`_footprint_samples`), on smooth surfaces (:func:`_smooth_surface` at least 1/e), where the
+    footprint's position is known. An n-spp pixel's albedo already averages its own footprint, and another
+    frame's pixel averages another one. Only at queries that are frames; flat pixels (not demodulated) and
+    pixels without a valid sample keep their own."""
     out = []
     for qi, q in enumerate(qt):
         k = frame_at(ft, q)
@@ -1158,10 +1166,22 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
         own = (s.mask[k] > 0) & ~s.flat[k]
         total, count = a.clone(), torch.ones_like(a[:1])
         others = [j for j in window(ft, q, radius) if j != k]
-        for j, same in zip(others, _same_pixel(s.position[k], [s.position[j] for j in others])):
-            ok = own & (s.mask[j] > 0) & ~s.flat[j] & same
-            total += torch.where(ok, s.albedo[j], 0.0)
-            count += ok.to(count.dtype)
+        valid = [(s.mask[j] > 0) & ~s.flat[j] for j in others]
+        sames = _same_pixel(s.position[k], [s.position[j] for j in others])
+        moving = s.point_samples and s.smooth is not None and bool(others)
+        if moving:
+            sums, counts = _footprint_samples(s.position[k], torch.stack([s.position[j] for j in others]),
+                                              torch.stack([s.albedo[j] for j in others]),
+                                              torch.stack(valid)[:, 0].to(a.dtype))
+            search = own & (s.smooth[k] >= math.exp(-1.0))
+        for n, (j, same, ok_j) in enumerate(zip(others, sames, valid)):
+            ok = own & ok_j & same
+            if moving:
+                total += torch.where(ok, s.albedo[j], torch.where(search, sums[n], 0.0))
+                count += torch.where(ok, 1.0, torch.where(search, counts[n], 0.0))
+            else:
+                total += torch.where(ok, s.albedo[j], 0.0)
+                count += ok.to(count.dtype)
         out.append(total / count)
     return torch.stack(out)
 
@@ -1194,31 +1214,89 @@ def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:
     if others and _fast.enabled(p, *others):
         stacked = torch.stack(list(others))
         return list(_fast.same_pixel(p, stacked, _SAME_PIXEL, _STILL, _STILL_RADIUS).unbind(0))
-    gx, gy = torch.zeros_like(p), torch.zeros_like(p)
-    gx[:, :, 1:-1] = (p[:, :, 2:] - p[:, :, :-2]) / 2
-    gy[:, 1:-1, :] = (p[:, 2:, :] - p[:, :-2, :]) / 2
-    gx, gy = _box_mean(gx, 1), _box_mean(gy, 1)
-
-    def dot(a: Tensor, b: Tensor) -> Tensor:  # over the 3 coordinates
-        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-    a11, a12, a22 = dot(gx, gx), dot(gx, gy), dot(gy, gy)
-    det = a11 * a22 - a12 * a12
-    solvable = det > 1e-12 * (a11 + a22) ** 2
-    det = torch.where(solvable, det, 1.0)
+    axes = _image_axes(p)
     out = []
     for other in others:
-        d = other - p
-        b1, b2 = dot(gx, d), dot(gy, d)
-        u, v = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
-        rest = d - u * gx - v * gy
-        on_surface = solvable & (dot(rest, rest) < 0.125 * (a11 + a22))  # under half a pixel
+        u, v, on_surface = _in_image_axes(other - p, axes)
         w = on_surface.to(u.dtype)
         mean = _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
         n = mean[0].clamp_min(1e-6)
         still = (mean[1].abs() < _STILL * n) & (mean[2].abs() < _STILL * n)
         out.append((on_surface & still & (u.abs() < _SAME_PIXEL) & (v.abs() < _SAME_PIXEL))[None])
     return out
+
+
+def _dot3(a: Tensor, b: Tensor) -> Tensor:
+    """``a . b`` over the 3 coordinates of ``(3, H, W)`` vectors."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _image_axes(p: Tensor) -> tuple:
+    """The image axes of world positions ``p`` ``(3, H, W)`` in world units: their derivatives along x and
+    y (central differences, 0 on the border columns / rows, averaged over 3x3 against the samples'
+    jitter), with what :func:`_in_image_axes` solves by: ``(gx, gy, a11, a12, a22, det, solvable)``."""
+    gx, gy = torch.zeros_like(p), torch.zeros_like(p)
+    gx[:, :, 1:-1] = (p[:, :, 2:] - p[:, :, :-2]) / 2
+    gy[:, 1:-1, :] = (p[:, 2:, :] - p[:, :-2, :]) / 2
+    gx, gy = _box_mean(gx, 1), _box_mean(gy, 1)
+    a11, a12, a22 = _dot3(gx, gx), _dot3(gx, gy), _dot3(gy, gy)
+    det = a11 * a22 - a12 * a12
+    solvable = det > 1e-12 * (a11 + a22) ** 2
+    return gx, gy, a11, a12, a22, torch.where(solvable, det, 1.0), solvable
+
+
+def _in_image_axes(d: Tensor, axes: tuple) -> tuple[Tensor, Tensor, Tensor]:
+    """World offsets ``d`` ``(3, H, W)`` along the image axes (:func:`_image_axes`), by least squares:
+    ``u, v`` in pixels, and whether what is left, off the surface, stays under half a pixel."""
+    gx, gy, a11, a12, a22, det, solvable = axes
+    b1, b2 = _dot3(gx, d), _dot3(gy, d)
+    u, v = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+    rest = d - u * gx - v * gy
+    return u, v, solvable & (_dot3(rest, rest) < 0.125 * (a11 + a22))
+
+
+def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """The samples of other frames that fall in each pixel's footprint: the sum of their ``albedo`` and
+    their count, ``(K, 3, H, W)`` and ``(K, 1, H, W)``, for world positions ``p`` ``(3, H, W)`` of one
+    sample per pixel and ``others`` ``(K, 3, H, W)`` of the other frames' samples, ``valid`` ``(K, H, W)``
+    (1: usable).
+
+    The footprint is the pixel's square, half a pixel each way along the image axes (:func:`_image_axes`)
+    about the pixel's centre, the mean of the 3x3 samples around it (their jitters cancel). Where the
+    footprint went between the frames is the mean offset of the other frame's samples at the same pixels
+    over the pixels around (:data:`_STILL_RADIUS`), as in the still test of :func:`_same_pixel`, rounded to
+    a pixel; the samples of the 3x3 pixels there are tested. A sample counts when it lies in the square and
+    on the surface. On CPU a C++ kernel takes the same steps, bit for bit."""
+    if _fast.enabled(p, others, albedo, valid):
+        return _fast.footprint_samples(p, others, albedo, valid, _STILL_RADIUS)
+    H, W = p.shape[-2:]
+    axes = _image_axes(p)
+    centre = _box_mean(p, 1)
+    yy = torch.arange(H, device=p.device).view(H, 1).expand(H, W)
+    xx = torch.arange(W, device=p.device).view(1, W).expand(H, W)
+    sums, counts = [], []
+    for other, alb, ok in zip(others, albedo, valid):
+        u, v, on = _in_image_axes(other - centre, axes)
+        w = torch.where(on, ok, 0.0)
+        mean = _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
+        n = mean[0].clamp_min(1e-6)
+        # the other frame's samples at the same pixels lie at -flow from the footprint
+        qx = xx - torch.where(mean[0] > 0, torch.round(mean[1] / n), 0.0).long()
+        qy = yy - torch.where(mean[0] > 0, torch.round(mean[2] / n), 0.0).long()
+        total, count = torch.zeros_like(alb), torch.zeros_like(ok)[None]
+        flat_p, flat_a, flat_ok = other.reshape(3, -1), alb.reshape(3, -1), ok.reshape(-1)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                sx, sy = qx + dx, qy + dy
+                inside = (sx >= 0) & (sx < W) & (sy >= 0) & (sy < H)
+                idx = (sy.clamp(0, H - 1) * W + sx.clamp(0, W - 1)).reshape(-1)
+                u, v, on = _in_image_axes(flat_p[:, idx].view(3, H, W) - centre, axes)
+                hit = inside & on & (flat_ok[idx].view(H, W) > 0) & (u.abs() < 0.5) & (v.abs() < 0.5)
+                total += torch.where(hit, flat_a[:, idx].view(3, H, W), 0.0)
+                count += hit.to(count.dtype)
+        sums.append(total)
+        counts.append(count)
+    return torch.stack(sums), torch.stack(counts)
 
 
 def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None,

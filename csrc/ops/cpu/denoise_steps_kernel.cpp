@@ -983,6 +983,73 @@ void box_mean_plane(const T* src, int64_t H, int64_t W, int64_t r, T* tmp, T* ds
   }
 }
 
+// denoise._image_axes of world positions p (3, H, W): central differences (0 on the border columns / rows),
+// their 3x3 means, and the normal equations' terms, step by step in the PyTorch stage's float operations.
+template <typename T>
+struct ImageAxes {
+  std::vector<T> ax, a11, a12, a22, det;  // ax: gx (3 planes) then gy (3 planes)
+  std::vector<char> solvable;
+  int64_t HW;
+
+  ImageAxes(const T* pp, int64_t H, int64_t W)
+      : ax(6 * H * W), a11(H * W), a12(H * W), a22(H * W), det(H * W), solvable(H * W), HW(H * W) {
+    std::vector<T> g(6 * HW, T(0));
+    for (int64_t c = 0; c < 3; ++c) {
+      const T* pc = pp + c * HW;
+      T* gx = g.data() + c * HW;
+      T* gy = g.data() + (3 + c) * HW;
+      for (int64_t y = 0; y < H; ++y)
+        for (int64_t x = 1; x + 1 < W; ++x) gx[y * W + x] = (pc[y * W + x + 1] - pc[y * W + x - 1]) / T(2);
+      for (int64_t y = 1; y + 1 < H; ++y)
+        for (int64_t x = 0; x < W; ++x) gy[y * W + x] = (pc[(y + 1) * W + x] - pc[(y - 1) * W + x]) / T(2);
+    }
+    at::parallel_for(0, 6, 1, [&](int64_t c0, int64_t c1) {
+      std::vector<T> t(HW);
+      for (int64_t c = c0; c < c1; ++c)
+        box_mean_plane(g.data() + c * HW, H, W, 1, t.data(), ax.data() + c * HW);
+    });
+    const T* gx = ax.data();
+    const T* gy = ax.data() + 3 * HW;
+    for (int64_t i = 0; i < HW; ++i) {
+      a11[i] = dot(gx, gx, i);
+      a12[i] = dot(gx, gy, i);
+      a22[i] = dot(gy, gy, i);
+      const T d = a11[i] * a22[i] - a12[i] * a12[i];
+      const T s = a11[i] + a22[i];
+      solvable[i] = d > T(1e-12) * (s * s);
+      det[i] = solvable[i] ? d : T(1);
+    }
+  }
+
+  T dot(const T* a, const T* b, int64_t i) const {
+    return a[i] * b[i] + a[HW + i] * b[HW + i] + a[2 * HW + i] * b[2 * HW + i];
+  }
+
+  // denoise._in_image_axes at pixel i of the offset (d0, d1, d2): u, v and whether it lies on the surface
+  bool offset(int64_t i, T d0, T d1, T d2, T& uu, T& vv) const {
+    along(i, d0, d1, d2, uu, vv);
+    return on_surface(i, d0, d1, d2, uu, vv);
+  }
+
+  void along(int64_t i, T d0, T d1, T d2, T& uu, T& vv) const {
+    const T* gx = ax.data();
+    const T* gy = ax.data() + 3 * HW;
+    const T b1 = gx[i] * d0 + gx[HW + i] * d1 + gx[2 * HW + i] * d2;
+    const T b2 = gy[i] * d0 + gy[HW + i] * d1 + gy[2 * HW + i] * d2;
+    uu = (a22[i] * b1 - a12[i] * b2) / det[i];
+    vv = (a11[i] * b2 - a12[i] * b1) / det[i];
+  }
+
+  bool on_surface(int64_t i, T d0, T d1, T d2, T uu, T vv) const {
+    const T* gx = ax.data();
+    const T* gy = ax.data() + 3 * HW;
+    const T r0 = (d0 - uu * gx[i]) - vv * gy[i];
+    const T r1 = (d1 - uu * gx[HW + i]) - vv * gy[HW + i];
+    const T r2 = (d2 - uu * gx[2 * HW + i]) - vv * gy[2 * HW + i];
+    return solvable[i] && (r0 * r0 + r1 * r1 + r2 * r2 < T(0.125) * (a11[i] + a22[i]));
+  }
+};
+
 // denoise._same_pixel, step by step in its float operations.
 at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double same_pixel, double still,
                           int64_t radius) {
@@ -1002,39 +1069,7 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
   AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "same_pixel_cpu", [&] {
     using T = scalar_t;
     const T* pp = p.data_ptr<T>();
-    // the image axes: central differences (0 on the border columns / rows), then their 3x3 means
-    std::vector<T> g(6 * HW, T(0));
-    for (int64_t c = 0; c < 3; ++c) {
-      const T* pc = pp + c * HW;
-      T* gx = g.data() + c * HW;
-      T* gy = g.data() + (3 + c) * HW;
-      for (int64_t y = 0; y < H; ++y)
-        for (int64_t x = 1; x + 1 < W; ++x) gx[y * W + x] = (pc[y * W + x + 1] - pc[y * W + x - 1]) / T(2);
-      for (int64_t y = 1; y + 1 < H; ++y)
-        for (int64_t x = 0; x < W; ++x) gy[y * W + x] = (pc[(y + 1) * W + x] - pc[(y - 1) * W + x]) / T(2);
-    }
-    std::vector<T> ax(6 * HW);
-    at::parallel_for(0, 6, 1, [&](int64_t c0, int64_t c1) {
-      std::vector<T> t(HW);
-      for (int64_t c = c0; c < c1; ++c)
-        box_mean_plane(g.data() + c * HW, H, W, 1, t.data(), ax.data() + c * HW);
-    });
-    auto dot = [&](const T* a, const T* b, int64_t i) {
-      return a[i] * b[i] + a[HW + i] * b[HW + i] + a[2 * HW + i] * b[2 * HW + i];
-    };
-    const T* gx = ax.data();
-    const T* gy = ax.data() + 3 * HW;
-    std::vector<T> a11(HW), a12(HW), a22(HW), det(HW);
-    std::vector<char> solvable(HW);
-    for (int64_t i = 0; i < HW; ++i) {
-      a11[i] = dot(gx, gx, i);
-      a12[i] = dot(gx, gy, i);
-      a22[i] = dot(gy, gy, i);
-      const T d = a11[i] * a22[i] - a12[i] * a12[i];
-      const T s = a11[i] + a22[i];
-      solvable[i] = d > T(1e-12) * (s * s);
-      det[i] = solvable[i] ? d : T(1);
-    }
+    const ImageAxes<T> axes(pp, H, W);
     std::vector<T> u(HW), v(HW), w3(3 * HW), m3(3 * HW);
     std::vector<char> on(HW);
     bool* po = out.data_ptr<bool>();
@@ -1043,14 +1078,8 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
       at::parallel_for(0, H, row_grain(W * 20), [&](int64_t y0, int64_t y1) {
         for (int64_t i = y0 * W; i < y1 * W; ++i) {
           const T d0 = pk[i] - pp[i], d1 = pk[HW + i] - pp[HW + i], d2 = pk[2 * HW + i] - pp[2 * HW + i];
-          const T b1 = gx[i] * d0 + gx[HW + i] * d1 + gx[2 * HW + i] * d2;
-          const T b2 = gy[i] * d0 + gy[HW + i] * d1 + gy[2 * HW + i] * d2;
-          const T uu = (a22[i] * b1 - a12[i] * b2) / det[i];
-          const T vv = (a11[i] * b2 - a12[i] * b1) / det[i];
-          const T r0 = (d0 - uu * gx[i]) - vv * gy[i];
-          const T r1 = (d1 - uu * gx[HW + i]) - vv * gy[HW + i];
-          const T r2 = (d2 - uu * gx[2 * HW + i]) - vv * gy[2 * HW + i];
-          const bool ok = solvable[i] && (r0 * r0 + r1 * r1 + r2 * r2 < T(0.125) * (a11[i] + a22[i]));
+          T uu, vv;
+          const bool ok = axes.offset(i, d0, d1, d2, uu, vv);
           const T w = ok ? T(1) : T(0);
           u[i] = uu;
           v[i] = vv;
@@ -1076,6 +1105,101 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
   return out;
 }
 
+// denoise._footprint_samples, step by step in its float operations: per other frame, the albedo sum and the
+// count of its samples inside each pixel's footprint.
+std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, const at::Tensor& o_,
+                                                         const at::Tensor& a_, const at::Tensor& v_,
+                                                         int64_t radius) {
+  const char* op = "_footprint_samples";
+  check_float(p_, "p", op);
+  check_shape(p_, "p", op, 3);
+  check_shape(o_, "others", op, 4);
+  TORCH_CHECK_VALUE(p_.size(0) == 3, op, ": p must be (3, H, W), got ", p_.sizes());
+  const int64_t K = o_.size(0), H = p_.size(1), W = p_.size(2), HW = H * W;
+  TORCH_CHECK_VALUE(o_.size(1) == 3 && o_.size(2) == H && o_.size(3) == W && o_.scalar_type() == p_.scalar_type(),
+                    op, ": others must be (K, 3, H, W) of p's shape and dtype, got ", o_.sizes());
+  TORCH_CHECK_VALUE(a_.sizes() == o_.sizes() && a_.scalar_type() == p_.scalar_type(), op,
+                    ": albedo must be shaped like others ", o_.sizes(), ", got ", a_.sizes());
+  TORCH_CHECK_VALUE(v_.dim() == 3 && v_.size(0) == K && v_.size(1) == H && v_.size(2) == W &&
+                        v_.scalar_type() == p_.scalar_type(),
+                    op, ": valid must be (K, H, W) of p's dtype, got ", v_.sizes());
+  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+  const at::Tensor p = p_.contiguous(), o = o_.contiguous(), a = a_.contiguous(), v = v_.contiguous();
+  at::Tensor sums = at::zeros({K, 3, H, W}, p.options());
+  at::Tensor counts = at::zeros({K, 1, H, W}, p.options());
+  if (HW == 0 || K == 0) return {sums, counts};
+  AT_DISPATCH_FLOATING_TYPES(p.scalar_type(), "footprint_samples_cpu", [&] {
+    using T = scalar_t;
+    const T* pp = p.data_ptr<T>();
+    const ImageAxes<T> axes(pp, H, W);
+    // the footprint's centre: the 3x3 mean of the samples' positions
+    std::vector<T> centre(3 * HW);
+    at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
+      std::vector<T> t(HW);
+      for (int64_t c = c0; c < c1; ++c) box_mean_plane(pp + c * HW, H, W, 1, t.data(), centre.data() + c * HW);
+    });
+    const T* cc = centre.data();
+    std::vector<T> w3(3 * HW), m3(3 * HW);
+    for (int64_t k = 0; k < K; ++k) {
+      const T* pk = o.data_ptr<T>() + k * 3 * HW;
+      const T* ak = a.data_ptr<T>() + k * 3 * HW;
+      const T* vk = v.data_ptr<T>() + k * HW;
+      T* sk = sums.data_ptr<T>() + k * 3 * HW;
+      T* nk = counts.data_ptr<T>() + k * HW;
+      // where the footprint went: the other frame's samples at the same pixels, averaged around
+      at::parallel_for(0, H, row_grain(W * 20), [&](int64_t y0, int64_t y1) {
+        for (int64_t i = y0 * W; i < y1 * W; ++i) {
+          T uu, vv;
+          const bool on = axes.offset(i, pk[i] - cc[i], pk[HW + i] - cc[HW + i], pk[2 * HW + i] - cc[2 * HW + i],
+                                      uu, vv);
+          const T w = on ? vk[i] : T(0);
+          w3[i] = w;
+          w3[HW + i] = uu * w;
+          w3[2 * HW + i] = vv * w;
+        }
+      });
+      at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
+        std::vector<T> t(HW);
+        for (int64_t c = c0; c < c1; ++c)
+          box_mean_plane(w3.data() + c * HW, H, W, radius, t.data(), m3.data() + c * HW);
+      });
+      at::parallel_for(0, H, row_grain(W * 60), [&](int64_t y0, int64_t y1) {
+        for (int64_t y = y0; y < y1; ++y) {
+          for (int64_t x = 0; x < W; ++x) {
+            const int64_t i = y * W + x;
+            const T n = std::max(m3[i], T(1e-6));
+            const T fx = m3[i] > T(0) ? std::nearbyint(m3[HW + i] / n) : T(0);
+            const T fy = m3[i] > T(0) ? std::nearbyint(m3[2 * HW + i] / n) : T(0);
+            const int64_t qx = x - static_cast<int64_t>(fx), qy = y - static_cast<int64_t>(fy);
+            T s0 = T(0), s1 = T(0), s2 = T(0), cnt = T(0);
+            for (int64_t dy = -1; dy <= 1; ++dy) {
+              for (int64_t dx = -1; dx <= 1; ++dx) {
+                const int64_t sx = qx + dx, sy = qy + dy;
+                const bool inside = sx >= 0 && sx < W && sy >= 0 && sy < H;
+                const int64_t j = clampi(sy, H) * W + clampi(sx, W);
+                const T d0 = pk[j] - cc[i], d1 = pk[HW + j] - cc[HW + i], d2 = pk[2 * HW + j] - cc[2 * HW + i];
+                T uu, vv;
+                axes.along(i, d0, d1, d2, uu, vv);  // the rarer test last: most candidates lie outside
+                const bool hit = inside && vk[j] > T(0) && std::abs(uu) < T(0.5) && std::abs(vv) < T(0.5) &&
+                                 axes.on_surface(i, d0, d1, d2, uu, vv);
+                s0 += hit ? ak[j] : T(0);
+                s1 += hit ? ak[HW + j] : T(0);
+                s2 += hit ? ak[2 * HW + j] : T(0);
+                cnt += hit ? T(1) : T(0);
+              }
+            }
+            sk[i] = s0;
+            sk[HW + i] = s1;
+            sk[2 * HW + i] = s2;
+            nk[i] = cnt;
+          }
+        }
+      });
+    }
+  });
+  return {sums, counts};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -1091,6 +1215,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_sanitize", &sanitize_cpu);
   m.impl("_normalised_blur", &normalised_blur_cpu);
   m.impl("_same_pixel", &same_pixel_cpu);
+  m.impl("_footprint_samples", &footprint_samples_cpu);
 }
 
 }  // namespace cpu
