@@ -30,9 +30,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
    it (:func:`_footprint_average`). On a smooth surface the albedo, whose detail is texture, gets a
-   narrower footprint than the light (:func:`_remodulate`). Where the view is still and the renderer gives
-   world positions, the window's other frames add their samples of each pixel's albedo
-   (:func:`_window_albedo`).
+   narrower footprint than the light (:func:`_remodulate`). Where the renderer gives world positions,
+   the window's other frames add their samples of each pixel's albedo: a still view's of the same pixel,
+   a moving view's that fall in the pixel's square (:func:`_window_albedo`).
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
 
@@ -272,7 +272,7 @@ class DenoiseSettings:
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
             reads depth 0 and its colour is noisy in-scattered light.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where the
-            renderer gives world positions, their samples of a still pixel's albedo join it too
+            renderer gives world positions, their samples of each pixel's albedo join it too
             (:func:`_window_albedo`).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
