@@ -62,6 +62,9 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                         "keep their samples)")
     g.add_argument("--temporal-radius", type=int, default=temporal_radius,
                    help="neighbour frames on each side (%(default)s)")
+    g.add_argument("--albedo-radius", type=int, default=d.albedo_radius,
+                   help="with a time window and world positions, the frames on each side whose samples of a "
+                        "pixel's albedo join it (%(default)s)")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")
@@ -74,7 +77,7 @@ def _settings(a):
                            selection_softness=a.selection_softness, tree_height=a.tree_height, guide=a.guide,
                            guide_sigmas=_guide_sigmas(a.guide_sigma), firefly=a.firefly, firefly_k=a.firefly_k,
                            demodulate=not a.no_demodulate, keep_sky=not a.filter_sky,
-                           temporal_radius=a.temporal_radius,
+                           temporal_radius=a.temporal_radius, albedo_radius=a.albedo_radius,
                            sigma_t=a.sigma_t, mode=a.mode).check()
 
 

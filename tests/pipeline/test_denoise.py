@@ -544,8 +544,8 @@ def test_same_bytes_for_any_thread_count(clip):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads):
     """The denoise command prepares each frame once and reuses it in every window that holds it; each
-    output frame has the bytes of :func:`denoise_frames` over that frame's window, computed afresh with
-    the sample count the files' header gives, on one thread or two."""
+    output frame has the bytes of :func:`denoise_frames` over that frame's window (the filter's and the
+    albedo's), computed afresh with the sample count the files' header gives, on one thread or two."""
     from torchmanifold._threads import torch_threads
     from torchmanifold.io import read_exr, write_exr
     from torchmanifold.pipeline.denoise_files import denoise_files
@@ -563,8 +563,9 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads
         res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
     assert res["nonfinite_color"] == 3
     assert res["samples_per_pixel"] == 1 and res["footprint_sigma"] == pytest.approx(0.7)  # from the header
+    r = st.window_radius  # the filter's +-1 and the albedo's +-2
     for t in range(4):
-        ids = list(range(max(0, t - 1), min(4, t + 2)))
+        ids = list(range(max(0, t - r), min(4, t + r + 1)))
         want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
                               samples_per_pixel=1)[0]
         got = read_exr(tmp_path / "out" / f"f{t}.exr")
@@ -582,8 +583,9 @@ def test_whole_clip_equals_each_window_alone(mitsuba_dir):
     c = c * torch.tensor([1.0, 1.0, 3.0, 1.0, 0.5]).view(-1, 1, 1, 1)
     st = DenoiseSettings(temporal_radius=1)
     whole = denoise_frames(c, f, FEATURES, settings=st, samples_per_pixel=1)
+    r = st.window_radius
     for t in range(5):
-        ids = list(range(max(0, t - 1), min(5, t + 2)))
+        ids = list(range(max(0, t - r), min(5, t + r + 1)))
         alone = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
                                samples_per_pixel=1)[0]
         assert torch.equal(whole[t], alone), t
@@ -751,6 +753,22 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     monkeypatch.setattr(D, "_window_albedo", lambda albedo, *args: albedo)
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.5, (averaged, own)
+
+
+def test_the_albedo_window_reaches_beyond_the_filters():
+    """The albedo's samples come from +-2 frames while the filter joins +-1: a still view over fine
+    textures (`mi_still_textures`, held out) gets closer to its reference, and a query reads the wider
+    window (none per frame)."""
+    c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2, 3, 4])
+    kw = dict(frame_times=[0, 1, 2, 3, 4], query_times=[2.0], samples_per_pixel=1)
+    wide = M.psnr(denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1), **kw), ref[2:3])
+    narrow = M.psnr(denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1, albedo_radius=1), **kw),
+                    ref[2:3])
+    assert wide > narrow + 0.1, (wide, narrow)
+    assert DenoiseSettings(temporal_radius=1).window_radius == 2
+    assert DenoiseSettings(temporal_radius=3).window_radius == 3 and DenoiseSettings().window_radius == 0
+    with pytest.raises(ValueError, match="albedo_radius"):
+        DenoiseSettings(albedo_radius=-1).check()
 
 
 @pytest.mark.parametrize("shift", [(0.0, 0.0), (0.4, 0.7), (0.0, 3.0), (-2.6, 1.3)])

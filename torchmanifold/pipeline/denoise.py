@@ -271,9 +271,13 @@ class DenoiseSettings:
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
             reads depth 0 and its colour is noisy in-scattered light.
-        temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where the
-            renderer gives world positions, their samples of each pixel's albedo join it too
-            (:func:`_window_albedo`).
+        temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
+        albedo_radius: with a time window (``temporal_radius`` > 0) and world positions from the
+            renderer, the frames on each side whose samples of each pixel's albedo join it
+            (:func:`_window_albedo`); it may reach beyond the filter's window, as texture holds still
+            where light does not need to. Validation set, 1 spp, against 1: 2 +0.09 dB on the tuning
+            part (``cbox_glossy_tex`` +0.24), 3 +0.13 at twice the cost; no scene below -0.03
+            (``benchmarks/validation/findings.md``).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
@@ -295,6 +299,7 @@ class DenoiseSettings:
     demodulate: bool = True
     keep_sky: bool = True
     temporal_radius: int = 0
+    albedo_radius: int = 2
     sigma_t: float = 1.0
     mode: str = "spacetime"
     dtype: torch.dtype = torch.float32
@@ -317,10 +322,17 @@ class DenoiseSettings:
         check_choice("firefly", self.firefly, FIREFLY_MODES)
         check_choice("mode", self.mode, MODES)
         check_int("temporal_radius", self.temporal_radius, min=0)
+        check_int("albedo_radius", self.albedo_radius, min=0)
         check_tree_height(self.tree_height)
         for k, v in dict(self.guide_sigmas).items():
             check_positive(f"guide_sigmas[{k!r}]", v)
         return self
+
+    @property
+    def window_radius(self) -> int:
+        """The frames on each side that a query's output depends on: the filter's window, and the
+        albedo's where there is a time window (0 per frame)."""
+        return max(self.temporal_radius, self.albedo_radius) if self.temporal_radius > 0 else 0
 
 
 #: the footprint width's square is ``a + b / spp``: the part of a pixel's area its samples leave
@@ -975,7 +987,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
     albedo = at_queries(s.albedo)
     if s.position is not None and settings.temporal_radius > 0:
-        albedo = _window_albedo(albedo, s, ft, qt, settings.temporal_radius)
+        albedo = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered

@@ -118,7 +118,7 @@ def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple
         ``(3, H, W)`` float32 colour, the frame's stats (its own non-finite samples, the firefly
         energy removed), and the frame as read (its layout is the output's).
     """
-    r = settings.temporal_radius
+    r = settings.window_radius
     ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
     states = clip.prepared(ids, settings)
     y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)

@@ -7,7 +7,8 @@ denoise_files.denoise_files` and :func:`~torchmanifold.pipeline.render_job.rende
 from the same inputs by the same code:
 
 - ``denoise``: output frame ``t`` is :func:`~torchmanifold.pipeline.denoise.denoise_frames` of the
-  frames ``t - r .. t + r`` (``r = temporal_radius``) at query ``t``; the halo is ``r`` frames per side.
+  frames ``t - r .. t + r`` (``r = DenoiseSettings.window_radius``: the filter's and the albedo's windows)
+  at query ``t``; the halo is ``r`` frames per side.
 - ``render``: iteration ``i`` filters query ``q`` from the samples of the frames in its time window and,
   as the firefly pilot, the running estimates of those frames after iteration ``i - 1``, which depend on
   *their* windows. So the frames that reach an owned frame after ``N`` iterations form a cone: ``N r``
@@ -549,7 +550,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     ray, started = connect(address)  # before anything is written: a dead address writes nothing
     try:
-        n, r = len(inputs), settings.temporal_radius
+        n, r = len(inputs), settings.window_radius
         key = {"kind": "denoise", "inputs": [str(p) for p in inputs], "settings": _jsonable(settings),
                "color": color_channels and list(color_channels), "features": first.feature_names,
                "layer": first.layer, "output_layout": output_layout, "samples_per_pixel": spp}
