@@ -1230,12 +1230,17 @@ def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:
     out = []
     for other in others:
         u, v, on_surface = _in_image_axes(other - p, axes)
-        w = on_surface.to(u.dtype)
-        mean = _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
+        mean = _mean_offset(u, v, on_surface.to(u.dtype))
         n = mean[0].clamp_min(1e-6)
         still = (mean[1].abs() < _STILL * n) & (mean[2].abs() < _STILL * n)
         out.append((on_surface & still & (u.abs() < _SAME_PIXEL) & (v.abs() < _SAME_PIXEL))[None])
     return out
+
+
+def _mean_offset(u: Tensor, v: Tensor, w: Tensor) -> Tensor:
+    """The means of ``w``, ``u w`` and ``v w`` ``(H, W)`` over the pixels around (:data:`_STILL_RADIUS`):
+    ``(3, H, W)``, the mean offset being the last two over the first."""
+    return _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
 
 
 def _dot3(a: Tensor, b: Tensor) -> Tensor:
@@ -1289,8 +1294,7 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor)
     sums, counts = [], []
     for other, alb, ok in zip(others, albedo, valid):
         u, v, on = _in_image_axes(other - centre, axes)
-        w = torch.where(on, ok, 0.0)
-        mean = _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
+        mean = _mean_offset(u, v, torch.where(on, ok, 0.0))
         n = mean[0].clamp_min(1e-6)
         # the other frame's samples at the same pixels lie at -flow from the footprint
         qx = xx - torch.where(mean[0] > 0, torch.round(mean[1] / n), 0.0).long()

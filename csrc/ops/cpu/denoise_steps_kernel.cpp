@@ -983,6 +983,16 @@ void box_mean_plane(const T* src, int64_t H, int64_t W, int64_t r, T* tmp, T* ds
   }
 }
 
+// box_mean_plane of each of `planes` consecutive (H, W) planes, the planes side by side on the threads.
+template <typename T>
+void box_mean_planes(const T* src, int64_t planes, int64_t H, int64_t W, int64_t r, T* dst) {
+  const int64_t HW = H * W;
+  at::parallel_for(0, planes, 1, [&](int64_t c0, int64_t c1) {
+    std::vector<T> t(HW);
+    for (int64_t c = c0; c < c1; ++c) box_mean_plane(src + c * HW, H, W, r, t.data(), dst + c * HW);
+  });
+}
+
 // denoise._image_axes of world positions p (3, H, W): central differences (0 on the border columns / rows),
 // their 3x3 means, and the normal equations' terms, step by step in the PyTorch stage's float operations.
 template <typename T>
@@ -1003,11 +1013,7 @@ struct ImageAxes {
       for (int64_t y = 1; y + 1 < H; ++y)
         for (int64_t x = 0; x < W; ++x) gy[y * W + x] = (pc[(y + 1) * W + x] - pc[(y - 1) * W + x]) / T(2);
     }
-    at::parallel_for(0, 6, 1, [&](int64_t c0, int64_t c1) {
-      std::vector<T> t(HW);
-      for (int64_t c = c0; c < c1; ++c)
-        box_mean_plane(g.data() + c * HW, H, W, 1, t.data(), ax.data() + c * HW);
-    });
+    box_mean_planes(g.data(), 6, H, W, 1, ax.data());
     const T* gx = ax.data();
     const T* gy = ax.data() + 3 * HW;
     for (int64_t i = 0; i < HW; ++i) {
@@ -1089,11 +1095,7 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
           w3[2 * HW + i] = vv * w;
         }
       });
-      at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
-        std::vector<T> t(HW);
-        for (int64_t c = c0; c < c1; ++c)
-          box_mean_plane(w3.data() + c * HW, H, W, radius, t.data(), m3.data() + c * HW);
-      });
+      box_mean_planes(w3.data(), 3, H, W, radius, m3.data());
       const T sp = T(same_pixel), st = T(still);
       for (int64_t i = 0; i < HW; ++i) {
         const T n = std::max(m3[i], T(1e-6));
@@ -1134,10 +1136,7 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
     const ImageAxes<T> axes(pp, H, W);
     // the footprint's centre: the 3x3 mean of the samples' positions
     std::vector<T> centre(3 * HW);
-    at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
-      std::vector<T> t(HW);
-      for (int64_t c = c0; c < c1; ++c) box_mean_plane(pp + c * HW, H, W, 1, t.data(), centre.data() + c * HW);
-    });
+    box_mean_planes(pp, 3, H, W, 1, centre.data());
     const T* cc = centre.data();
     std::vector<T> w3(3 * HW), m3(3 * HW);
     for (int64_t k = 0; k < K; ++k) {
@@ -1158,11 +1157,7 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
           w3[2 * HW + i] = vv * w;
         }
       });
-      at::parallel_for(0, 3, 1, [&](int64_t c0, int64_t c1) {
-        std::vector<T> t(HW);
-        for (int64_t c = c0; c < c1; ++c)
-          box_mean_plane(w3.data() + c * HW, H, W, radius, t.data(), m3.data() + c * HW);
-      });
+      box_mean_planes(w3.data(), 3, H, W, radius, m3.data());
       at::parallel_for(0, H, row_grain(W * 60), [&](int64_t y0, int64_t y1) {
         for (int64_t y = y0; y < y1; ++y) {
           for (int64_t x = 0; x < W; ++x) {
