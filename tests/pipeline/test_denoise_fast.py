@@ -325,6 +325,13 @@ def test_op_argument_errors():
         torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
     with pytest.raises(ValueError, match="float32 or float64"):
         torch.ops.torchmanifold._kuwahara3(x.half())
+    p, o = torch.zeros(3, 4, 4), torch.zeros(2, 3, 4, 4)
+    with pytest.raises(ValueError, match="others must be .K, 3, H, W."):
+        torch.ops.torchmanifold._footprint_samples(p, o[:, :, :3], o, torch.ones(2, 4, 4), 2)
+    with pytest.raises(ValueError, match="albedo must be shaped like others"):
+        torch.ops.torchmanifold._footprint_samples(p, o, o[:1], torch.ones(2, 4, 4), 2)
+    with pytest.raises(ValueError, match="valid must be .K, H, W."):
+        torch.ops.torchmanifold._footprint_samples(p, o, o, torch.ones(2, 1, 4, 4), 2)
 
 
 def _op_samples():

@@ -1056,18 +1056,23 @@ struct ImageAxes {
   }
 };
 
+// World positions p (3, H, W) and the other frames' others (K, 3, H, W) of its shape and dtype; radius >= 0.
+void check_positions(const at::Tensor& p, const at::Tensor& o, int64_t radius, const char* op) {
+  check_float(p, "p", op);
+  check_shape(p, "p", op, 3);
+  check_shape(o, "others", op, 4);
+  TORCH_CHECK_VALUE(p.size(0) == 3, op, ": p must be (3, H, W), got ", p.sizes());
+  TORCH_CHECK_VALUE(o.size(1) == 3 && o.size(2) == p.size(1) && o.size(3) == p.size(2) &&
+                        o.scalar_type() == p.scalar_type(),
+                    op, ": others must be (K, 3, H, W) of p's shape and dtype, got ", o.sizes());
+  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+}
+
 // denoise._same_pixel, step by step in its float operations.
 at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double same_pixel, double still,
                           int64_t radius) {
   const char* op = "_same_pixel";
-  check_float(p_, "p", op);
-  check_shape(p_, "p", op, 3);
-  check_shape(o_, "others", op, 4);
-  TORCH_CHECK_VALUE(p_.size(0) == 3, op, ": p must be (3, H, W), got ", p_.sizes());
-  TORCH_CHECK_VALUE(o_.size(1) == 3 && o_.size(2) == p_.size(1) && o_.size(3) == p_.size(2) &&
-                        o_.scalar_type() == p_.scalar_type(),
-                    op, ": others must be (K, 3, H, W) of p's shape and dtype, got ", o_.sizes());
-  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+  check_positions(p_, o_, radius, op);
   const at::Tensor p = p_.contiguous(), o = o_.contiguous();
   const int64_t K = o.size(0), H = p.size(1), W = p.size(2), HW = H * W;
   at::Tensor out = at::zeros({K, 1, H, W}, p.options().dtype(at::kBool));
@@ -1113,19 +1118,13 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
                                                          const at::Tensor& a_, const at::Tensor& v_,
                                                          int64_t radius) {
   const char* op = "_footprint_samples";
-  check_float(p_, "p", op);
-  check_shape(p_, "p", op, 3);
-  check_shape(o_, "others", op, 4);
-  TORCH_CHECK_VALUE(p_.size(0) == 3, op, ": p must be (3, H, W), got ", p_.sizes());
+  check_positions(p_, o_, radius, op);
   const int64_t K = o_.size(0), H = p_.size(1), W = p_.size(2), HW = H * W;
-  TORCH_CHECK_VALUE(o_.size(1) == 3 && o_.size(2) == H && o_.size(3) == W && o_.scalar_type() == p_.scalar_type(),
-                    op, ": others must be (K, 3, H, W) of p's shape and dtype, got ", o_.sizes());
   TORCH_CHECK_VALUE(a_.sizes() == o_.sizes() && a_.scalar_type() == p_.scalar_type(), op,
                     ": albedo must be shaped like others ", o_.sizes(), ", got ", a_.sizes());
   TORCH_CHECK_VALUE(v_.dim() == 3 && v_.size(0) == K && v_.size(1) == H && v_.size(2) == W &&
                         v_.scalar_type() == p_.scalar_type(),
                     op, ": valid must be (K, H, W) of p's dtype, got ", v_.sizes());
-  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
   const at::Tensor p = p_.contiguous(), o = o_.contiguous(), a = a_.contiguous(), v = v_.contiguous();
   at::Tensor sums = at::zeros({K, 3, H, W}, p.options());
   at::Tensor counts = at::zeros({K, 1, H, W}, p.options());
