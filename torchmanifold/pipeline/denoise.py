@@ -923,7 +923,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
-    point = known and float(samples_per_pixel) == 1
+    point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
     state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, point, counts,
                        fp, base)
     if settings.firefly == "none":
@@ -1180,15 +1180,15 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
         others = [j for j in window(ft, q, radius) if j != k]
         valid = [(s.mask[j] > 0) & ~s.flat[j] for j in others]
         sames = _same_pixel(s.position[k], [s.position[j] for j in others])
-        moving = s.point_samples and s.smooth is not None and bool(others)
-        if moving:
+        in_squares = s.point_samples and s.smooth is not None and bool(others)  # a moving view's samples
+        if in_squares:
             sums, counts = _footprint_samples(s.position[k], torch.stack([s.position[j] for j in others]),
                                               torch.stack([s.albedo[j] for j in others]),
                                               torch.stack(valid)[:, 0].to(a.dtype))
             search = own & (s.smooth[k] >= math.exp(-1.0))
         for n, (j, same, ok_j) in enumerate(zip(others, sames, valid)):
             ok = own & ok_j & same
-            if moving:
+            if in_squares:
                 total += torch.where(ok, s.albedo[j], torch.where(search, sums[n], 0.0))
                 count += torch.where(ok, 1.0, torch.where(search, counts[n], 0.0))
             else:
