@@ -49,8 +49,10 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // the other sample lies within same_pixel pixels along each image axis, on the surface, and the mean
   // offset over the (2 radius + 1)^2 pixels around stays under still pixels.
   m.def("_same_pixel(Tensor p, Tensor others, float same_pixel, float still, int radius) -> Tensor");
-  // denoise._footprint_samples: world positions p (3, H, W) of one sample per pixel against the other frames'
-  // others (K, 3, H, W) with their albedo (K, 3, H, W) and valid (K, H, W) -> the albedo sum (K, 3, H, W) and the
-  // count (K, 1, H, W) of the other frames' samples inside each pixel's footprint (radius: the flow's pooling).
-  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, int radius) -> (Tensor, Tensor)");
+  // denoise._footprint_samples: world positions p (3, H, W) of one sample per pixel against the other
+  // frames' others (K, 3, H, W) with their albedo (K, 3, H, W) and valid (K, H, W) -> the albedo sum
+  // (K, 3, H, W) and the count (K, 1, H, W) of the other frames' samples inside each pixel's footprint
+  // (radius: the flow's pooling).
+  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, int radius) -> "
+        "(Tensor, Tensor)");
 }

@@ -762,8 +762,8 @@ def test_the_albedo_window_reaches_beyond_the_filters():
     c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2, 3, 4])
     kw = dict(frame_times=[0, 1, 2, 3, 4], query_times=[2.0], samples_per_pixel=1)
     wide = M.psnr(denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1), **kw), ref[2:3])
-    narrow = M.psnr(denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1, albedo_radius=1), **kw),
-                    ref[2:3])
+    one = DenoiseSettings(temporal_radius=1, albedo_radius=1)
+    narrow = M.psnr(denoise_frames(c, f, names, settings=one, **kw), ref[2:3])
     assert wide > narrow + 0.1, (wide, narrow)
     assert DenoiseSettings(temporal_radius=1).window_radius == 2
     assert DenoiseSettings(temporal_radius=3).window_radius == 3 and DenoiseSettings().window_radius == 0
@@ -783,11 +783,11 @@ def test_footprint_samples_are_the_other_views_samples_in_the_pixel(shift):
     other = _plane_positions(H, W, shift, seed=1)
     x, y = other[0] * 10, other[1] * 10  # where each sample lies, in the first view's pixels
     truth = torch.zeros(H + 20, W + 20, dtype=torch.float64)  # how many samples each pixel's square holds
-    truth.index_put_((torch.floor(y).long() + 10, torch.floor(x).long() + 10), torch.ones(H, W, dtype=torch.float64),
-                     accumulate=True)
+    ones = torch.ones(H, W, dtype=torch.float64)
+    truth.index_put_((torch.floor(y).long() + 10, torch.floor(x).long() + 10), ones, accumulate=True)
     truth = truth[10:10 + H, 10:10 + W]
     albedo = torch.stack([x, y, torch.ones_like(x)])[None]  # the sums of one sample: where it lies
-    sums, counts = D._footprint_samples(p, other[None], albedo, torch.ones(1, H, W, dtype=torch.float64))
+    sums, counts = D._footprint_samples(p, other[None], albedo, ones[None])
     inner = (slice(4, -4), slice(4, -4))
     n, held = counts[0, 0][inner], truth[inner]
     assert abs(float(n.mean() - held.mean())) < 0.1 and float((n == held).double().mean()) > 0.6
@@ -798,7 +798,7 @@ def test_footprint_samples_are_the_other_views_samples_in_the_pixel(shift):
     for at, lo in ((sums[0, 0][inner], px), (sums[0, 1][inner], py)):
         assert bool(((at[one] > lo[one] - 0.35) & (at[one] < lo[one] + 1.35)).all())
     behind = _plane_positions(H, W, shift, seed=1, lift=0.3)
-    assert not bool(D._footprint_samples(p, behind[None], albedo, torch.ones(1, H, W, dtype=torch.float64))[1].any())
+    assert not bool(D._footprint_samples(p, behind[None], albedo, ones[None])[1].any())
 
 
 def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
@@ -812,7 +812,8 @@ def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
     still = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
     assert float(sum(m.double().mean() for m in still)) < 0.01  # a pan: the still test finds nothing
     averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
-    monkeypatch.setattr(D, "_footprint_samples", lambda p, o, a, v: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
+    monkeypatch.setattr(D, "_footprint_samples",
+                        lambda p, o, a, v: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.05, (averaged, own)
 

@@ -251,7 +251,8 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
     P = f[:, FEATURES.index("P.X"):FEATURES.index("P.Z") + 1]
     alb = f[:, :3]
     plane = _plane_positions(24, 30).float()
-    panned = torch.stack([_plane_positions(24, 30, (0.4, 0.6), seed=1), _plane_positions(24, 30, (-2.3, 3.5), seed=2)])
+    panned = torch.stack([_plane_positions(24, 30, (0.4, 0.6), seed=1),
+                          _plane_positions(24, 30, (-2.3, 3.5), seed=2)])
     holes = torch.where(plane > 1.0, plane, math.nan)
     g = torch.Generator().manual_seed(3)
     cases = [(P[1], P[[0, 2]], alb[[0, 2]]), (plane, panned.float(), None), (plane.double(), panned, None),

@@ -155,7 +155,8 @@ def same_pixel(p: Tensor, others: Tensor, same: float, still: float, radius: int
 
 
 @parallel
-def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor, radius: int) -> tuple[Tensor, Tensor]:
+def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor,
+                      radius: int) -> tuple[Tensor, Tensor]:
     """``denoise._footprint_samples``: positions p ``(3, H, W)``, others and their albedo ``(K, 3, H, W)``,
     valid ``(K, H, W)`` -> albedo sums ``(K, 3, H, W)`` and counts ``(K, 1, H, W)``."""
     return torch.ops.torchmanifold._footprint_samples(p, others, albedo, valid, int(radius))

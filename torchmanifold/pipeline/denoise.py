@@ -924,8 +924,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, point, counts,
-                       fp, base)
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, point,
+                       counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]

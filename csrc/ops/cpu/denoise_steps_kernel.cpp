@@ -1148,8 +1148,8 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
       at::parallel_for(0, H, row_grain(W * 20), [&](int64_t y0, int64_t y1) {
         for (int64_t i = y0 * W; i < y1 * W; ++i) {
           T uu, vv;
-          const bool on = axes.offset(i, pk[i] - cc[i], pk[HW + i] - cc[HW + i], pk[2 * HW + i] - cc[2 * HW + i],
-                                      uu, vv);
+          const T d0 = pk[i] - cc[i], d1 = pk[HW + i] - cc[HW + i], d2 = pk[2 * HW + i] - cc[2 * HW + i];
+          const bool on = axes.offset(i, d0, d1, d2, uu, vv);
           const T w = on ? vk[i] : T(0);
           w3[i] = w;
           w3[HW + i] = uu * w;
@@ -1171,7 +1171,8 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
                 const int64_t sx = qx + dx, sy = qy + dy;
                 const bool inside = sx >= 0 && sx < W && sy >= 0 && sy < H;
                 const int64_t j = clampi(sy, H) * W + clampi(sx, W);
-                const T d0 = pk[j] - cc[i], d1 = pk[HW + j] - cc[HW + i], d2 = pk[2 * HW + j] - cc[2 * HW + i];
+                const T d0 = pk[j] - cc[i], d1 = pk[HW + j] - cc[HW + i];
+                const T d2 = pk[2 * HW + j] - cc[2 * HW + i];
                 T uu, vv;
                 axes.along(i, d0, d1, d2, uu, vv);  // the rarer test last: most candidates lie outside
                 const bool hit = inside && vk[j] > T(0) && std::abs(uu) < T(0.5) && std::abs(vv) < T(0.5) &&
