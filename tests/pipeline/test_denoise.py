@@ -1,4 +1,5 @@
 import contextlib
+import math
 
 import numpy as np
 import pytest
@@ -750,7 +751,7 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2])
     kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
     averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
-    monkeypatch.setattr(D, "_window_albedo", lambda albedo, *args: albedo)
+    monkeypatch.setattr(D, "_window_albedo", lambda albedo, *args: (albedo, torch.ones_like(albedo[:, :1])))
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.5, (averaged, own)
 
@@ -769,6 +770,28 @@ def test_the_albedo_window_reaches_beyond_the_filters():
     assert DenoiseSettings(temporal_radius=3).window_radius == 3 and DenoiseSettings().window_radius == 0
     with pytest.raises(ValueError, match="albedo_radius"):
         DenoiseSettings(albedo_radius=-1).check()
+
+
+def test_an_averaged_albedo_gets_a_narrower_footprint(monkeypatch):
+    """Where the window's samples already average a pixel's albedo, its texture footprint is that of as
+    many times the samples (the footprint width's own rule): a still view over fine textures
+    (`mi_still_textures`, held out) keeps more of its texture than with the one-sample footprint."""
+    c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2, 3, 4])
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), frame_times=[0, 1, 2, 3, 4], query_times=[2.0],
+              samples_per_pixel=1)
+    narrowed = M.psnr(denoise_frames(c, f, names, **kw), ref[2:3])
+    remodulate = D._remodulate
+    monkeypatch.setattr(D, "_remodulate", lambda *args: remodulate(*args[:5]))  # one sample's footprint
+    one = M.psnr(denoise_frames(c, f, names, **kw), ref[2:3])
+    assert narrowed > one + 0.1, (narrowed, one)
+    # the blend's variance is the footprint width's square for every count between 1 and the most
+    sigma, most = D.footprint_width(DenoiseSettings(), 1), 5
+    wide, narrow = D._TEXTURE_FOOTPRINT * sigma, D._TEXTURE_FOOTPRINT * math.sqrt(
+        D._FOOTPRINT_A + (sigma ** 2 - D._FOOTPRINT_A) / most)
+    for n in (1, 2, 3, 5):
+        fr = (1 / n - 1 / most) / (1 - 1 / most)
+        want = D._TEXTURE_FOOTPRINT ** 2 * (D._FOOTPRINT_A + (sigma ** 2 - D._FOOTPRINT_A) / n)
+        assert fr * wide ** 2 + (1 - fr) * narrow ** 2 == pytest.approx(want)
 
 
 @pytest.mark.parametrize("shift", [(0.0, 0.0), (0.4, 0.7), (0.0, 3.0), (-2.6, 1.3)])

@@ -985,11 +985,12 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
-    albedo = at_queries(s.albedo)
+    albedo, counts = at_queries(s.albedo), None
     if s.position is not None and settings.temporal_radius > 0:
-        albedo = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
+        albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
-                      None if s.smooth is None else at_queries(s.smooth), s.footprint)
+                      None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
+                      1 + 2 * settings.albedo_radius)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -1155,9 +1156,11 @@ _SAME_PIXEL = 1.0
 _STILL, _STILL_RADIUS = 0.25, 2
 
 
-def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[float], radius: int) -> Tensor:
+def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[float],
+                   radius: int) -> tuple[Tensor, Tensor]:
     """The albedo ``(Q, 3, H, W)`` at the queries averaged with the samples of the window's other frames
-    that land in the pixel, on the same surface, each of equal weight.
+    that land in the pixel, on the same surface, each of equal weight, and how many samples each pixel's
+    average holds, ``(Q, 1, H, W)`` (1: its own alone).
 
     A 1-spp pixel's albedo is one point of its area, and the reference is the pixel's average: texture
     under the footprint is the error left where the light is clean. Where the view is still, each frame
@@ -1168,12 +1171,13 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
     footprint's position is known. An n-spp pixel's albedo already averages its own footprint, and another
     frame's pixel averages another one. Only at queries that are frames; flat pixels (not demodulated) and
     pixels without a valid sample keep their own."""
-    out = []
+    out, counted = [], []
     for qi, q in enumerate(qt):
         k = frame_at(ft, q)
         a = albedo[qi]
         if k is None:
             out.append(a)
+            counted.append(torch.ones_like(a[:1]))
             continue
         own = (s.mask[k] > 0) & ~s.flat[k]
         total, count = a.clone(), torch.ones_like(a[:1])
@@ -1195,7 +1199,8 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
                 total += torch.where(ok, s.albedo[j], 0.0)
                 count += ok.to(count.dtype)
         out.append(total / count)
-    return torch.stack(out)
+        counted.append(count)
+    return torch.stack(out), torch.stack(counted)
 
 
 def _box_mean(x: Tensor, r: int) -> Tensor:
@@ -1315,8 +1320,8 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor)
     return torch.stack(sums), torch.stack(counts)
 
 
-def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None,
-                sigma: float) -> Tensor:
+def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None, sigma: float,
+                counts: Tensor | None = None, most: int = 1) -> Tensor:
     """The filtered irradiance ``(Q, 3, H, W)`` times the albedo, averaged over the pixel footprint.
 
     Across a silhouette, light and albedo change together within a pixel: the product is averaged
@@ -1324,12 +1329,22 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     the footprint, texture: the irradiance is averaged alone and the albedo over a narrower footprint
     (:data:`_TEXTURE_FOOTPRINT`), which keeps a texture's stripes that the full footprint washes out.
     The two blend by ``smooth``; flat-shaded pixels (``flat``, not demodulated) take the product.
+
+    Where the albedo already averages ``counts`` ``(Q, 1, H, W)`` samples of the pixel
+    (:func:`_window_albedo`), its footprint is the width of that many times the samples
+    (:func:`footprint_width`: its square is ``a + b / spp``): a blend of the footprints of one count and
+    of ``most``, whose variance is that square exactly for every count in between.
     """
     out = _footprint_average(irradiance * albedo, sigma)
     if smooth is None or sigma <= 0:
         return out
     w = smooth * (~flat).to(smooth.dtype)
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
+    if counts is not None and most > 1 and bool((counts > 1).any()):
+        # sigma^2 = a + b / spp, so with n times the samples: a + (sigma^2 - a) / n
+        narrow = math.sqrt(_FOOTPRINT_A + max(sigma * sigma - _FOOTPRINT_A, 0.0) / most)
+        f = ((1.0 / counts - 1.0 / most) / (1.0 - 1.0 / most)).clamp(0.0, 1.0)
+        texture = f * texture + (1 - f) * _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * narrow)
     textured = _footprint_average(irradiance, sigma) * texture
     return out + w * (textured - out)
 
