@@ -244,7 +244,8 @@ def test_same_pixel_equals_reference_bitwise(mitsuba_dir):
 def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
     """_footprint_samples in C++, step by step in the PyTorch stage's float operations: the same sums and
     counts, bit for bit, on rendered world positions (a panning clip's frames), on jittered planes panned by
-    a fraction of a pixel and by several, and on degenerate ones (NaN, all equal, one line, one pixel)."""
+    a fraction of a pixel and by several, and on degenerate ones (NaN, all equal, one line, one pixel,
+    positions whose squares overflow float32)."""
     from test_denoise import _plane_positions
 
     _, f = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=(slice(64, 192), slice(64, 192)))
@@ -258,7 +259,8 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
     cases = [(P[1], P[[0, 2]], alb[[0, 2]]), (plane, panned.float(), None), (plane.double(), panned, None),
              (torch.zeros(3, 8, 9), torch.zeros(1, 3, 8, 9), None), (holes, panned[:1].float(), None),
              (torch.ones(3, 1, 5) * torch.arange(5.0), plane[None, :, :1, :5], None),
-             (plane[:, :1, :1], panned[:, :, :1, :1].float(), None)]
+             (plane[:, :1, :1], panned[:, :, :1, :1].float(), None),
+             (plane * 1e25, panned.float() * 1e25, None)]  # float32 squares overflow
     for p, others, albedo in cases:
         if albedo is None:
             albedo = torch.rand(others.shape, generator=g, dtype=others.dtype)

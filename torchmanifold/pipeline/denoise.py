@@ -1301,9 +1301,12 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor)
         u, v, on = _in_image_axes(other - centre, axes)
         mean = _mean_offset(u, v, torch.where(on, ok, 0.0))
         n = mean[0].clamp_min(1e-6)
-        # the other frame's samples at the same pixels lie at -flow from the footprint
-        qx = xx - torch.where(mean[0] > 0, torch.round(mean[1] / n), 0.0).long()
-        qy = yy - torch.where(mean[0] > 0, torch.round(mean[2] / n), 0.0).long()
+        # the other frame's samples at the same pixels lie at -flow from the footprint (none where the
+        # positions overflow; beyond the image nothing is inside)
+        fx = torch.where(mean[0] > 0, torch.round(mean[1] / n), 0.0)
+        fy = torch.where(mean[0] > 0, torch.round(mean[2] / n), 0.0)
+        qx = xx - torch.where(torch.isfinite(fx), fx, 0.0).clamp(-W - 1, W + 1).long()
+        qy = yy - torch.where(torch.isfinite(fy), fy, 0.0).clamp(-H - 1, H + 1).long()
         total, count = torch.zeros_like(alb), torch.zeros_like(ok)[None]
         flat_p, flat_a, flat_ok = other.reshape(3, -1), alb.reshape(3, -1), ok.reshape(-1)
         for dy in (-1, 0, 1):

@@ -1162,8 +1162,11 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
           for (int64_t x = 0; x < W; ++x) {
             const int64_t i = y * W + x;
             const T n = std::max(m3[i], T(1e-6));
-            const T fx = m3[i] > T(0) ? std::nearbyint(m3[HW + i] / n) : T(0);
-            const T fy = m3[i] > T(0) ? std::nearbyint(m3[2 * HW + i] / n) : T(0);
+            T fx = m3[i] > T(0) ? std::nearbyint(m3[HW + i] / n) : T(0);
+            T fy = m3[i] > T(0) ? std::nearbyint(m3[2 * HW + i] / n) : T(0);
+            // none where the positions overflow; beyond the image nothing is inside
+            fx = std::isfinite(fx) ? std::min(std::max(fx, T(-W - 1)), T(W + 1)) : T(0);
+            fy = std::isfinite(fy) ? std::min(std::max(fy, T(-H - 1)), T(H + 1)) : T(0);
             const int64_t qx = x - static_cast<int64_t>(fx), qy = y - static_cast<int64_t>(fy);
             T s0 = T(0), s1 = T(0), s2 = T(0), cnt = T(0);
             for (int64_t dy = -1; dy <= 1; ++dy) {
