@@ -1191,13 +1191,11 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
                                               torch.stack(valid)[:, 0].to(a.dtype))
             search = own & (s.smooth[k] >= math.exp(-1.0))
         for n, (j, same, ok_j) in enumerate(zip(others, sames, valid)):
-            ok = own & ok_j & same
-            if in_squares:
-                total += torch.where(ok, s.albedo[j], torch.where(search, sums[n], 0.0))
-                count += torch.where(ok, 1.0, torch.where(search, counts[n], 0.0))
-            else:
-                total += torch.where(ok, s.albedo[j], 0.0)
-                count += ok.to(count.dtype)
+            ok = own & ok_j & same  # the still view's sample of the pixel, else those in its square
+            found, found_n = (torch.where(search, sums[n], 0.0), torch.where(search, counts[n], 0.0)) \
+                if in_squares else (0.0, 0.0)
+            total += torch.where(ok, s.albedo[j], found)
+            count += torch.where(ok, 1.0, found_n)
         out.append(total / count)
         counted.append(count)
     return torch.stack(out), torch.stack(counted)
