@@ -48,6 +48,7 @@ from torchmanifold.ops._reference import (
 )
 from torchmanifold.ops.adaptive_manifold import (
     _DISPATCH_KEYS,
+    _constant_when_compiled,
     _FilterSettings,
     _check_settings,
     _has_kernel_for,
@@ -201,7 +202,7 @@ def spacetime_torch(values: Tensor, guide: Tensor, weights: Tensor, query_guide:
     return torch.stack(outs, 1)
 
 
-@torch.compiler.assume_constant_result
+@_constant_when_compiled
 def _has_spacetime_kernel_for(device_type: str) -> bool:
     return (_has_kernel_for(device_type) and hasattr(torch.ops.torchmanifold, "spacetime_adaptive_manifold")
             and torch._C._dispatch_has_kernel_for_dispatch_key("torchmanifold::spacetime_adaptive_manifold",
