@@ -576,6 +576,42 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads
                                                 query_times=[3])[0])
 
 
+@pytest.mark.parametrize("failure", ["late frame unreadable", "write fails"])
+def test_late_failure_leaves_out_empty(tmp_path, mitsuba_dir, monkeypatch, failure):
+    """Files are read one ahead and written on a thread beside the filter: a frame that fails after
+    earlier outputs were written (a truncated file read ahead, a write that fails) still raises its own
+    error, naming the file, and leaves nothing in ``out``."""
+    from torchmanifold.io import write_exr
+    from torchmanifold.io import frames as io_frames
+    from torchmanifold.pipeline import denoise_files as DF
+
+    c, f = load_clip(mitsuba_dir, "frame", [0, 1, 2, 3, 4, 5, 6], (slice(96, 120), slice(64, 96)))
+    paths = []
+    for t in range(7):
+        paths.append(tmp_path / f"f{t}.exr")
+        write_exr(paths[-1], {**{ch: c[t, k].numpy() for k, ch in enumerate("RGB")},
+                              **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}})
+    written = []
+    if failure == "late frame unreadable":
+        paths[6].write_bytes(paths[6].read_bytes()[:200])
+        expected = (Exception, "f6.exr")
+    else:
+        def write_color(path, *args):
+            if len(written) == 4:
+                raise OSError(f"{path}: disk full")
+            written.append(path)
+            return io_frames.write_color(path, *args)
+        monkeypatch.setattr(DF, "write_color", write_color)
+        expected = (OSError, "f4.exr: disk full")
+    out = tmp_path / "out"
+    with pytest.raises(expected[0], match=expected[1]):
+        DF.denoise_files(paths, out, settings=DenoiseSettings(temporal_radius=1, tree_height=2),
+                         feature_channels=FEATURES, progress=False)
+    assert not out.exists() or not list(out.iterdir())
+    if failure == "write fails":
+        assert len(written) == 4  # four outputs were written (staged) before the failure
+
+
 def test_whole_clip_equals_each_window_alone(mitsuba_dir):
     """A clip filtered in one call gives each frame the bytes of that frame's window filtered alone, also
     where the frames' brightness differs (a scale taken over the call's frames, not the window's, moved

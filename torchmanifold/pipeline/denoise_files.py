@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
@@ -61,6 +63,9 @@ class ClipWindow:
     what the denoiser derives from each frame alone (prepared once, released with the frame; see
     :class:`~torchmanifold.pipeline.sliding.SlidingFrames`).
 
+    Reading frame k starts reading frame k + 1 on a background thread (OpenEXR releases the GIL), so the
+    next window's file is read while this one is filtered. A context manager: leaving it ends that thread.
+
     Args:
         inputs: the frame files, in order.
         first: the first frame, already read (it fixes size, layout, layer and feature channels).
@@ -76,6 +81,19 @@ class ClipWindow:
         self.notes = list(first.notes)
         self._window = SlidingFrames(self._read, self._prepare, {0: first})
         self._settings: DenoiseSettings | None = None
+        self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
+        self._ahead: tuple[int, Future] | None = None
+
+    def __enter__(self) -> "ClipWindow":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the read-ahead thread (a frame it is reading is read to the end and dropped)."""
+        self._ahead = None
+        self._reader.shutdown(wait=True, cancel_futures=True)
 
     def __len__(self) -> int:
         return len(self.inputs)
@@ -85,8 +103,14 @@ class ClipWindow:
         """Frames served so far (each is read once: windows only move on)."""
         return self._window.served
 
+    def _read_file(self, k: int) -> RenderFrame:
+        return read_render_frame(self.inputs[k], self.color_channels, self.feature_names, self.first.layer)
+
     def _read(self, k: int) -> RenderFrame:
-        fr = read_render_frame(self.inputs[k], self.color_channels, self.feature_names, self.first.layer)
+        ahead, self._ahead = self._ahead, None
+        fr = ahead[1].result() if ahead is not None and ahead[0] == k else self._read_file(k)
+        if k + 1 < len(self.inputs):
+            self._ahead = (k + 1, self._reader.submit(self._read_file, k + 1))
         _same_as_first(fr, self.first)
         self.notes += [n for n in fr.notes if n not in self.notes]
         return fr
@@ -179,15 +203,22 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     outp = prepare_out(outp, overwrite)
 
-    clip = ClipWindow(inputs, first, color_channels, spp)
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
-    with staged_dir(outp) as stage:
+    # frame t is written on a thread while frame t + 1 is filtered; a failed write raises before the
+    # staged folder is moved into place
+    writes: deque[Future] = deque()
+    with staged_dir(outp) as stage, ClipWindow(inputs, first, color_channels, spp) as clip, \
+            ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer:
         for t in tqdm(range(len(inputs)), desc="denoise", unit="frame", disable=not progress):
             y, rec, frame = denoise_window(clip, t, settings)
             for k in stats_sum:
                 stats_sum[k] += rec[k]
-            write_color(stage / inputs[t].name, y, frame, output_layout)
+            writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
+            if len(writes) > 1:
+                writes.popleft().result()
+        for w in writes:
+            w.result()
     outputs = [str(outp / p.name) for p in inputs]
     n = len(inputs)
     return {"frames": n, "size": list(first.size), "layout": first.layout, "layer": first.layer,

@@ -299,13 +299,13 @@ def _denoise_chunk(job, chunk: Chunk, todo, events, counts):
 
     inputs = [Path(p) for p in job["inputs"]]
     first = read_render_frame(inputs[0], job["color"], job["feature_channels"], job["layer"])
-    clip = ClipWindow(inputs, first, job["color"], job["samples_per_pixel"])
-    for t in todo:
-        y, record, frame = denoise_window(clip, t, job["settings"])
-        write_color(Path(job["out"]) / inputs[t].name, y, frame, job["output_layout"])
-        events.progress.remote(chunk.index, 1)
-        yield t, [inputs[t].name], record
-        counts["frames_read"] = clip.reads
+    with ClipWindow(inputs, first, job["color"], job["samples_per_pixel"]) as clip:
+        for t in todo:
+            y, record, frame = denoise_window(clip, t, job["settings"])
+            write_color(Path(job["out"]) / inputs[t].name, y, frame, job["output_layout"])
+            events.progress.remote(chunk.index, 1)
+            yield t, [inputs[t].name], record
+            counts["frames_read"] = clip.reads
 
 
 # -- render ---------------------------------------------------------------------------------------------
