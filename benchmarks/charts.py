@@ -284,9 +284,25 @@ def validation_section(rel: str) -> list:
     lines += [f"| **mean** | | {mean(m1['raw'])} | {mean(m1['classic'])} | {mean(m1['oidn'])} | **{mean(m1['ours'])}** | "
               f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
               f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
+    lines += tradeoff_section(rel)
     if FINDINGS.exists():
         lines += [FINDINGS.read_text().strip(), ""]
     return lines
+
+
+def tradeoff_section(rel: str) -> list:
+    """The ``denoise`` settings' speed against accuracy (``results/validation/tradeoff.*``, written by
+    ``validation/tradeoff.py``)."""
+    path = VALIDATION / "tradeoff.json"
+    if not path.exists():
+        return []
+    meta = json.loads(path.read_text()).get("meta", {})
+    return ["### Speed against accuracy of the `denoise` settings", "",
+            f"![denoise settings: PSNR against ms per frame]({rel}/validation/tradeoff.png)", "",
+            f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
+            f"{meta.get('cpu_count')} cores; `benchmarks/validation/tradeoff.py` (each variant through the command's "
+            "own path, OIDN in the same run).", "",
+            (VALIDATION / "tradeoff.md").read_text().strip(), ""]
 
 
 def summary(folder: Path, rel: str) -> str:
