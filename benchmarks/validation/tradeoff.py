@@ -1,6 +1,6 @@
 """Speed against accuracy of the ``denoise`` command's settings, on every scene of the validation set.
 
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/validation/tradeoff.py [--threads 2] [--scenes a b] [--spp 1 4]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/validation/tradeoff.py [--threads 2] [--scenes a b]
 
 Each variant runs the command's own path (:class:`~torchmanifold.pipeline.denoise_files.ClipWindow` and
 :func:`~torchmanifold.pipeline.denoise_files.denoise_window`: files read as the window needs them, each frame
@@ -9,8 +9,8 @@ the same run, as ``score.py`` runs it. Variants and OIDN take turns scene by sce
 them alike. ms/frame: the median over the scene's frames of the wall time per output frame (reading included,
 writing not), this machine and thread count; PSNR: clamped sRGB, the mean over frames.
 
-Writes ``benchmarks/results/validation/tradeoff.json``, ``tradeoff.md`` and ``tradeoff.png`` (mean PSNR against
-ms/frame per variant, from 1 and 4 spp, OIDN beside them).
+Writes ``benchmarks/results/validation/tradeoff.json``, ``tradeoff.md`` and ``tradeoff.png`` (mean PSNR
+against ms/frame per variant, from 1 and 4 spp, OIDN beside them).
 """
 from __future__ import annotations
 
@@ -113,8 +113,8 @@ def main(argv=None) -> dict:
     names = args.scenes or list(split["scenes"])
     from tqdm import tqdm
 
-    results = {"meta": harness.metadata(), "threads": args.threads, "variants": {v: VARIANTS[v] for v in
-                                                                                   args.variants}, "scenes": {}}
+    results = {"meta": harness.metadata(), "threads": args.threads,
+               "variants": {v: VARIANTS[v] for v in args.variants}, "scenes": {}}
     for name in tqdm(names, desc="scenes"):
         path = score.resolve(split["scenes"][name], None)
         sc = {"split": split["scenes"][name]["split"]}

@@ -113,6 +113,23 @@ def test_texture_steers_only_where_the_pilot_can_be_trusted(clip, monkeypatch):
     assert widened > kept + 0.3, (widened, kept)
 
 
+def test_selection_pools_wider_where_the_pilot_is_noisy(clip, monkeypatch):
+    """The held-out room lit by bounce light alone: its pilot is noisy, so the cross-validated errors are
+    too, and the selection pools them over a width that grows as the noise, which scores better there
+    than the fixed width; on the shared clip, whose pilot is clean, every frame keeps the fixed width."""
+    c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2])
+    settings = DenoiseSettings(temporal_radius=1)
+    noisy = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).pooling
+    assert bool((noisy > 2).all()), noisy
+    clean = D.prepare_frames(clip[0], clip[1], FEATURES, None, settings, samples_per_pixel=1).pooling
+    assert torch.equal(clean, torch.ones_like(clean))
+
+    wider = M.psnr(denoise_frames(c, f, names, settings=settings, samples_per_pixel=1), ref)
+    monkeypatch.setattr(D, "_selection_pooling", lambda noise: torch.ones_like(noise, dtype=torch.float64))
+    fixed = M.psnr(denoise_frames(c, f, names, settings=settings, samples_per_pixel=1), ref)
+    assert wider > fixed + 0.15, (wider, fixed)
+
+
 def test_bandwidth_selection_beats_every_bandwidth_it_blends(clip):
     """Per-pixel cross-validated blending of the bandwidths beats each of them alone on real frames: the
     shared Mitsuba crop (where 4 px alone is nearly as good) and a held-out scene of thin rods."""

@@ -233,7 +233,8 @@ class DenoiseSettings:
             set's tuning part from 1 and 4 spp (``benchmarks/validation``): a 1-spp wall wants 16 px, a
             4-spp leaf edge 2.
         selection_blur: sigma (pixels) over which a pixel's cross-validated errors are pooled: one
-            held-out sample is too noisy an error estimate (2 to 8 measured alike; 4 is the middle).
+            held-out sample is too noisy an error estimate (2 to 8 measured alike; 4 is the middle). It
+            widens where the firefly pilot is noisy (:func:`_selection_pooling`).
         selection_softness: how sure the evidence must be before a bandwidth is left out: weights are
             ``exp(-z^2 / (2 softness^2))``, ``z`` a bandwidth's pooled error in excess of the least one's in
             standard errors of that excess (see :func:`_excess_error_z2`); 0 picks the least-error
@@ -600,7 +601,7 @@ def _split_halves(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
-                      range_scale: float, level: Tensor | None) -> Tensor:
+                      range_scale: float, level: Tensor | None, pooling: Tensor | None = None) -> Tensor:
     """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
 
     The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
@@ -616,6 +617,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights (0: not filtered here).
         level: ``(T, 3, H, W)`` radiance estimate at the frames, or ``None`` (then the output at
             ``sigma_s`` itself).
+        pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
+            ``None`` (1).
 
     Returns:
         ``(Q, 3, H, W)`` at the query times.
@@ -662,20 +665,20 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     unit = torch.where(mean > 0, mean, torch.ones_like(mean))
     weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
     e, preds = e / scale, [p / scale for p in preds]
+    # each frame pools over its own width; frames pool apart, so frames of one width go in one call
+    blurs = [st.selection_blur * (1.0 if pooling is None else float(pooling[k])) for k in idx]
+    groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
+
+    def part(xs: list, g: list) -> list:
+        return [x if len(groups) == 1 else _frames(x, g) for x in xs]
+
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
-        return _fast.cv_blend(preds, fulls, e, weight, mask, st.selection_blur, st.selection_softness,
-                              _SELECTION_ERROR_CUT)
-    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
-    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
-    # residual is taken as 0 first, so no NaN reaches a gradient)
-    held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T', 1, H, W)
-    sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
-                      for p, h in zip(preds, held)])
-    sq = torch.where(held, sq, math.nan)
-    worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
-    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
-    z2 = _excess_error_z2(sq, mask, st.selection_blur, held | ~held.any(0, keepdim=True))
+        return torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
+                                         blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
+                          for g in groups])
+    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]])
+                    for g in groups], 1)
     if not at_frames:
         z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
     if st.selection_softness > 0:
@@ -684,6 +687,22 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
         w = w.to(e.dtype)
     return (torch.stack(fulls) * w).sum(0)
+
+
+def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
+    """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
+    H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
+    weighted by ``weight`` and pooled over ``blur`` pixels."""
+    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
+    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
+    # residual is taken as 0 first, so no NaN reaches a gradient)
+    held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T, 1, H, W)
+    sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
+                      for p, h in zip(preds, held)])
+    sq = torch.where(held, sq, math.nan)
+    worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
+    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
+    return _excess_error_z2(sq, mask, blur, held | ~held.any(0, keepdim=True))
 
 
 def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
@@ -854,6 +873,8 @@ class FrameState:
             gives none or no time window is used: they tell which samples of the window's other frames
             fall in a pixel (:func:`_window_albedo`).
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
+        pooling: ``(T,)`` float64, the factor on ``selection_blur`` for each frame (1 but where the pilot is
+            noisy, :func:`_selection_pooling`).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of
             the pixel's footprint (:func:`_window_albedo` looks for other frames' points in it).
@@ -874,6 +895,7 @@ class FrameState:
     position: Tensor | None
     guide: Tensor
     sigmas: Tensor
+    pooling: Tensor
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -888,7 +910,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
-                   "guide", "sigmas")
+                   "guide", "sigmas", "pooling")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -924,8 +946,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, False, point,
-                       counts, fp, base)
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,
+                       torch.ones(c.shape[0], dtype=torch.float64), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -956,6 +978,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
+        state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
     return state
 
 
@@ -981,7 +1004,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         else:
             def filt(values, mask):
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                         s.level)
+                                         s.level, s.pooling)
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
@@ -1455,6 +1478,17 @@ def _pilot_trust(relative_noise: Tensor) -> Tensor:
     (two pixels of the same radiance then differ by a third of the sigma, typically, and weigh each other
     0.94), falling linearly to 0 at 1/2 (they differ by 0.7 of the sigma: the pilot steers by noise)."""
     return ((0.5 - relative_noise) / 0.25).clamp(0.0, 1.0)
+
+
+def _selection_pooling(relative_noise: Tensor) -> Tensor:
+    """The factor on the bandwidth selection's pooling width (``selection_blur``) for the pilot's noise in
+    units of a range sigma: 1 where the pilot is trusted whole (:func:`_pilot_trust`, up to 1/4), and the
+    noise over that beyond it. The pooled errors' standard error goes as the noise over the square root of
+    the pixels pooled, so the width grows as the noise: the selection tells the candidates apart as surely
+    as at a trusted pilot. Only the two rooms lit by bounce light alone are that noisy (0.23-0.36 against
+    at most 0.11, ``findings.md``): over all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) and
+    ``bl_indirect_dof`` (held out) gain; every other scene keeps its bits."""
+    return (relative_noise.to(torch.float64) / 0.25).clamp_min(1.0)
 
 
 def _noise_widening(relative_noise: Tensor) -> Tensor:
