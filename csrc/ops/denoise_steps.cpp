@@ -51,8 +51,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def("_same_pixel(Tensor p, Tensor others, float same_pixel, float still, int radius) -> Tensor");
   // denoise._footprint_samples: world positions p (3, H, W) of one sample per pixel against the other
   // frames' others (K, 3, H, W) with their albedo (K, 3, H, W) and valid (K, H, W) -> the albedo sum
-  // (K, 3, H, W) and the count (K, 1, H, W) of the other frames' samples inside each pixel's footprint
-  // (radius: the flow's pooling).
-  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, int radius) -> "
+  // (K, 3, H, W) and the count (K, 1, H, W) of the other frames' samples inside each pixel's footprint,
+  // 0 where search (bool (K, H, W)) is false (radius: the flow's pooling).
+  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, Tensor search, int radius) -> "
         "(Tensor, Tensor)");
 }

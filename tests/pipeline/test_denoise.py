@@ -889,7 +889,7 @@ def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
     assert float(sum(m.double().mean() for m in still)) < 0.01  # a pan: the still test finds nothing
     averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     monkeypatch.setattr(D, "_footprint_samples",
-                        lambda p, o, a, v: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
+                        lambda p, o, a, v, search: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.05, (averaged, own)
 

@@ -245,7 +245,7 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
     """_footprint_samples in C++, step by step in the PyTorch stage's float operations: the same sums and
     counts, bit for bit, on rendered world positions (a panning clip's frames), on jittered planes panned by
     a fraction of a pixel and by several, and on degenerate ones (NaN, all equal, one line, one pixel,
-    positions whose squares overflow float32)."""
+    positions whose squares overflow float32); searched at every pixel and at some: 0 elsewhere."""
     from test_denoise import _plane_positions
 
     _, f = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=(slice(64, 192), slice(64, 192)))
@@ -269,6 +269,13 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
         assert sums.shape == others.shape and counts.shape == (others.shape[0], 1, *others.shape[2:])
         _same(sums, ref_sums)
         _same(counts, ref_counts)
+        search = torch.rand(valid.shape, generator=g) > 0.5
+        (some_sums, some_counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo, valid,
+                                                                 search)
+        _same(some_sums, ref_sums)
+        _same(some_counts, ref_counts)
+        _same(some_sums, torch.where(search[:, None], sums, 0.0))
+        _same(some_counts, torch.where(search[:, None], counts, 0.0))
     assert float(_both(D._footprint_samples, plane, panned.float(), panned.float(),
                        torch.ones(2, 24, 30))[0][1].mean()) > 0.5  # the moved views' samples are found
 
@@ -286,7 +293,7 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.normalised_blur(e, m, 0.5),
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
         lambda: _fast.same_pixel(e[0], e[:1] + 0.01 * m[:1], 1.0, 0.25, 2),
-        lambda: _fast.footprint_samples(e[0], e[:1] + 0.01 * m[:1], e[:1], m[:1, 0], 2),
+        lambda: _fast.footprint_samples(e[0], e[:1] + 0.01 * m[:1], e[:1], m[:1, 0], m[:1, 0] > 0, 2),
     ]
     old = torch.get_num_threads()
     try:
@@ -329,12 +336,15 @@ def test_op_argument_errors():
     with pytest.raises(ValueError, match="float32 or float64"):
         torch.ops.torchmanifold._kuwahara3(x.half())
     p, o = torch.zeros(3, 4, 4), torch.zeros(2, 3, 4, 4)
+    every = torch.ones(2, 4, 4, dtype=torch.bool)
     with pytest.raises(ValueError, match="others must be .K, 3, H, W."):
-        torch.ops.torchmanifold._footprint_samples(p, o[:, :, :3], o, torch.ones(2, 4, 4), 2)
+        torch.ops.torchmanifold._footprint_samples(p, o[:, :, :3], o, torch.ones(2, 4, 4), every, 2)
     with pytest.raises(ValueError, match="albedo must be shaped like others"):
-        torch.ops.torchmanifold._footprint_samples(p, o, o[:1], torch.ones(2, 4, 4), 2)
+        torch.ops.torchmanifold._footprint_samples(p, o, o[:1], torch.ones(2, 4, 4), every, 2)
     with pytest.raises(ValueError, match="valid must be .K, H, W."):
-        torch.ops.torchmanifold._footprint_samples(p, o, o, torch.ones(2, 1, 4, 4), 2)
+        torch.ops.torchmanifold._footprint_samples(p, o, o, torch.ones(2, 1, 4, 4), every, 2)
+    with pytest.raises(ValueError, match="search must be bool .K, H, W."):
+        torch.ops.torchmanifold._footprint_samples(p, o, o, torch.ones(2, 4, 4), every.float(), 2)
 
 
 def _op_samples():
@@ -351,7 +361,7 @@ def _op_samples():
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
             ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2)),
-            ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], 2))]
+            ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], m[:, 0] > 0, 2))]
 
 
 @pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])

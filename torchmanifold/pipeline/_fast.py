@@ -155,11 +155,12 @@ def same_pixel(p: Tensor, others: Tensor, same: float, still: float, radius: int
 
 
 @parallel
-def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor,
+def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor, search: Tensor,
                       radius: int) -> tuple[Tensor, Tensor]:
     """``denoise._footprint_samples``: positions p ``(3, H, W)``, others and their albedo ``(K, 3, H, W)``,
-    valid ``(K, H, W)`` -> albedo sums ``(K, 3, H, W)`` and counts ``(K, 1, H, W)``."""
-    return torch.ops.torchmanifold._footprint_samples(p, others, albedo, valid, int(radius))
+    valid ``(K, H, W)``, search bool ``(K, H, W)`` -> albedo sums ``(K, 3, H, W)`` and counts
+    ``(K, 1, H, W)``."""
+    return torch.ops.torchmanifold._footprint_samples(p, others, albedo, valid, search, int(radius))
 
 
 def _register_fakes() -> None:
@@ -219,7 +220,7 @@ def _register_fakes() -> None:
         return others.new_empty((others.shape[0], 1, *others.shape[2:]), dtype=torch.bool)
 
     @torch.library.register_fake(lib + "_footprint_samples")
-    def _(p, others, albedo, valid, radius):
+    def _(p, others, albedo, valid, search, radius):
         return others.new_empty(others.shape), others.new_empty((others.shape[0], 1, *others.shape[2:]))
 
 

@@ -1208,15 +1208,16 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
         valid = [(s.mask[j] > 0) & ~s.flat[j] for j in others]
         sames = _same_pixel(s.position[k], [s.position[j] for j in others])
         in_squares = s.point_samples and s.smooth is not None and bool(others)  # a moving view's samples
-        if in_squares:
+        if in_squares:  # searched where no still view's sample of the pixel was found
+            search = own & (s.smooth[k] >= math.exp(-1.0))
             sums, counts = _footprint_samples(s.position[k], torch.stack([s.position[j] for j in others]),
                                               torch.stack([s.albedo[j] for j in others]),
-                                              torch.stack(valid)[:, 0].to(a.dtype))
-            search = own & (s.smooth[k] >= math.exp(-1.0))
+                                              torch.stack(valid)[:, 0].to(a.dtype),
+                                              torch.stack([search & ~(ok_j & same) for ok_j, same in
+                                                           zip(valid, sames)])[:, 0])
         for n, (j, same, ok_j) in enumerate(zip(others, sames, valid)):
             ok = own & ok_j & same  # the still view's sample of the pixel, else those in its square
-            found, found_n = (torch.where(search, sums[n], 0.0), torch.where(search, counts[n], 0.0)) \
-                if in_squares else (0.0, 0.0)
+            found, found_n = (sums[n], counts[n]) if in_squares else (0.0, 0.0)
             total += torch.where(ok, s.albedo[j], found)
             count += torch.where(ok, 1.0, found_n)
         out.append(total / count)
@@ -1298,11 +1299,12 @@ def _in_image_axes(d: Tensor, axes: tuple) -> tuple[Tensor, Tensor, Tensor]:
     return u, v, solvable & (_dot3(rest, rest) < 0.125 * (a11 + a22))
 
 
-def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor,
+                       search: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The samples of other frames that fall in each pixel's footprint: the sum of their ``albedo`` and
     their count, ``(K, 3, H, W)`` and ``(K, 1, H, W)``, for world positions ``p`` ``(3, H, W)`` of one
     sample per pixel and ``others`` ``(K, 3, H, W)`` of the other frames' samples, ``valid`` ``(K, H, W)``
-    (1: usable).
+    (1: usable), at the pixels ``search`` (bool ``(K, H, W)``; ``None``: every pixel) and 0 elsewhere.
 
     The footprint is the pixel's square, half a pixel each way along the image axes (:func:`_image_axes`)
     about the pixel's centre, the mean of the 3x3 samples around it (their jitters cancel). Where the
@@ -1310,15 +1312,17 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor)
     over the pixels around (:data:`_STILL_RADIUS`), as in the still test of :func:`_same_pixel`, rounded to
     a pixel; the samples of the 3x3 pixels there are tested. A sample counts when it lies in the square and
     on the surface. On CPU a C++ kernel takes the same steps, bit for bit."""
+    if search is None:
+        search = torch.ones(valid.shape, dtype=torch.bool, device=valid.device)
     if _fast.enabled(p, others, albedo, valid):
-        return _fast.footprint_samples(p, others, albedo, valid, _STILL_RADIUS)
+        return _fast.footprint_samples(p, others, albedo, valid, search, _STILL_RADIUS)
     H, W = p.shape[-2:]
     axes = _image_axes(p)
     centre = _box_mean(p, 1)
     yy = torch.arange(H, device=p.device).view(H, 1).expand(H, W)
     xx = torch.arange(W, device=p.device).view(1, W).expand(H, W)
     sums, counts = [], []
-    for other, alb, ok in zip(others, albedo, valid):
+    for other, alb, ok, where in zip(others, albedo, valid, search):
         u, v, on = _in_image_axes(other - centre, axes)
         mean = _mean_offset(u, v, torch.where(on, ok, 0.0))
         n = mean[0].clamp_min(1e-6)
@@ -1337,6 +1341,7 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor)
                 idx = (sy.clamp(0, H - 1) * W + sx.clamp(0, W - 1)).reshape(-1)
                 u, v, on = _in_image_axes(flat_p[:, idx].view(3, H, W) - centre, axes)
                 hit = inside & on & (flat_ok[idx].view(H, W) > 0) & (u.abs() < 0.5) & (v.abs() < 0.5)
+                hit = hit & where
                 total += torch.where(hit, flat_a[:, idx].view(3, H, W), 0.0)
                 count += hit.to(count.dtype)
         sums.append(total)

@@ -1113,10 +1113,10 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
 }
 
 // denoise._footprint_samples, step by step in its float operations: per other frame, the albedo sum and the
-// count of its samples inside each pixel's footprint.
+// count of its samples inside each pixel's footprint, at the pixels searched (0 elsewhere, not computed).
 std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, const at::Tensor& o_,
                                                          const at::Tensor& a_, const at::Tensor& v_,
-                                                         int64_t radius) {
+                                                         const at::Tensor& s_, int64_t radius) {
   const char* op = "_footprint_samples";
   check_positions(p_, o_, radius, op);
   const int64_t K = o_.size(0), H = p_.size(1), W = p_.size(2), HW = H * W;
@@ -1125,7 +1125,10 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
   TORCH_CHECK_VALUE(v_.dim() == 3 && v_.size(0) == K && v_.size(1) == H && v_.size(2) == W &&
                         v_.scalar_type() == p_.scalar_type(),
                     op, ": valid must be (K, H, W) of p's dtype, got ", v_.sizes());
+  TORCH_CHECK_VALUE(s_.sizes() == v_.sizes() && s_.scalar_type() == at::kBool, op,
+                    ": search must be bool (K, H, W), got ", s_.scalar_type(), " ", s_.sizes());
   const at::Tensor p = p_.contiguous(), o = o_.contiguous(), a = a_.contiguous(), v = v_.contiguous();
+  const at::Tensor search = s_.contiguous();
   at::Tensor sums = at::zeros({K, 3, H, W}, p.options());
   at::Tensor counts = at::zeros({K, 1, H, W}, p.options());
   if (HW == 0 || K == 0) return {sums, counts};
@@ -1142,6 +1145,7 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
       const T* pk = o.data_ptr<T>() + k * 3 * HW;
       const T* ak = a.data_ptr<T>() + k * 3 * HW;
       const T* vk = v.data_ptr<T>() + k * HW;
+      const bool* rk = search.data_ptr<bool>() + k * HW;
       T* sk = sums.data_ptr<T>() + k * 3 * HW;
       T* nk = counts.data_ptr<T>() + k * HW;
       // where the footprint went: the other frame's samples at the same pixels, averaged around
@@ -1161,6 +1165,7 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
         for (int64_t y = y0; y < y1; ++y) {
           for (int64_t x = 0; x < W; ++x) {
             const int64_t i = y * W + x;
+            if (!rk[i]) continue;
             const T n = std::max(m3[i], T(1e-6));
             T fx = m3[i] > T(0) ? std::nearbyint(m3[HW + i] / n) : T(0);
             T fy = m3[i] > T(0) ? std::nearbyint(m3[2 * HW + i] / n) : T(0);
