@@ -13,13 +13,14 @@ import numpy as np
 import torch
 
 from torchmanifold._checks import check_int
+from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
                                             prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
 
-__all__ = ["denoise_files", "denoise_window", "ClipWindow", "OUTPUT_LAYOUTS"]
+__all__ = ["denoise_files", "denoise_window", "prepared_window", "filter_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
@@ -142,14 +143,27 @@ def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple
         ``(3, H, W)`` float32 colour, the frame's stats (its own non-finite samples, the firefly
         energy removed), and the frame as read (its layout is the output's).
     """
+    window, stats, frame = prepared_window(clip, t, settings)
+    return filter_window(*window), stats, frame
+
+
+def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[tuple, dict, RenderFrame]:
+    """:func:`denoise_window`'s first part, on the thread that reads the clip (windows in order): frame
+    ``t``'s window prepared, as the arguments of :func:`filter_window`, with the frame's stats and the
+    frame as read."""
     r = settings.window_radius
     ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
     states = clip.prepared(ids, settings)
-    y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)
     own = ids.index(t)
     stats = states[own].stats()
     keys = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed")
-    return y[0].numpy(), {k: stats[k] for k in keys}, clip.frames(ids)[own]
+    return (FrameState.cat(states), settings, ids, t), {k: stats[k] for k in keys}, clip.frames(ids)[own]
+
+
+def filter_window(state: FrameState, settings: DenoiseSettings, ids: list[int], t: int) -> np.ndarray:
+    """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
+    float32."""
+    return denoise_prepared(state, settings, ids, [t]).to(torch.float32)[0].numpy()
 
 
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
@@ -205,18 +219,33 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
 
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
-    # frame t is written on a thread while frame t + 1 is filtered; a failed write raises before the
-    # staged folder is moved into place
     writes: deque[Future] = deque()
+    pending: dict[int, tuple] = {}  # frames submitted: their stats and the frame as read
+
+    def finish(t: int, y: np.ndarray, rec: dict, frame: RenderFrame) -> None:  # in frame order
+        for k in stats_sum:
+            stats_sum[k] += rec[k]
+        # written on a thread while later frames are filtered; a failed write raises before the staged
+        # folder is moved into place
+        writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
+        if len(writes) > 1:
+            writes.popleft().result()
+        bar.update(1)
+
+    # Windows are prepared here in order (each frame once); their filters run side by side on worker
+    # threads that share the torch threads, one each: the Python around a frame's ops does not scale
+    # inside one filter, and across frames it overlaps with the other's ops (torchmanifold._threads.InOrder).
     with staged_dir(outp) as stage, ClipWindow(inputs, first, color_channels, spp) as clip, \
-            ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer:
-        for t in tqdm(range(len(inputs)), desc="denoise", unit="frame", disable=not progress):
-            y, rec, frame = denoise_window(clip, t, settings)
-            for k in stats_sum:
-                stats_sum[k] += rec[k]
-            writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
-            if len(writes) > 1:
-                writes.popleft().result()
+            ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
+            InOrder(torch.get_num_threads(), len(inputs)) as pool, \
+            tqdm(total=len(inputs), desc="denoise", unit="frame", disable=not progress) as bar:
+        for t in range(len(inputs)):
+            window, rec, frame = prepared_window(clip, t, settings)
+            pending[t] = (rec, frame)
+            for k, y in pool.submit(t, filter_window, *window):
+                finish(k, y, *pending.pop(k))
+        for k, y in pool.drain():
+            finish(k, y, *pending.pop(k))
         for w in writes:
             w.result()
     outputs = [str(outp / p.name) for p in inputs]
