@@ -130,6 +130,28 @@ def test_selection_pools_wider_where_the_pilot_is_noisy(clip, monkeypatch):
     assert wider > fixed + 0.15, (wider, fixed)
 
 
+def test_selection_pooling_stops_at_the_widest_candidate(monkeypatch):
+    """A frame of sparse, very bright samples has a pilot noisier than any validation scene's; its
+    pooling width grows with the noise but not past the widest candidate bandwidth (the pooled errors
+    would mix places where a candidate's bias differs, and the pooling's cost grows with its width)."""
+    from torchmanifold.pipeline import _fast
+
+    g = torch.Generator().manual_seed(0)
+    T, H, W = 2, 40, 48
+    lit = torch.rand(T, 1, H, W, generator=g) < 0.03
+    c = torch.where(lit, 200.0 * torch.rand(T, 3, H, W, generator=g), torch.zeros(T, 3, H, W))
+    f, names = _plane(T, H, W)
+    settings = DenoiseSettings()
+    pooling = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).pooling
+    widest = settings.sigma_s * max(settings.bandwidths)
+    assert bool((settings.selection_blur * pooling > widest).all()), pooling
+    blurs = []
+    blend = _fast.cv_blend
+    monkeypatch.setattr(_fast, "cv_blend", lambda *a: blurs.append(a[5]) or blend(*a))
+    out = denoise_frames(c, f, names, settings=settings, samples_per_pixel=1)
+    assert blurs and set(blurs) == {widest} and bool(torch.isfinite(out).all())
+
+
 def test_bandwidth_selection_beats_every_bandwidth_it_blends(clip):
     """Per-pixel cross-validated blending of the bandwidths beats each of them alone on real frames: the
     shared Mitsuba crop (where 4 px alone is nearly as good) and a held-out scene of thin rods."""

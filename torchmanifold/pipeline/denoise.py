@@ -665,8 +665,12 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     unit = torch.where(mean > 0, mean, torch.ones_like(mean))
     weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
     e, preds = e / scale, [p / scale for p in preds]
-    # each frame pools over its own width; frames pool apart, so frames of one width go in one call
-    blurs = [st.selection_blur * (1.0 if pooling is None else float(pooling[k])) for k in idx]
+    # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
+    # varies on its own scale: pooling wider mixes places where it differs); frames pool apart, so
+    # frames of one width go in one call
+    widest = sigma_s * max(st.bandwidths)
+    blurs = [st.selection_blur if pooling is None else
+             max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
     groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
 
     def part(xs: list, g: list) -> list:
@@ -1490,7 +1494,7 @@ def _selection_pooling(relative_noise: Tensor) -> Tensor:
     units of a range sigma: 1 where the pilot is trusted whole (:func:`_pilot_trust`, up to 1/4), and the
     noise over that beyond it. The pooled errors' standard error goes as the noise over the square root of
     the pixels pooled, so the width grows as the noise: the selection tells the candidates apart as surely
-    as at a trusted pilot. Only the two rooms lit by bounce light alone are that noisy (0.23-0.36 against
+    as at a trusted pilot (up to the widest candidate's bandwidth, :func:`_select_bandwidth`). Only the two rooms lit by bounce light alone are that noisy (0.23-0.36 against
     at most 0.11, ``findings.md``): over all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) and
     ``bl_indirect_dof`` (held out) gain; every other scene keeps its bits."""
     return (relative_noise.to(torch.float64) / 0.25).clamp_min(1.0)
