@@ -15,7 +15,7 @@ import contextlib
 import functools
 import threading
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import torch
 
@@ -121,6 +121,19 @@ class InOrder:
             k, fut = self._pending.popleft()
             done.append((k, fut.result()))
         return done
+
+    def ahead(self, fn, *args) -> Future:
+        """Start ``fn(*args)`` on a worker, outside the ordered results, for later calls to wait on (the
+        caller bounds how many are held); with one worker it runs at once. Workers take calls first come,
+        first served, so a call submitted after the ones it waits on never waits on a call still queued."""
+        if self._pool is None:
+            done: Future = Future()
+            try:
+                done.set_result(fn(*args))
+            except Exception as e:  # raised where the result is taken, as from a worker
+                done.set_exception(e)
+            return done
+        return self._pool.submit(_with_threads, self.threads_each, fn, *args)
 
     def drain(self) -> list:
         """Every result still due, in order."""

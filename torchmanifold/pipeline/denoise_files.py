@@ -72,10 +72,12 @@ class ClipWindow:
         first: the first frame, already read (it fixes size, layout, layer and feature channels).
         color_channels: as :func:`~torchmanifold.io.frames.read_render_frame`.
         samples_per_pixel: the frames' sample count (``None``: what the first frame's header says).
+        pool: where frames are prepared (:meth:`~torchmanifold._threads.InOrder.ahead`), or ``None``: on the
+            calling thread.
     """
 
     def __init__(self, inputs: Sequence[Path], first: RenderFrame, color_channels: Sequence[str] | None,
-                 samples_per_pixel: int | None = None):
+                 samples_per_pixel: int | None = None, pool: InOrder | None = None):
         self.inputs, self.first, self.color_channels = list(inputs), first, color_channels
         self.samples_per_pixel = clip_samples_per_pixel(first, samples_per_pixel)
         self.feature_names = first.feature_names
@@ -84,6 +86,7 @@ class ClipWindow:
         self._settings: DenoiseSettings | None = None
         self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
         self._ahead: tuple[int, Future] | None = None
+        self._pool = pool
 
     def __enter__(self) -> "ClipWindow":
         return self
@@ -116,19 +119,26 @@ class ClipWindow:
         self.notes += [n for n in fr.notes if n not in self.notes]
         return fr
 
-    def _prepare(self, k: int, fr: RenderFrame) -> FrameState:
+    def _prepare(self, k: int, fr: RenderFrame) -> Future:
+        if self._pool is None:
+            done: Future = Future()
+            done.set_result(self._prepare_frame(fr, self._settings))
+            return done
+        return self._pool.ahead(self._prepare_frame, fr, self._settings)
+
+    def _prepare_frame(self, fr: RenderFrame, settings: DenoiseSettings) -> FrameState:
         em = None if fr.emission is None else torch.from_numpy(fr.emission)[None]
         features = torch.from_numpy(fr.stack(self.feature_names))[None]
-        return prepare_frames(torch.from_numpy(fr.color)[None], features, self.feature_names, em, self._settings,
+        return prepare_frames(torch.from_numpy(fr.color)[None], features, self.feature_names, em, settings,
                               samples_per_pixel=self.samples_per_pixel)
 
     def frames(self, ids: Sequence[int]) -> list[RenderFrame]:
         """The frames ``ids`` (increasing); frames before ``ids[0]`` are dropped."""
         return self._window.frames(ids)
 
-    def prepared(self, ids: Sequence[int], settings: DenoiseSettings) -> list[FrameState]:
+    def prepared(self, ids: Sequence[int], settings: DenoiseSettings) -> list[Future]:
         """The frames ``ids`` (increasing) through :func:`~torchmanifold.pipeline.denoise.prepare_frames`,
-        each prepared once for ``settings``."""
+        each prepared once for ``settings``: futures of their states (done ones without a pool)."""
         if settings != self._settings:
             self._window.forget_prepared()
             self._settings = settings
@@ -143,27 +153,28 @@ def denoise_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple
         ``(3, H, W)`` float32 colour, the frame's stats (its own non-finite samples, the firefly
         energy removed), and the frame as read (its layout is the output's).
     """
-    window, stats, frame = prepared_window(clip, t, settings)
-    return filter_window(*window), stats, frame
+    window, frame = prepared_window(clip, t, settings)
+    return (*filter_window(*window), frame)
 
 
-def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[tuple, dict, RenderFrame]:
+def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tuple[tuple, RenderFrame]:
     """:func:`denoise_window`'s first part, on the thread that reads the clip (windows in order): frame
-    ``t``'s window prepared, as the arguments of :func:`filter_window`, with the frame's stats and the
-    frame as read."""
+    ``t``'s window, its frames prepared or being prepared, as the arguments of :func:`filter_window`, and
+    the frame as read."""
     r = settings.window_radius
     ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
-    states = clip.prepared(ids, settings)
-    own = ids.index(t)
-    stats = states[own].stats()
-    keys = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed")
-    return (FrameState.cat(states), settings, ids, t), {k: stats[k] for k in keys}, clip.frames(ids)[own]
+    return (clip.prepared(ids, settings), settings, ids, t), clip.frames(ids)[ids.index(t)]
 
 
-def filter_window(state: FrameState, settings: DenoiseSettings, ids: list[int], t: int) -> np.ndarray:
+def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list[int],
+                  t: int) -> tuple[np.ndarray, dict]:
     """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
-    float32."""
-    return denoise_prepared(state, settings, ids, [t]).to(torch.float32)[0].numpy()
+    float32, and the frame's stats."""
+    states = [s.result() for s in states]
+    y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)[0].numpy()
+    stats = states[ids.index(t)].stats()
+    keys = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed")
+    return y, {k: stats[k] for k in keys}
 
 
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
@@ -220,7 +231,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
     writes: deque[Future] = deque()
-    pending: dict[int, tuple] = {}  # frames submitted: their stats and the frame as read
+    pending: dict[int, RenderFrame] = {}  # frames submitted, as read
 
     def finish(t: int, y: np.ndarray, rec: dict, frame: RenderFrame) -> None:  # in frame order
         for k in stats_sum:
@@ -232,20 +243,20 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             writes.popleft().result()
         bar.update(1)
 
-    # Windows are prepared here in order (each frame once); their filters run side by side on worker
-    # threads that share the torch threads, one each: the Python around a frame's ops does not scale
-    # inside one filter, and across frames it overlaps with the other's ops (torchmanifold._threads.InOrder).
-    with staged_dir(outp) as stage, ClipWindow(inputs, first, color_channels, spp) as clip, \
-            ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
+    # Windows are formed here in order (each frame read and prepared once); frames are prepared and
+    # windows filtered side by side on worker threads that share the torch threads, one each: the Python
+    # around a frame's ops does not scale inside one call, and across frames it overlaps with the other's
+    # ops (torchmanifold._threads.InOrder).
+    with staged_dir(outp) as stage, ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
             InOrder(torch.get_num_threads(), len(inputs)) as pool, \
+            ClipWindow(inputs, first, color_channels, spp, pool) as clip, \
             tqdm(total=len(inputs), desc="denoise", unit="frame", disable=not progress) as bar:
         for t in range(len(inputs)):
-            window, rec, frame = prepared_window(clip, t, settings)
-            pending[t] = (rec, frame)
-            for k, y in pool.submit(t, filter_window, *window):
-                finish(k, y, *pending.pop(k))
-        for k, y in pool.drain():
-            finish(k, y, *pending.pop(k))
+            window, pending[t] = prepared_window(clip, t, settings)
+            for k, (y, rec) in pool.submit(t, filter_window, *window):
+                finish(k, y, rec, pending.pop(k))
+        for k, (y, rec) in pool.drain():
+            finish(k, y, rec, pending.pop(k))
         for w in writes:
             w.result()
     outputs = [str(outp / p.name) for p in inputs]
