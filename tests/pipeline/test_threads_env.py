@@ -98,3 +98,38 @@ def test_in_order_pool_raises_a_worker_error():
             for k in range(5):
                 pool.submit(k, work, k)
             pool.drain()
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_in_order_calls_wait_on_calls_started_ahead(threads):
+    """Calls started ahead (a clip's frames prepared) and ordered calls that wait on them (its windows
+    filtered): every worker busy waiting never starves the calls it waits on, results come in order, and
+    an error of a call started ahead is raised where its result is taken."""
+    import time
+
+    from torchmanifold._threads import InOrder
+
+    def prepare(k, bad):
+        time.sleep(0.01 * (k % 2))
+        if k == bad:
+            raise ValueError(f"frame {k} is bad")
+        return 10 * k
+
+    def window(futures):
+        return sum(f.result() for f in futures)
+
+    def run(bad):
+        got, ahead = [], {}
+        with InOrder(threads, 8) as pool:
+            for t in range(8):
+                ids = range(max(0, t - 1), min(8, t + 2))
+                for k in ids:
+                    if k not in ahead:
+                        ahead[k] = pool.ahead(prepare, k, bad)
+                got += pool.submit(t, window, [ahead[k] for k in ids])
+            got += pool.drain()
+        return got
+
+    assert run(None) == [(t, sum(10 * k for k in range(max(0, t - 1), min(8, t + 2)))) for t in range(8)]
+    with pytest.raises(ValueError, match="frame 6"):
+        run(6)
