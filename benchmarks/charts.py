@@ -300,8 +300,8 @@ def tradeoff_section(rel: str) -> list:
     return ["### Speed against accuracy of the `denoise` settings", "",
             f"![denoise settings: PSNR against ms per frame]({rel}/validation/tradeoff.png)", "",
             f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
-            f"{meta.get('cpu_count')} cores; `benchmarks/validation/tradeoff.py` (each variant through the command's "
-            "own path, OIDN in the same run).", "",
+            f"{meta.get('cpu_count')} cores; `benchmarks/validation/tradeoff.py` (each variant through the "
+            "command's own path, one frame after another, OIDN in the same run).", "",
             (VALIDATION / "tradeoff.md").read_text().strip(), ""]
 
 

@@ -270,8 +270,8 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
         _same(sums, ref_sums)
         _same(counts, ref_counts)
         search = torch.rand(valid.shape, generator=g) > 0.5
-        (some_sums, some_counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo, valid,
-                                                                 search)
+        (some_sums, some_counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo,
+                                                                 valid, search)
         _same(some_sums, ref_sums)
         _same(some_counts, ref_counts)
         _same(some_sums, torch.where(search[:, None], sums, 0.0))

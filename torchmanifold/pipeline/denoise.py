@@ -1494,9 +1494,10 @@ def _selection_pooling(relative_noise: Tensor) -> Tensor:
     units of a range sigma: 1 where the pilot is trusted whole (:func:`_pilot_trust`, up to 1/4), and the
     noise over that beyond it. The pooled errors' standard error goes as the noise over the square root of
     the pixels pooled, so the width grows as the noise: the selection tells the candidates apart as surely
-    as at a trusted pilot (up to the widest candidate's bandwidth, :func:`_select_bandwidth`). Only the two rooms lit by bounce light alone are that noisy (0.23-0.36 against
-    at most 0.11, ``findings.md``): over all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) and
-    ``bl_indirect_dof`` (held out) gain; every other scene keeps its bits."""
+    as at a trusted pilot (up to the widest candidate's bandwidth, :func:`_select_bandwidth`). Only the two
+    rooms lit by bounce light alone are that noisy (0.23-0.36 against at most 0.11, ``findings.md``): over
+    all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) +0.08 / +0.28 dB and ``bl_indirect_dof``
+    (held out) +0.21 / +0.25; every other scene keeps its bits."""
     return (relative_noise.to(torch.float64) / 0.25).clamp_min(1.0)
 
 

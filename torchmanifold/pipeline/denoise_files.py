@@ -20,7 +20,8 @@ from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise
                                             prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
 
-__all__ = ["denoise_files", "denoise_window", "prepared_window", "filter_window", "ClipWindow", "OUTPUT_LAYOUTS"]
+__all__ = ["denoise_files", "denoise_window", "prepared_window", "filter_window", "ClipWindow",
+           "OUTPUT_LAYOUTS"]
 
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
