@@ -1482,23 +1482,28 @@ _RADIANCE_OFF = 1e6
 _PILOT_NOISE_SCALE = 0.5
 
 
+#: the pilot's noise, in units of a range sigma, up to which it is trusted whole (two pixels of the same
+#: radiance then differ by a third of the sigma, typically, and weigh each other 0.94) and from which not at
+#: all (they differ by 0.7 of the sigma: the pilot steers by noise)
+_PILOT_TRUSTED, _PILOT_UNTRUSTED = 0.25, 0.5
+
+
 def _pilot_trust(relative_noise: Tensor) -> Tensor:
-    """How far the pilot is trusted, in [0, 1], from its noise in units of a range sigma: 1 up to 1/4
-    (two pixels of the same radiance then differ by a third of the sigma, typically, and weigh each other
-    0.94), falling linearly to 0 at 1/2 (they differ by 0.7 of the sigma: the pilot steers by noise)."""
-    return ((0.5 - relative_noise) / 0.25).clamp(0.0, 1.0)
+    """How far the pilot is trusted, in [0, 1], from its noise in units of a range sigma: 1 up to
+    :data:`_PILOT_TRUSTED`, falling linearly to 0 at :data:`_PILOT_UNTRUSTED`."""
+    return ((_PILOT_UNTRUSTED - relative_noise) / (_PILOT_UNTRUSTED - _PILOT_TRUSTED)).clamp(0.0, 1.0)
 
 
 def _selection_pooling(relative_noise: Tensor) -> Tensor:
     """The factor on the bandwidth selection's pooling width (``selection_blur``) for the pilot's noise in
-    units of a range sigma: 1 where the pilot is trusted whole (:func:`_pilot_trust`, up to 1/4), and the
+    units of a range sigma: 1 where the pilot is trusted whole (up to :data:`_PILOT_TRUSTED`), and the
     noise over that beyond it. The pooled errors' standard error goes as the noise over the square root of
     the pixels pooled, so the width grows as the noise: the selection tells the candidates apart as surely
     as at a trusted pilot (up to the widest candidate's bandwidth, :func:`_select_bandwidth`). Only the two
     rooms lit by bounce light alone are that noisy (0.23-0.36 against at most 0.11, ``findings.md``): over
     all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) +0.08 / +0.28 dB and ``bl_indirect_dof``
     (held out) +0.21 / +0.25; every other scene keeps its bits."""
-    return (relative_noise.to(torch.float64) / 0.25).clamp_min(1.0)
+    return (relative_noise.to(torch.float64) / _PILOT_TRUSTED).clamp_min(1.0)
 
 
 def _noise_widening(relative_noise: Tensor) -> Tensor:
