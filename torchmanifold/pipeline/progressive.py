@@ -356,7 +356,8 @@ class ProgressiveRenderer:
             pilot = None if self._sums is None else self.estimate(self.times[k])[None]
             return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot, k_ff)
 
-        def filter_query(state: FrameState, ft: list[float], q: float, samples: Tensor):
+        def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
+            state = FrameState.cat([s.result() for s in states])
             y = denoise_prepared(state, settings, ft, [q], sig_s, rscale).float()
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
@@ -373,19 +374,20 @@ class ProgressiveRenderer:
                 self.progress(1)
 
         # Each frame is rendered and prepared once (sanitised, demodulated, guided, clamped) for every
-        # window that holds it. Query times are independent once their frames are: with more than one
-        # thread they are filtered side by side on worker threads that share the caller's (the GL tracer
-        # stays on this one). The Python around a small frame's ops does not scale inside one query;
-        # across queries it overlaps with the other's ops.
-        frames = SlidingFrames(render, prepare)
+        # window that holds it. Frames are independent once rendered, and query times once their frames
+        # are prepared: with more than one thread both run side by side on worker threads that share the
+        # caller's (the GL tracer stays on this one; a query waits on its frames' preparations, started
+        # before it). The Python around a small frame's ops does not scale inside one call; across calls
+        # it overlaps with the other's ops.
         with InOrder(caller_threads(), len(qt)) as pool:
+            frames = SlidingFrames(render, lambda k, res: pool.ahead(prepare, k, res))
             for qi in sorted(range(len(qt)), key=lambda j: qt[j]):  # in time order: windows only move on
                 q = qt[qi]
                 need = self._needed(q)
-                state = FrameState.cat(frames.prepared(need))
+                states = frames.prepared(need)
                 ft = [self.times[k] for k in need]
                 samples = torch.cat([res.color for res in frames.frames(need)])
-                for j, result in pool.submit(qi, filter_query, state, ft, q, samples):
+                for j, result in pool.submit(qi, filter_query, states, ft, q, samples):
                     collect(j, *result)
             for j, result in pool.drain():
                 collect(j, *result)
