@@ -245,8 +245,8 @@ def test_both_schemes_tend_to_the_raw_mean_as_the_bandwidth_vanishes(small_trace
 
 @pytest.mark.parametrize("scheme", ["accumulate", "average"])
 def test_query_times_filtered_side_by_side_give_the_same_bytes(small_tracer, scheme):
-    """With two threads the query times are filtered side by side on worker threads; the frames, the
-    statistics and the progress calls are those of one thread."""
+    """With two threads the frames are prepared and the query times filtered side by side on worker
+    threads; the frames, the statistics and the progress calls are those of one thread."""
     from torchmanifold._threads import torch_threads
 
     out = {}
