@@ -13,6 +13,11 @@ Measured:
   128x96, the job's former size, where the Python around each small frame's ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
+- ``clip``: the ``denoise`` command's frame step over the shared clip (12 frames of 256x256, in memory):
+  each frame prepared once and each window filtered, side by side on workers as the command runs them
+  (``torchmanifold._threads.InOrder``); ``command``: the command itself on the clip's files
+  (:func:`~torchmanifold.pipeline.denoise_files.denoise_files`: reading and writing on threads of their own,
+  which a one-thread run overlaps with its filtering too). Seconds per frame.
 - ``matmul`` / ``copy``: the machine's own ceilings in the same run, what 2 threads can give work that is
   bound by arithmetic (a 2048x2048 float32 matrix product) or by memory (a 64 MB copy).
 """
@@ -51,6 +56,8 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
         def once():
             st = pr.step()
             return st.seconds, st.render_seconds
+    elif kind in ("clip", "command"):
+        once = _clip_step(kind)
     elif kind in CEILINGS:
         x = torch.rand(2048, 2048) if kind == "matmul" else torch.rand(1 << 24)
         y = torch.empty_like(x)
@@ -88,6 +95,57 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
     return out
 
 
+def _clip_step(kind: str):
+    """``once()`` for the ``clip`` and ``command`` kinds: seconds per frame of the shared clip."""
+    import tempfile
+
+    import torch
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from harness import DATA
+
+    from torchmanifold._threads import InOrder
+    from torchmanifold.io.frames import read_render_frame
+    from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
+    from torchmanifold.pipeline.denoise_files import denoise_files
+
+    paths = sorted(DATA.glob("frame_00*.exr"))
+    settings = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=3)  # the command's default
+    if kind == "command":
+        out = Path(tempfile.mkdtemp())
+
+        def once():
+            res = denoise_files(paths, out, settings, overwrite=True, progress=False)
+            return res["seconds_per_frame"], 0.0
+        return once
+    frames = [read_render_frame(p) for p in paths]
+    names = frames[0].feature_names
+    r = settings.window_radius
+
+    def prepare(fr):
+        return prepare_frames(torch.from_numpy(fr.color)[None], torch.from_numpy(fr.stack(names))[None], names,
+                              None, settings, samples_per_pixel=1)
+
+    def filt(states, ids, t):
+        return denoise_prepared(FrameState.cat([s.result() for s in states]), settings, ids, [t])
+
+    def once():
+        t0 = time.perf_counter()
+        with InOrder(torch.get_num_threads(), len(frames)) as pool:
+            states = {}
+            for t in range(len(frames)):
+                ids = list(range(max(0, t - r), min(len(frames), t + r + 1)))
+                for k in ids:
+                    if k not in states:
+                        states[k] = pool.ahead(prepare, frames[k])
+                pool.submit(t, filt, [states[k] for k in ids], ids, t)
+                for k in [k for k in states if k < ids[0]]:
+                    del states[k]
+            pool.drain()
+        return (time.perf_counter() - t0) / len(frames), 0.0
+    return once
+
+
 #: (width, height) of the render kinds: the job's default size (None) and its former one
 RENDER_SIZES = {"render": None, "render_small": (128, 96)}
 #: the machine's ceilings: arithmetic-bound and memory-bound work
@@ -122,7 +180,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    kinds = [*CEILINGS, "frame_step", *RENDER_SIZES]
+    kinds = [*CEILINGS, "frame_step", "clip", "command", *RENDER_SIZES]
     p.add_argument("--kinds", nargs="+", default=kinds, choices=kinds)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--out", default=str(RESULTS / "threads.json"))
