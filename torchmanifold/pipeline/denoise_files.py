@@ -186,7 +186,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
 
     Frames are read by :func:`~torchmanifold.io.frames.read_render_frame` (our tracer's, Mitsuba's and
     Blender's layouts, detected per file) as the time window needs them and released behind it, so
-    memory is bounded by the window. Outputs are staged and moved into ``out`` only when every frame
+    memory is bounded by the window (times the torch threads: each thread filters one frame's window, so
+    that many windows are held at once). Outputs are staged and moved into ``out`` only when every frame
     succeeded: a bad frame leaves ``out`` empty.
 
     Args:
