@@ -53,6 +53,6 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // frames' others (K, 3, H, W) with their albedo (K, 3, H, W) and valid (K, H, W) -> the albedo sum
   // (K, 3, H, W) and the count (K, 1, H, W) of the other frames' samples inside each pixel's footprint,
   // 0 where search (bool (K, H, W)) is false (radius: the flow's pooling).
-  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, Tensor search, int radius) -> "
-        "(Tensor, Tensor)");
+  m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, Tensor search, "
+        "int radius) -> (Tensor, Tensor)");
 }
