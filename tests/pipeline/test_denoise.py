@@ -633,7 +633,7 @@ def test_late_failure_leaves_out_empty(tmp_path, mitsuba_dir, monkeypatch, failu
     written = []
     if failure == "late frame unreadable":
         paths[6].write_bytes(paths[6].read_bytes()[:200])
-        expected = (Exception, "f6.exr")
+        expected = (ValueError, "f6.exr: not a readable EXR file")
     else:
         def write_color(path, *args):
             if len(written) == 4:
