@@ -13,11 +13,12 @@ Measured:
   128x96, the job's former size, where the Python around each small frame's ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
-- ``clip``: the ``denoise`` command's frame step over the shared clip (12 frames of 256x256, in memory):
-  each frame prepared once and each window filtered, side by side on workers as the command runs them
-  (``torchmanifold._threads.InOrder``); ``command``: the command itself on the clip's files
-  (:func:`~torchmanifold.pipeline.denoise_files.denoise_files`: reading and writing on threads of their own,
-  which a one-thread run overlaps with its filtering too). Seconds per frame.
+- ``clip``: the ``denoise`` command's frame step over the shared clip (12 frames of 256x256), the command's
+  own loop (:func:`~torchmanifold.pipeline.denoise_files.denoised_frames`: each frame prepared once and
+  each window filtered, side by side on workers), files read on the clip's thread, nothing written;
+  ``command``: the command itself (:func:`~torchmanifold.pipeline.denoise_files.denoise_files`, outputs
+  written on a thread of their own, which a one-thread run overlaps with its filtering too). Seconds per
+  frame.
 - ``matmul`` / ``copy``: the machine's own ceilings in the same run, what 2 threads can give work that is
   bound by arithmetic (a 2048x2048 float32 matrix product) or by memory (a 64 MB copy).
 """
@@ -106,43 +107,24 @@ def _clip_step(kind: str):
 
     from torchmanifold._threads import InOrder
     from torchmanifold.io.frames import read_render_frame
-    from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
-    from torchmanifold.pipeline.denoise_files import denoise_files
+    from torchmanifold.pipeline.denoise import DenoiseSettings
+    from torchmanifold.pipeline.denoise_files import ClipWindow, denoise_files, denoised_frames
 
     paths = sorted(DATA.glob("frame_00*.exr"))
     settings = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=3)  # the command's default
-    if kind == "command":
-        out = Path(tempfile.mkdtemp())
-
-        def once():
-            res = denoise_files(paths, out, settings, overwrite=True, progress=False)
-            return res["seconds_per_frame"], 0.0
-        return once
-    frames = [read_render_frame(p) for p in paths]
-    names = frames[0].feature_names
-    r = settings.window_radius
-
-    def prepare(fr):
-        return prepare_frames(torch.from_numpy(fr.color)[None], torch.from_numpy(fr.stack(names))[None], names,
-                              None, settings, samples_per_pixel=1)
-
-    def filt(states, ids, t):
-        return denoise_prepared(FrameState.cat([s.result() for s in states]), settings, ids, [t])
+    out = Path(tempfile.mkdtemp())
+    first = read_render_frame(paths[0])
 
     def once():
+        if kind == "command":
+            res = denoise_files(paths, out, settings, overwrite=True, progress=False)
+            return res["seconds_per_frame"], 0.0
         t0 = time.perf_counter()
-        with InOrder(torch.get_num_threads(), len(frames)) as pool:
-            states = {}
-            for t in range(len(frames)):
-                ids = list(range(max(0, t - r), min(len(frames), t + r + 1)))
-                for k in ids:
-                    if k not in states:
-                        states[k] = pool.ahead(prepare, frames[k])
-                pool.submit(t, filt, [states[k] for k in ids], ids, t)
-                for k in [k for k in states if k < ids[0]]:
-                    del states[k]
-            pool.drain()
-        return (time.perf_counter() - t0) / len(frames), 0.0
+        with InOrder(torch.get_num_threads(), len(paths)) as pool, \
+                ClipWindow(paths, first, None, None, pool) as clip:
+            for _ in denoised_frames(clip, settings, pool):
+                pass
+        return (time.perf_counter() - t0) / len(paths), 0.0
     return once
 
 

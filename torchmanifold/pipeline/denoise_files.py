@@ -7,7 +7,7 @@ import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -20,8 +20,8 @@ from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise
                                             prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
 
-__all__ = ["denoise_files", "denoise_window", "prepared_window", "filter_window", "ClipWindow",
-           "OUTPUT_LAYOUTS"]
+__all__ = ["denoise_files", "denoised_frames", "denoise_window", "prepared_window", "filter_window",
+           "ClipWindow", "OUTPUT_LAYOUTS"]
 
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
@@ -178,6 +178,24 @@ def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list
     return y, {k: stats[k] for k in keys}
 
 
+def denoised_frames(clip: ClipWindow, settings: DenoiseSettings,
+                    pool: InOrder) -> Iterator[tuple[int, np.ndarray, dict, RenderFrame]]:
+    """Every frame of ``clip`` denoised, in frame order: ``(t, (3, H, W) float32 colour, the frame's stats,
+    the frame as read)``.
+
+    Windows are formed here in order (each frame read and prepared once); frames are prepared (``clip``
+    made with ``pool``) and windows filtered side by side on ``pool``'s workers, which share the torch
+    threads, one each: the Python around a frame's ops does not scale inside one call, and across frames
+    it overlaps with the other's ops (:class:`~torchmanifold._threads.InOrder`)."""
+    read: dict[int, RenderFrame] = {}  # frames submitted, as read
+    for t in range(len(clip)):
+        window, read[t] = prepared_window(clip, t, settings)
+        for k, (y, rec) in pool.submit(t, filter_window, *window):
+            yield k, y, rec, read.pop(k)
+    for k, (y, rec) in pool.drain():
+        yield k, y, rec, read.pop(k)
+
+
 def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSettings | None = None,
                   color_channels: Sequence[str] | None = None, feature_channels: Sequence[str] | None = None,
                   overwrite: bool = False, progress: bool = True, layer: str | None = None,
@@ -233,32 +251,18 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
     t0 = time.perf_counter()
     writes: deque[Future] = deque()
-    pending: dict[int, RenderFrame] = {}  # frames submitted, as read
-
-    def finish(t: int, y: np.ndarray, rec: dict, frame: RenderFrame) -> None:  # in frame order
-        for k in stats_sum:
-            stats_sum[k] += rec[k]
-        # written on a thread while later frames are filtered; a failed write raises before the staged
-        # folder is moved into place
-        writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
-        if len(writes) > 1:
-            writes.popleft().result()
-        bar.update(1)
-
-    # Windows are formed here in order (each frame read and prepared once); frames are prepared and
-    # windows filtered side by side on worker threads that share the torch threads, one each: the Python
-    # around a frame's ops does not scale inside one call, and across frames it overlaps with the other's
-    # ops (torchmanifold._threads.InOrder).
     with staged_dir(outp) as stage, ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
             InOrder(torch.get_num_threads(), len(inputs)) as pool, \
-            ClipWindow(inputs, first, color_channels, spp, pool) as clip, \
-            tqdm(total=len(inputs), desc="denoise", unit="frame", disable=not progress) as bar:
-        for t in range(len(inputs)):
-            window, pending[t] = prepared_window(clip, t, settings)
-            for k, (y, rec) in pool.submit(t, filter_window, *window):
-                finish(k, y, rec, pending.pop(k))
-        for k, (y, rec) in pool.drain():
-            finish(k, y, rec, pending.pop(k))
+            ClipWindow(inputs, first, color_channels, spp, pool) as clip:
+        for t, y, rec, frame in tqdm(denoised_frames(clip, settings, pool), total=len(inputs), desc="denoise",
+                                     unit="frame", disable=not progress):
+            for k in stats_sum:
+                stats_sum[k] += rec[k]
+            # written on a thread while later frames are filtered; a failed write raises before the staged
+            # folder is moved into place
+            writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
+            if len(writes) > 1:
+                writes.popleft().result()
         for w in writes:
             w.result()
     outputs = [str(outp / p.name) for p in inputs]
