@@ -87,7 +87,7 @@ class ClipWindow:
         self._settings: DenoiseSettings | None = None
         self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
         self._ahead: tuple[int, Future] | None = None
-        self._pool = pool
+        self._pool = pool or InOrder(1, 1)  # one worker: each frame prepared at once, here
 
     def __enter__(self) -> "ClipWindow":
         return self
@@ -121,10 +121,6 @@ class ClipWindow:
         return fr
 
     def _prepare(self, k: int, fr: RenderFrame) -> Future:
-        if self._pool is None:
-            done: Future = Future()
-            done.set_result(self._prepare_frame(fr, self._settings))
-            return done
         return self._pool.ahead(self._prepare_frame, fr, self._settings)
 
     def _prepare_frame(self, fr: RenderFrame, settings: DenoiseSettings) -> FrameState:
