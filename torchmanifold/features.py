@@ -76,6 +76,9 @@ class Feature:
         zero_is_no_hit: the value 0 marks pixels whose ray left the scene (depth).
         may_be_all_zero: a frame where every channel is 0 is valid data (else readers take it for a
             pass that was never rendered and refuse it).
+        unit: each sample's value is a unit vector (0 where the ray left the scene), so a pixel averaging
+            samples of different directions is shorter: how a file's point samples are told from pixel
+            averages (:func:`torchmanifold.io.frames.point_sampled`).
     """
 
     group: str
@@ -92,6 +95,7 @@ class Feature:
     blender_background: float | None = None
     zero_is_no_hit: bool = False
     may_be_all_zero: bool = False
+    unit: bool = False
 
     def __post_init__(self):
         n = len(self.channels)
@@ -131,7 +135,7 @@ FEATURES: tuple[Feature, ...] = (
     Feature("albedo", _rgb("albedo"), tracer=("Mr", "Mg", "Mb"), mitsuba=_rgb("albedo"),
             blender=_rgb("Denoising Albedo"), sigma=0.1, sigma_source=_TUNED, guides=True),
     Feature("N", _xyz("N"), tracer=("Nx", "Ny", "Nz"), mitsuba=_xyz("N"), blender=_xyz("Normal"),
-            sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",)),
+            sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True),
     Feature("D", _xyz("D"), tracer=("Dx", "Dy", "Dz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.1,
@@ -141,7 +145,7 @@ FEATURES: tuple[Feature, ...] = (
     # through the glass both are the wall's, at about half weight; the Normal pass is the sphere's), so it
     # is preferred to the world-space Normal pass when a file has both
     Feature("Ncam", _xyz("Ncam"), blender=_xyz("Denoising Normal"), sigma=0.3, sigma_source=_AS_N,
-            guides=True),
+            guides=True, unit=True),
     Feature("Zplane", ("Zplane",), blender=("Depth.Z",), half=False, sigma=0.15, sigma_source=_AS_Z,
             sigma_of_extent=True, guides=True, superseded_by=("P", "Z"), zero_is_no_hit=True,
             blender_background=1e10),

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from torchmanifold.io import read_exr, read_render_frame, write_color, write_exr
+from torchmanifold.io.frames import point_sampled
 
 H, W = 6, 7
 RNG = np.random.default_rng(1)
@@ -33,6 +34,31 @@ def test_flat_file_features_in_table_order(tmp_path):
     fr = read_render_frame(tmp_path / "m.exr", feature_channels=["Mg", "Normal.X", "emission.R"])
     assert fr.feature_names == ["albedo.G", "N.X", "emission.R"]
     np.testing.assert_array_equal(fr.features["N.X"], chans["N.X"])
+
+
+def test_point_samples_told_by_the_normals(tmp_path):
+    """Without a count in the header, unit normals at every pixel that hits mean 1 sample per pixel;
+    one pixel averaging two directions, too few hits or no normals leave the count unknown; a header's
+    count is taken as it is."""
+    n = RNG.normal(size=(3, 16, 16)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=0)
+    n[:, :4] = 0  # rows whose rays left the scene
+    chans = {c: RNG.random((16, 16), dtype=np.float32) for c in "RGB"}
+    chans.update({f"N.{c}": n[k] for k, c in enumerate("XYZ")})
+    write_exr(tmp_path / "one.exr", chans, half=["N.X", "N.Y", "N.Z"])
+    fr = read_render_frame(tmp_path / "one.exr")
+    assert fr.samples_per_pixel == 1 and any("no sample count" in note for note in fr.notes)
+    mixed = n.copy()
+    mixed[:, 8, 8] = 0.5 * (n[:, 8, 8] + n[:, 8, 9])  # one pixel, the mean of two samples
+    assert np.linalg.norm(mixed[:, 8, 8]) < 0.99
+    write_exr(tmp_path / "mixed.exr", {**chans, **{f"N.{c}": mixed[k] for k, c in enumerate("XYZ")}})
+    fr = read_render_frame(tmp_path / "mixed.exr")
+    assert fr.samples_per_pixel is None and fr.notes == []
+    assert not point_sampled({f"N.{c}": n[k, 3:6] for k, c in enumerate("XYZ")})  # 32 hits: too few to tell
+    assert point_sampled({f"N.{c}": n[k, 3:9] for k, c in enumerate("XYZ")})  # 80
+    assert not point_sampled({"R": chans["R"]})
+    write_exr(tmp_path / "four.exr", chans, attributes={"spp": "4"})
+    assert read_render_frame(tmp_path / "four.exr").samples_per_pixel == 4
 
 
 def test_flat_file_errors_name_file_and_channel(tmp_path):
