@@ -78,7 +78,7 @@ class Feature:
             pass that was never rendered and refuse it).
         unit: each sample's value is a unit vector (0 where the ray left the scene), so a pixel averaging
             samples of different directions is shorter: how a file's point samples are told from pixel
-            averages (:func:`torchmanifold.io.frames.point_sampled`).
+            averages (:func:`torchmanifold.io.frames.samples_per_pixel_shown`).
     """
 
     group: str

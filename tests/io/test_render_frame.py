@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from torchmanifold.io import read_exr, read_render_frame, write_color, write_exr
-from torchmanifold.io.frames import point_sampled
+from torchmanifold.io.frames import samples_per_pixel_shown
 
 H, W = 6, 7
 RNG = np.random.default_rng(1)
@@ -36,10 +36,10 @@ def test_flat_file_features_in_table_order(tmp_path):
     np.testing.assert_array_equal(fr.features["N.X"], chans["N.X"])
 
 
-def test_point_samples_told_by_the_normals(tmp_path):
-    """Without a count in the header, unit normals at every pixel that hits mean 1 sample per pixel;
-    one pixel averaging two directions, too few hits or no normals leave the count unknown; a header's
-    count is taken as it is."""
+def test_sample_count_told_by_the_normals(tmp_path):
+    """Without a count in the header, unit normals at every pixel that hits mean 1 sample per pixel and
+    one pixel averaging two directions at least 2; too few hits or no normals leave the count unknown; a
+    header's count is taken as it is."""
     n = RNG.normal(size=(3, 16, 16)).astype(np.float32)
     n /= np.linalg.norm(n, axis=0)
     n[:, :4] = 0  # rows whose rays left the scene
@@ -53,10 +53,11 @@ def test_point_samples_told_by_the_normals(tmp_path):
     assert np.linalg.norm(mixed[:, 8, 8]) < 0.99
     write_exr(tmp_path / "mixed.exr", {**chans, **{f"N.{c}": mixed[k] for k, c in enumerate("XYZ")}})
     fr = read_render_frame(tmp_path / "mixed.exr")
-    assert fr.samples_per_pixel is None and fr.notes == []
-    assert not point_sampled({f"N.{c}": n[k, 3:6] for k, c in enumerate("XYZ")})  # 32 hits: too few to tell
-    assert point_sampled({f"N.{c}": n[k, 3:9] for k, c in enumerate("XYZ")})  # 80
-    assert not point_sampled({"R": chans["R"]})
+    assert fr.samples_per_pixel == 2 and any("taken as 2" in note for note in fr.notes)
+    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:6] for k, c in enumerate("XYZ")}) is None  # 32 hits
+    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:9] for k, c in enumerate("XYZ")}) == 1  # 80
+    assert samples_per_pixel_shown({f"N.{c}": mixed[k, 3:9] for k, c in enumerate("XYZ")}) == 2
+    assert samples_per_pixel_shown({"R": chans["R"]}) is None
     write_exr(tmp_path / "four.exr", chans, attributes={"spp": "4"})
     assert read_render_frame(tmp_path / "four.exr").samples_per_pixel == 4
 

@@ -51,9 +51,11 @@ def _link_frames(tmp_path, data, n=2):
 def test_denoise_sample_count_from_the_normals(tmp_path, capsys, mitsuba_dir):
     """Frames whose header records no sample count: the shared clip's 1-spp frames have unit normals
     everywhere, so the command takes them for 1 spp, says so, and gives the bytes the header's count
-    gives; its 4-spp frames average normals at edges, so their count stays unknown."""
+    gives; its 4-spp frames average normals at edges, so they hold at least 2 samples: taken as 2, the
+    bytes of --spp 2."""
     outs = {}
-    for name, src in (("header", "frame"), ("normals", "frame"), ("averaged", "frame4spp")):
+    for name, src, extra in (("header", "frame", []), ("normals", "frame", []), ("averaged", "frame4spp", []),
+                             ("flag", "frame4spp", ["--spp", "2"])):
         paths = []
         for i in range(2):
             p = tmp_path / name / "in" / f"frame_{i:04d}.exr"
@@ -64,7 +66,7 @@ def test_denoise_sample_count_from_the_normals(tmp_path, capsys, mitsuba_dir):
                 write_exr(p, read_exr(mitsuba_dir / f"{src}_{i:04d}.exr"))
             paths.append(p)
         rc = main(["denoise", *map(str, paths), "--out", str(tmp_path / name / "out"), "--temporal-radius", "0",
-                   "--tree-height", "2", "--quiet"])
+                   "--tree-height", "2", "--quiet", *extra])
         captured = capsys.readouterr()
         assert rc == 0, captured.err
         outs[name] = (json.loads(captured.out.strip().splitlines()[-1]), captured.err,
@@ -72,7 +74,9 @@ def test_denoise_sample_count_from_the_normals(tmp_path, capsys, mitsuba_dir):
     assert outs["header"][0]["samples_per_pixel"] == 1 and "sample count" not in outs["header"][1]
     assert outs["normals"][0]["samples_per_pixel"] == 1 and "no sample count" in outs["normals"][1]
     np.testing.assert_array_equal(outs["normals"][2], outs["header"][2])
-    assert outs["averaged"][0]["samples_per_pixel"] is None and "sample count" not in outs["averaged"][1]
+    assert outs["averaged"][0]["samples_per_pixel"] == 2 and "taken as 2" in outs["averaged"][1]
+    assert outs["flag"][0]["samples_per_pixel"] == 2
+    np.testing.assert_array_equal(outs["averaged"][2], outs["flag"][2])
 
 
 def test_denoise_end_to_end(tmp_path, capsys, mitsuba_dir):

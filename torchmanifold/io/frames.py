@@ -28,7 +28,7 @@ import numpy as np
 from torchmanifold import features as F
 from torchmanifold.io.exr import header_samples_per_pixel, read_exr, write_exr
 
-__all__ = ["RenderFrame", "read_render_frame", "write_color", "point_sampled", "LAYOUTS"]
+__all__ = ["RenderFrame", "read_render_frame", "write_color", "samples_per_pixel_shown", "LAYOUTS"]
 
 LAYOUTS = ("flat", "blender")
 _COMBINED = "Combined"
@@ -64,8 +64,8 @@ class RenderFrame:
             ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
         samples_per_pixel: the sample count the header records (see
-            :func:`~torchmanifold.io.exr.header_samples_per_pixel`); where it records none, 1 when the
-            features show single samples (:func:`point_sampled`, said in ``notes``), else ``None``.
+            :func:`~torchmanifold.io.exr.header_samples_per_pixel`); where it records none, the least
+            count the normals allow (:func:`samples_per_pixel_shown`, said in ``notes``), else ``None``.
     """
 
     path: Path
@@ -292,21 +292,25 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
     if not frame.features:
         frame.notes.append("no feature channels: the colour is all there is to go by")
     _check_feature_values(path, frame)
-    if frame.samples_per_pixel is None and point_sampled(frame.features):
-        frame.samples_per_pixel = 1
-        frame.notes.append("the header records no sample count; every normal has one sample's unit length, "
-                           "so each pixel holds 1 sample")
+    if frame.samples_per_pixel is None:
+        frame.samples_per_pixel = samples_per_pixel_shown(frame.features)
+        if frame.samples_per_pixel == 1:
+            frame.notes.append("the header records no sample count; every normal has one sample's unit "
+                               "length, so each pixel holds 1 sample")
+        elif frame.samples_per_pixel is not None:
+            frame.notes.append("the header records no sample count; normals shortened by averaging show "
+                               "several samples per pixel: taken as 2, the least there can be")
     return frame
 
 
-def point_sampled(features: dict[str, np.ndarray]) -> bool:
-    """Whether each pixel of a frame holds one sample, as its unit features show (the normals,
-    :attr:`~torchmanifold.features.Feature.unit`; ``features`` by canonical channel name): at least
-    :data:`_MIN_HITS` pixels hit and none has a vector shortened by averaging samples that point
-    different ways. ``False`` without a unit feature. A frame that is one flat surface looks point
-    sampled at any sample count: nothing in it points another way."""
+def samples_per_pixel_shown(features: dict[str, np.ndarray]) -> int | None:
+    """The least sample count per pixel that a frame's unit features allow (the normals,
+    :attr:`~torchmanifold.features.Feature.unit`; ``features`` by canonical channel name), where at least
+    :data:`_MIN_HITS` pixels hit: 1 where no vector is shortened by averaging samples that point
+    different ways, 2 where one is; ``None`` without that evidence. A frame that is one flat surface
+    shows 1 at any sample count: nothing in it points another way."""
     lo, hi = _AVERAGED_LENGTH
-    seen = False
+    shown = None
     for feat in F.FEATURES:
         if not feat.unit or not all(c in features for c in feat.channels):
             continue
@@ -314,9 +318,9 @@ def point_sampled(features: dict[str, np.ndarray]) -> bool:
         if int((length > lo).sum()) < _MIN_HITS:
             continue
         if bool(((length > lo) & (length < hi)).any()):
-            return False
-        seen = True
-    return seen
+            return 2
+        shown = 1
+    return shown
 
 
 def write_color(path: str | os.PathLike, color: np.ndarray, like: RenderFrame | None = None,

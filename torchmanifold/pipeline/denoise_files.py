@@ -54,8 +54,8 @@ def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
 
 
 def clip_samples_per_pixel(first: RenderFrame, samples_per_pixel: int | None) -> int | None:
-    """A clip's sample count: the caller's (a positive int), else the first frame's (its header's, or 1 where
-    its normals show single samples: :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`)."""
+    """A clip's sample count: the caller's (a positive int), else the first frame's (its header's, or the
+    least its normals allow: :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`)."""
     if samples_per_pixel is None:
         return first.samples_per_pixel
     return check_int("samples_per_pixel", samples_per_pixel, min=1)
@@ -73,8 +73,8 @@ class ClipWindow:
         inputs: the frame files, in order.
         first: the first frame, already read (it fixes size, layout, layer and feature channels).
         color_channels: as :func:`~torchmanifold.io.frames.read_render_frame`.
-        samples_per_pixel: the frames' sample count (``None``: the first frame's, see
-            :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`).
+        samples_per_pixel: the frames' sample count (``None``: the first frame's, its header's or the least
+            its normals allow, see :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`).
         pool: where frames are prepared (:meth:`~torchmanifold._threads.InOrder.ahead`), or ``None``: on the
             calling thread.
     """
@@ -221,8 +221,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         output_layout: ``"input"`` (colour under the channels it came from; Blender files keep
             ``<layer>.Combined.R/G/B`` and the input's ``A``) or ``"plain"`` (``R, G, B``).
         samples_per_pixel: the frames' sample count, for a renderer whose header does not record it
-            (``None``: the first frame's, its header's or 1 where its normals show single samples; it sets
-            the bandwidth and the footprint width, see :func:`~torchmanifold.pipeline.denoise.footprint_width`).
+            (``None``: the first frame's, its header's or the least its normals allow; it sets the bandwidth
+            and the footprint width, see :func:`~torchmanifold.pipeline.denoise.footprint_width`).
 
     Returns:
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
