@@ -40,10 +40,10 @@ def test_sample_count_told_by_the_normals(tmp_path):
     """Without a count in the header, unit normals at every pixel that hits mean 1 sample per pixel and
     one pixel averaging two directions at least 2; too few hits or no normals leave the count unknown; a
     header's count is taken as it is."""
-    n = RNG.normal(size=(3, 16, 16)).astype(np.float32)
+    n = RNG.normal(size=(3, 32, 32)).astype(np.float32)
     n /= np.linalg.norm(n, axis=0)
     n[:, :4] = 0  # rows whose rays left the scene
-    chans = {c: RNG.random((16, 16), dtype=np.float32) for c in "RGB"}
+    chans = {c: RNG.random((32, 32), dtype=np.float32) for c in "RGB"}
     chans.update({f"N.{c}": n[k] for k, c in enumerate("XYZ")})
     write_exr(tmp_path / "one.exr", chans, half=["N.X", "N.Y", "N.Z"])
     fr = read_render_frame(tmp_path / "one.exr")
@@ -54,9 +54,9 @@ def test_sample_count_told_by_the_normals(tmp_path):
     write_exr(tmp_path / "mixed.exr", {**chans, **{f"N.{c}": mixed[k] for k, c in enumerate("XYZ")}})
     fr = read_render_frame(tmp_path / "mixed.exr")
     assert fr.samples_per_pixel == 2 and any("taken as 2" in note for note in fr.notes)
-    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:6] for k, c in enumerate("XYZ")}) is None  # 32 hits
-    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:9] for k, c in enumerate("XYZ")}) == 1  # 80
-    assert samples_per_pixel_shown({f"N.{c}": mixed[k, 3:9] for k, c in enumerate("XYZ")}) == 2
+    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:19] for k, c in enumerate("XYZ")}) is None  # 480 hits
+    assert samples_per_pixel_shown({f"N.{c}": n[k, 3:21] for k, c in enumerate("XYZ")}) == 1  # 544
+    assert samples_per_pixel_shown({f"N.{c}": mixed[k, 3:21] for k, c in enumerate("XYZ")}) == 2
     assert samples_per_pixel_shown({"R": chans["R"]}) is None
     write_exr(tmp_path / "four.exr", chans, attributes={"spp": "4"})
     assert read_render_frame(tmp_path / "four.exr").samples_per_pixel == 4
