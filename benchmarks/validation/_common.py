@@ -133,19 +133,24 @@ class Timer:
 
 def clip_main(description: str, clips, render_clip, argv=None) -> None:
     """A renderer script's command line: render the named clips (default all of ``clips``) with
-    ``render_clip(name, out_root, frames, ref_spp) -> clip folder`` and list each finished one in READY."""
+    ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=...) -> clip folder`` and list each finished
+    one in READY."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("clips", nargs="*", default=list(clips), help=f"clips to render (default all: {list(clips)})")
     ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
     ap.add_argument("--frames", type=int, default=FRAMES)
     ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default per clip, see CLIPS)")
     ap.add_argument("--no-ready", action="store_true", help="do not append to <out>/READY")
+    ap.add_argument("--renderer-defaults", action="store_true",
+                    help="the renderer's own pixel filter and clamping (Mitsuba: gaussian; Cycles: Blackman-Harris "
+                         "1.5 px, indirect clamp 10), as a new user's renders have them, instead of the set's box "
+                         "filter without clamping (a probe of the denoiser, not part of the set)")
     args = ap.parse_args(argv)
     for name in args.clips:
         if name not in clips:
             ap.error(f"unknown clip {name!r}; known: {list(clips)}")
     for name in args.clips:
-        out = render_clip(name, args.out, args.frames, args.ref_spp)
+        out = render_clip(name, args.out, args.frames, args.ref_spp, renderer_defaults=args.renderer_defaults)
         if not args.no_ready:
             mark_ready(out)
         print(f"{name}: {out}")

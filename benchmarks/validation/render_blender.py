@@ -489,7 +489,7 @@ SIZE = {"bl_moving_metal": (64, 64), "bl_motion_blur": (80, 80)}
 
 
 # ---------------------------------------------------------------------------------------------------- rendering
-def setup_render(scene, width: int, height: int) -> None:
+def setup_render(scene, width: int, height: int, renderer_defaults: bool = False) -> None:
     r, c = scene.render, scene.cycles
     r.engine = "CYCLES"
     r.resolution_x, r.resolution_y, r.resolution_percentage = width, height, 100
@@ -502,6 +502,8 @@ def setup_render(scene, width: int, height: int) -> None:
     c.sample_clamp_direct = 0.0
     c.sample_clamp_indirect = 0.0
     c.pixel_filter_type = "BOX"
+    if renderer_defaults:  # what a new scene has
+        c.sample_clamp_indirect, c.pixel_filter_type, c.filter_width = 10.0, "BLACKMAN_HARRIS", 1.5
     c.use_animated_seed = False
     c.max_bounces = c.diffuse_bounces = c.glossy_bounces = c.transmission_bounces = MAX_BOUNCES
     c.transparent_max_bounces = MAX_BOUNCES
@@ -528,7 +530,9 @@ def render_to(scene, path: Path, spp: int, seed: int) -> None:
 
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
-                ref_chunk: int = 128) -> Path:
+                ref_chunk: int = 128, renderer_defaults: bool = False) -> Path:
+    """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Cycles' own pixel filter
+    (Blackman-Harris, 1.5 px) and indirect clamp (10) instead of box and none."""
     builder, clip_id, hazards, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:
@@ -537,7 +541,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     out.mkdir(parents=True, exist_ok=True)
     width, height = SIZE.get(name, (C.WIDTH, C.HEIGHT))
     scene = reset()
-    setup_render(scene, width, height)
+    setup_render(scene, width, height, renderer_defaults)
     animate, desc, moving = builder(scene, frames)
     version = bpy.app.version_string
     timer = C.Timer()
@@ -585,7 +589,10 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         "spp": {"noisy1": 1, "noisy4": 4, "reference": ref_spp, "ref_chunk_spp": ref_chunk},
         "cycles": {"max_bounces": MAX_BOUNCES, "diffuse/glossy/transmission/transparent_bounces": MAX_BOUNCES,
                    "use_adaptive_sampling": False, "use_denoising": False, "sample_clamp_direct": 0,
-                   "sample_clamp_indirect": 0, "pixel_filter_type": "BOX", "caustics": "Cycles defaults (on)",
+                   "sample_clamp_indirect": scene.cycles.sample_clamp_indirect,
+                   "pixel_filter_type": scene.cycles.pixel_filter_type,
+                   **({"filter_width": scene.cycles.filter_width} if renderer_defaults else {}),
+                   "caustics": "Cycles defaults (on)",
                    "threads": THREADS},
         "layout": ("frame_/frame4spp_: Blender's multilayer EXR as written (one part per pass in Blender 5): "
                    "ViewLayer.Combined.R/G/B/A (half), ViewLayer.Depth.Z, ViewLayer.Normal.X/Y/Z (world space), "

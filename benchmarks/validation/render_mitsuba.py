@@ -478,7 +478,9 @@ def _channels(scene) -> dict:
 
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
-                ref_chunk: int = 128) -> Path:
+                ref_chunk: int = 128, renderer_defaults: bool = False) -> Path:
+    """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Mitsuba's own reconstruction
+    filter (gaussian, which splats each sample into the pixels around) instead of box."""
     builder, clip_id, hazards, moving, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:
@@ -496,6 +498,8 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     for f in tqdm(range(frames), desc=name, unit="frame"):
         scene_dict, info = builder(f, frames)
         scene_dict["sensor"]["film"].update(width=width, height=height)
+        if renderer_defaults:
+            del scene_dict["sensor"]["film"]["rfilter"]
         per_frame.append({k: v for k, v in info.items() if k != "description"})
         scene = mi.load_dict(copy.copy(scene_dict))
         for pass_name, spp, fname in (("noisy1", 1, "frame"), ("noisy4", 4, "frame4spp")):
@@ -538,7 +542,8 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         "spp": {"noisy1": 1, "noisy4": 4, "reference": ref_spp, "ref_chunk_spp": ref_chunk, "mask": 16 if moving else 0},
         "integrator_noisy": {"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}},
         "integrator_ref": {"type": "path", "max_depth": MAX_DEPTH},
-        "film": f"hdrfilm {width}x{height} rgb float32, rfilter box; sampler independent",
+        "film": f"hdrfilm {width}x{height} rgb float32, rfilter {'gaussian (default)' if renderer_defaults else 'box'}; "
+                "sampler independent",
         "description": info0["description"],
         "hazards": hazards,
         "moving_objects": moving,
