@@ -501,11 +501,11 @@ class _Filter:
         y = self.apply(torch.cat([values * mask, mask], 1))
         return self.normalise(y[:, :-1], y[:, -1:], values, mask)
 
-    def with_held_out(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    def with_held_out(self, values: Tensor, mask: Tensor, cell: int = 1) -> tuple[Tensor, Tensor]:
         """``self(values, mask)`` of 3-channel values, and each pixel's filter of the other checkerboard
         half's samples alone (NaN where that half has none under the kernel), from one op call of both
-        halves (:func:`_halves_stack`)."""
-        pred, num, den = _split_halves(self.apply(_halves_stack(values, mask)))
+        halves (:func:`_halves_stack` of ``cell``)."""
+        pred, num, den = _split_halves(self.apply(_halves_stack(values, mask, cell)), cell)
         return self.normalise(num, den, values, mask), pred
 
     def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
@@ -562,33 +562,88 @@ def _frames(x: Tensor, ids: Sequence[int]) -> Tensor:
     return x[ids]
 
 
-def _halves(shape, device) -> Tensor:
-    """A checkerboard ``(1, 1, H, W)``: 1 on half the pixels, 0 on the other half."""
+def _halves(shape, device, cell: int = 1) -> Tensor:
+    """A checkerboard ``(1, 1, H, W)`` of ``cell`` x ``cell`` pixel squares: 1 on half the pixels, 0 on the
+    other half."""
     H, W = shape[-2:]
-    yy = torch.arange(H, device=device)[:, None]
-    xx = torch.arange(W, device=device)[None, :]
+    yy = torch.arange(H, device=device)[:, None] // cell
+    xx = torch.arange(W, device=device)[None, :] // cell
     return ((yy + xx) % 2 == 0)[None, None]
 
 
-def _halves_stack(e: Tensor, mask: Tensor) -> Tensor:
-    """The op's input for cross-validation, ``(T, 8, H, W)``: per checkerboard half ``h`` (:func:`_halves`,
-    then its complement) ``[e m h, m h]``, for samples ``e`` ``(T, 3, H, W)`` of weights ``m``
+#: Cross-validation takes each pixel's noise as its own. A reconstruction filter that splats each sample
+#: into the pixels around (Mitsuba's default, a gaussian of 2 px radius) shares samples between
+#: neighbours: the other half's prediction then holds part of the pixel's own noise and narrow
+#: bandwidths look right. A bounce-lit room rendered so (mi_indirect_dof, gaussian) came out 2 dB under a
+#: plain Gaussian blur from 1 spp. Where the noise is found correlated (:func:`_cv_cell`) the halves are a
+#: checkerboard of squares this many pixels wide, so that most pixels (36 of 64) have no neighbour in the
+#: other half. On six Mitsuba clips rendered so, 8 px scored best on four and within 0.06 dB of 4 px on the
+#: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); squares everywhere would cost the 12 box-filtered
+#: scenes 0.02 dB (benchmarks/validation/findings.md), so they are only where the test finds them needed.
+_CORRELATED_CELL = 8
+#: the test: on plain surfaces (albedo and normal within a quarter of their sigmas over 3x3), how often the
+#: differences of two adjacent pairs of pixels in a row of four (x1 - x0, x2 - x3, or the same down a
+#: column) have one sign. Their covariance is the correlation of adjacent pixels (less twice that of
+#: pixels two apart, and a plain surface's slope), so independent noise gives them one sign half the
+#: time and splatted samples more often: 0.46-0.52 on every frame of the validation clips that has the
+#: pairs (and of two Cycles clips with its Blackman-Harris filter), 0.555-0.63 on five Mitsuba clips
+#: rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
+_CORRELATED_SIGNS = 0.535
+_PLAIN_SPAN = 0.25
+#: the feature groups constant over a plain surface (depth and position run along it)
+_PLAIN_GROUPS = ("albedo", "N", "Ncam")
+#: pairs of differences the share needs (a frame with fewer says nothing): its standard error is then at
+#: most 0.011, and a 1-spp frame of a bounce-lit room with 1458 pairs came to 0.534
+_MIN_SIGN_PAIRS = 2000
+
+
+def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tensor:
+    """Each frame's cross-validation cell ``(T,)`` int64: :data:`_CORRELATED_CELL` where neighbouring pixels'
+    noise is correlated, else 1. From the samples ``e`` ``(T, 3, H, W)`` at ``valid`` pixels (bool
+    ``(T, 1, H, W)``) and the guide's albedo and normal channels ``(T, F, H, W)`` of range sigmas ``(T, F)``:
+    in every row (column) of four pixels on a plain surface, whether ``x1 - x0`` and ``x2 - x3`` have one
+    sign (a difference of 0, as between two black pixels, tells nothing)."""
+    with torch.no_grad():
+        T, _, H, W = e.shape
+        out = torch.ones(T, dtype=torch.int64)
+        if features.shape[1] == 0:
+            return out
+        g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
+        plain = valid & ((_box_max(g, 1) + _box_max(-g, 1)).amax(1, keepdim=True) < _PLAIN_SPAN)
+        x = luminance(torch.where(valid, e, 0.0))
+        agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
+        for dim in (-1, -2):
+            n = x.shape[dim] - 3
+            if n <= 0:
+                continue
+            at = [x.narrow(dim, k, n) for k in range(4)]
+            near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
+            counted = plain.narrow(dim, 1, n) & plain.narrow(dim, 2, n) & (near != 0) & (far != 0)
+            agree += (counted & (near == far)).flatten(1).sum(1)
+            total += counted.flatten(1).sum(1)
+        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > _CORRELATED_SIGNS * total)
+        return torch.where(correlated, _CORRELATED_CELL, out)
+
+
+def _halves_stack(e: Tensor, mask: Tensor, cell: int = 1) -> Tensor:
+    """The op's input for cross-validation, ``(T, 8, H, W)``: per checkerboard half ``h`` (:func:`_halves`
+    of ``cell``, then its complement) ``[e m h, m h]``, for samples ``e`` ``(T, 3, H, W)`` of weights ``m``
     ``(T, 1, H, W)``. The op's output on it holds each half's filter apart (:func:`_split_halves`)."""
-    if _fast.enabled(e, mask):
+    if cell == 1 and _fast.enabled(e, mask):
         return _fast.cv_halves(e, mask)
-    half = _halves(e.shape, e.device).to(e.dtype)
+    half = _halves(e.shape, e.device, cell).to(e.dtype)
     return torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
 
 
-def _split_halves(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The op's output on :func:`_halves_stack` ``(Q, 8, H, W)`` -> each pixel's prediction from the other
-    half's samples alone ``(Q, 3, H, W)`` (NaN where that half has no sample under the kernel: no support,
-    no estimate), and both halves' sums ``num`` ``(Q, 3, H, W)``, ``den`` ``(Q, 1, H, W)``: the unnormalised
-    filter of all samples."""
-    if _fast.enabled(y):
+def _split_halves(y: Tensor, cell: int = 1) -> tuple[Tensor, Tensor, Tensor]:
+    """The op's output on :func:`_halves_stack` ``(Q, 8, H, W)`` of the same ``cell`` -> each pixel's
+    prediction from the other half's samples alone ``(Q, 3, H, W)`` (NaN where that half has no sample
+    under the kernel: no support, no estimate), and both halves' sums ``num`` ``(Q, 3, H, W)``, ``den``
+    ``(Q, 1, H, W)``: the unnormalised filter of all samples."""
+    if cell == 1 and _fast.enabled(y):
         return _fast.cv_split(y)
     Q, _, H, W = y.shape
-    half = _halves(y.shape, y.device)
+    half = _halves(y.shape, y.device, cell)
     y = y.view(Q, 2, 4, H, W)
     num, den = y[:, :, :3], y[:, :, 3:]
     # a pixel of the first half is predicted from the second half's samples and the other way round
@@ -601,7 +656,8 @@ def _split_halves(y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
-                      range_scale: float, level: Tensor | None, pooling: Tensor | None = None) -> Tensor:
+                      range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
+                      cell: int = 1) -> Tensor:
     """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
 
     The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
@@ -619,6 +675,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
             ``sigma_s`` itself).
         pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
             ``None`` (1).
+        cell: the halves' checkerboard squares, in pixels (:func:`_cv_cell`).
 
     Returns:
         ``(Q, 3, H, W)`` at the query times.
@@ -633,12 +690,12 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     idx = query_frames if at_frames else list(range(T))
     preds, fulls, cv_outs = [], [], []
     filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
-    stack = _halves_stack(e, mask)
+    stack = _halves_stack(e, mask, cell)
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
     windowed = not filters[0]._per_frame() and e.dtype != torch.float64
     bounds = filters[0].window_bounds(e, mask) if windowed else None
     for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
-        pred, num, den = _split_halves(y)
+        pred, num, den = _split_halves(y, cell)
         cv_out = filt.normalise(num, den, e, mask, bounds)
         preds.append(pred)
         cv_outs.append(cv_out)
@@ -879,6 +936,8 @@ class FrameState:
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pooling: ``(T,)`` float64, the factor on ``selection_blur`` for each frame (1 but where the pilot is
             noisy, :func:`_selection_pooling`).
+        cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
+            neighbouring pixels' noise is correlated, :func:`_cv_cell`).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of
             the pixel's footprint (:func:`_window_albedo` looks for other frames' points in it).
@@ -900,6 +959,7 @@ class FrameState:
     guide: Tensor
     sigmas: Tensor
     pooling: Tensor
+    cv_cell: Tensor
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -914,7 +974,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
-                   "guide", "sigmas", "pooling")
+                   "guide", "sigmas", "pooling", "cv_cell")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -929,9 +989,10 @@ class FrameState:
 def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str], emission: Tensor | None,
                    settings: DenoiseSettings, sigma_s: float | None = None, range_scale: float = 1.0,
                    pilot: Tensor | None = None, firefly_k: float | None = None,
-                   samples_per_pixel: float | None = None) -> FrameState:
+                   samples_per_pixel: float | None = None, own_pixels: bool = False) -> FrameState:
     """Sanitise, demodulate, guide and clamp fireflies, each frame on its own (arguments as
-    :func:`denoise_frames`, already checked there)."""
+    :func:`denoise_frames`, already checked there; ``own_pixels``: the caller knows that each pixel holds
+    its own samples, as our tracer's do, so the frames are not tested for correlated noise)."""
     names = list(feature_names)
     dt = settings.dtype
     k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
@@ -950,8 +1011,11 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
+    plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS]
+    cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
+        _cv_cell(e, (mask > 0) & ~flat, guide[:, plain], sig[:, plain])
     state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,
-                       torch.ones(c.shape[0], dtype=torch.float64), False, point, counts, fp, base)
+                       torch.ones(c.shape[0], dtype=torch.float64), cell, False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -969,7 +1033,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         held = {}
 
         def pilot_filter(values, weights):  # keeps the held-out estimate (flat pixels apart have none)
-            out, held["x"] = pf.with_held_out(values, weights)
+            out, held["x"] = pf.with_held_out(values, weights, int(cell.max()))
             return out
         pe = level * torch.expm1(_filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries))
     state.level = pe
@@ -1008,7 +1072,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         else:
             def filt(values, mask):
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                         s.level, s.pooling)
+                                         s.level, s.pooling, int(s.cv_cell.max()))
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
     if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
         out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
@@ -1623,3 +1687,5 @@ class Denoiser(nn.Module):
         s = self.settings
         return (f"sigma_s={s.sigma_s}, firefly={s.firefly!r}, firefly_k={s.firefly_k}, "
                 f"temporal_radius={s.temporal_radius}, mode={s.mode!r}, features={self.feature_names}")
+
+
