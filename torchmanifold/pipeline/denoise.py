@@ -581,19 +581,19 @@ def _halves(shape, device, cell: int = 1) -> Tensor:
 #: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); squares everywhere would cost the 12 box-filtered
 #: scenes 0.02 dB (benchmarks/validation/findings.md), so they are only where the test finds them needed.
 _CORRELATED_CELL = 8
-#: the test: on plain surfaces (albedo and normal within a quarter of their sigmas over 3x3), how often the
-#: differences of two adjacent pairs of pixels in a row of four (x1 - x0, x2 - x3, or the same down a
-#: column) have one sign. Their covariance is the correlation of adjacent pixels (less twice that of
+#: the test: in rows (and columns) of four pixels on one plain surface (albedo and normal within a quarter
+#: of their sigmas), how often the differences of the two adjacent pairs, x1 - x0 and x2 - x3, have one
+#: sign. Their covariance is the correlation of adjacent pixels (less twice that of
 #: pixels two apart, and a plain surface's slope), so independent noise gives them one sign half the
-#: time and splatted samples more often: 0.46-0.52 on every frame of the validation clips that has the
-#: pairs (and of two Cycles clips with its Blackman-Harris filter), 0.555-0.63 on five Mitsuba clips
+#: time and splatted samples more often: 0.47-0.52 on every frame of the validation clips that has the
+#: pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five Mitsuba clips
 #: rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
 _CORRELATED_SIGNS = 0.535
 _PLAIN_SPAN = 0.25
 #: the feature groups constant over a plain surface (depth and position run along it)
 _PLAIN_GROUPS = ("albedo", "N", "Ncam")
 #: pairs of differences the share needs (a frame with fewer says nothing): its standard error is then at
-#: most 0.011, and a 1-spp frame of a bounce-lit room with 1458 pairs came to 0.534
+#: most 0.011, and the bound three of them above one half
 _MIN_SIGN_PAIRS = 2000
 
 
@@ -601,15 +601,14 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
     """Each frame's cross-validation cell ``(T,)`` int64: :data:`_CORRELATED_CELL` where neighbouring pixels'
     noise is correlated, else 1. From the samples ``e`` ``(T, 3, H, W)`` at ``valid`` pixels (bool
     ``(T, 1, H, W)``) and the guide's albedo and normal channels ``(T, F, H, W)`` of range sigmas ``(T, F)``:
-    in every row (column) of four pixels on a plain surface, whether ``x1 - x0`` and ``x2 - x3`` have one
-    sign (a difference of 0, as between two black pixels, tells nothing)."""
+    in every row (column) of four valid pixels on one plain surface, whether ``x1 - x0`` and ``x2 - x3`` have
+    one sign (a difference of 0, as between two black pixels, tells nothing)."""
     with torch.no_grad():
         T, _, H, W = e.shape
         out = torch.ones(T, dtype=torch.int64)
         if features.shape[1] == 0:
             return out
         g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
-        plain = valid & ((_box_max(g, 1) + _box_max(-g, 1)).amax(1, keepdim=True) < _PLAIN_SPAN)
         x = luminance(torch.where(valid, e, 0.0))
         agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
         for dim in (-1, -2):
@@ -618,7 +617,13 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
                 continue
             at = [x.narrow(dim, k, n) for k in range(4)]
             near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
-            counted = plain.narrow(dim, 1, n) & plain.narrow(dim, 2, n) & (near != 0) & (far != 0)
+            four = [g.narrow(dim, k, n) for k in range(4)]
+            hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
+            lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
+            plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
+            for k in range(4):
+                plain &= valid.narrow(dim, k, n)
+            counted = plain & (near != 0) & (far != 0)
             agree += (counted & (near == far)).flatten(1).sum(1)
             total += counted.flatten(1).sum(1)
         correlated = (total >= _MIN_SIGN_PAIRS) & (agree > _CORRELATED_SIGNS * total)
@@ -1687,5 +1692,6 @@ class Denoiser(nn.Module):
         s = self.settings
         return (f"sigma_s={s.sigma_s}, firefly={s.firefly!r}, firefly_k={s.firefly_k}, "
                 f"temporal_radius={s.temporal_radius}, mode={s.mode!r}, features={self.feature_names}")
+
 
 
