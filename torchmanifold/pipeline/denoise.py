@@ -581,14 +581,14 @@ def _halves(shape, device, cell: int = 1) -> Tensor:
 #: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); squares everywhere would cost the 12 box-filtered
 #: scenes 0.02 dB (benchmarks/validation/findings.md), so they are only where the test finds them needed.
 _CORRELATED_CELL = 8
-#: the test: in rows (and columns) of four pixels on one plain surface (albedo and normal within a quarter
-#: of their sigmas), how often the differences of the two adjacent pairs, x1 - x0 and x2 - x3, have one
-#: sign. Their covariance is the correlation of adjacent pixels (less twice that of
-#: pixels two apart, and a plain surface's slope), so independent noise gives them one sign half the
-#: time and splatted samples more often: 0.47-0.52 on every frame of the validation clips that has the
-#: pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five Mitsuba clips
-#: rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
+#: the test: in rows (and columns) of four pixels on one plain surface, how often the differences of the
+#: two adjacent pairs, x1 - x0 and x2 - x3, have one sign. Their covariance is the correlation of adjacent
+#: pixels (less twice that of pixels two apart, and a plain surface's slope), so independent noise gives
+#: them one sign half the time and splatted samples more often: 0.47-0.52 on every frame of the validation
+#: clips that has the pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five
+#: Mitsuba clips rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
 _CORRELATED_SIGNS = 0.535
+#: a plain surface: albedo and normal within a quarter of their range sigmas over the four pixels
 _PLAIN_SPAN = 0.25
 #: the feature groups constant over a plain surface (depth and position run along it)
 _PLAIN_GROUPS = ("albedo", "N", "Ncam")
@@ -1692,6 +1692,3 @@ class Denoiser(nn.Module):
         s = self.settings
         return (f"sigma_s={s.sigma_s}, firefly={s.firefly!r}, firefly_k={s.firefly_k}, "
                 f"temporal_radius={s.temporal_radius}, mode={s.mode!r}, features={self.feature_names}")
-
-
-
