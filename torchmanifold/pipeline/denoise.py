@@ -23,7 +23,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends
    them by their error, estimated by cross-validation between two interleaved halves of the samples
    (see :func:`_select_bandwidth`): wide where the light is smooth and the samples noisy, narrow at
-   detail the features do not show and where more samples make the input better.
+   detail the features do not show and where more samples make the input better. Where neighbouring
+   pixels share samples (a renderer's reconstruction filter splats them), the halves are squares of
+   pixels (:func:`_cv_cell`).
 7. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode.
 8. **Pixel footprint**: a 1-spp pixel shows one point of its area, so thin geometry comes out dotted
