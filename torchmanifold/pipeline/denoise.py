@@ -580,8 +580,9 @@ def _halves(shape, device, cell: int = 1) -> Tensor:
 #: plain Gaussian blur from 1 spp. Where the noise is found correlated (:func:`_cv_cell`) the halves are a
 #: checkerboard of squares this many pixels wide, so that most pixels (36 of 64) have no neighbour in the
 #: other half. On six Mitsuba clips rendered so, 8 px scored best on four and within 0.06 dB of 4 px on the
-#: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); squares everywhere would cost the 12 box-filtered
-#: scenes 0.02 dB (benchmarks/validation/findings.md), so they are only where the test finds them needed.
+#: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); 8 px squares everywhere would cost the 12
+#: box-filtered scenes 0.05 / 0.11 dB from 1 / 4 spp, at most 0.35 on one (benchmarks/validation/findings.md),
+#: so they are only where the test finds them needed.
 _CORRELATED_CELL = 8
 #: the test: in rows (and columns) of four pixels on one plain surface, how often the differences of the
 #: two adjacent pairs, x1 - x0 and x2 - x3, have one sign. Their covariance is the correlation of adjacent
