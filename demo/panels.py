@@ -116,14 +116,16 @@ class PanelRenderer:
             lines = ["#version 330", *(f"#define {d}" for d in (f"N_PANELS {n_panels}", *defines))]
             return "\n".join(lines) + "\n" + source
 
-        self.programs = [ctx.program(vertex_shader=stage("VERTEX_SHADER"),
-                                     fragment_shader=stage("FRAGMENT_SHADER", f"MODE {mode}"))
-                         for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
+        # per mode, a program that reads one row (a clip frame shown) and one that blends two (a time
+        # between frames): the second texel fetch is a sixth of pass 1's time on llvmpipe
+        self.programs = [[ctx.program(vertex_shader=stage("VERTEX_SHADER"),
+                                      fragment_shader=stage("FRAGMENT_SHADER", f"MODE {mode}", f"BLEND {blend}"))
+                          for blend in (0, 1)] for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
         self.magnify = ctx.program(vertex_shader=stage("VERTEX_SHADER", "MAGNIFY"),
                                    fragment_shader=stage("FRAGMENT_SHADER", "MAGNIFY"))
         quad = np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4")
         self.vbo = ctx.buffer(quad.tobytes())
-        self.vaos = [ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in self.programs]
+        self.vaos = [[ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in pair] for pair in self.programs]
         # two triangles per panel: (clip-space x, y, u, v) per vertex, rewritten when the viewports change
         self.magnify_vbo = ctx.buffer(reserve=n_panels * 6 * 4 * 4, dynamic=True)
         self.magnify_vao = ctx.vertex_array(self.magnify, [(self.magnify_vbo, "2f 2f", "in_pos", "in_uv")])
@@ -137,7 +139,7 @@ class PanelRenderer:
         for tex in (self.view, self.small):
             tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
             tex.repeat_x = tex.repeat_y = False
-        for prog in self.programs:
+        for prog in (p for pair in self.programs for p in pair):
             for name, value in (("u_estimates", 0), ("u_reference", 1), ("u_view", 2), ("u_heat_gain", 5.0)):
                 if name in prog:  # the compiler drops what a mode does not use
                     prog[name] = value
@@ -152,17 +154,17 @@ class PanelRenderer:
         return tex
 
     def upload_estimates(self, planes: torch.Tensor) -> None:
-        """One write per iteration: ``planes`` is float32 ``(rows, len(SLOTS), 3, H, W)``."""
+        """One write per iteration: ``planes`` is float32 ``(rows, len(SLOTS), H, W, 3)`` (RGB texels)."""
         w, h = self.image_size
-        if planes.dim() != 5 or tuple(planes.shape[1:]) != (len(SLOTS), 3, h, w) or planes.dtype != torch.float32:
-            raise ValueError(f"estimates: expected float32 (rows, {len(SLOTS)}, 3, {h}, {w}), got "
+        if planes.dim() != 5 or tuple(planes.shape[1:]) != (len(SLOTS), h, w, 3) or planes.dtype != torch.float32:
+            raise ValueError(f"estimates: expected float32 (rows, {len(SLOTS)}, {h}, {w}, 3), got "
                              f"{planes.dtype} {tuple(planes.shape)}")
         rows = planes.shape[0]
         if self.estimates is None or rows != self.rows:
             if self.estimates is not None:
                 self.estimates.release()
             self.estimates, self.rows = self._planes(rows * len(SLOTS)), rows
-        self.estimates.write(planes.permute(0, 1, 3, 4, 2).contiguous().numpy())  # RGB texels: one fetch each
+        self.estimates.write(planes.contiguous().numpy())  # RGB texels: one fetch each
         self.uploads += 1
 
     def upload_reference(self, frames: torch.Tensor | None) -> None:
@@ -199,6 +201,7 @@ class PanelRenderer:
         values = {"u_rows": rows, "u_blend": float(blend), "u_exposure": float(exposure),
                   "u_ref_frame": -1 if ref_frame is None else int(ref_frame),
                   "u_estimate": [int(estimate) for _, estimate in panels]}
+        blends = int(rows[0] != rows[1] and blend > 0)
         start = 0
         for end in range(1, len(modes) + 1):
             if end < len(modes) and modes[end] == modes[start]:
@@ -207,12 +210,12 @@ class PanelRenderer:
             if modes[start] is None:
                 self.small_fbo.clear(0.0, 0.0, 0.0, 1.0, viewport=viewport)
             else:
-                prog = self.programs[modes[start]]
+                prog = self.programs[modes[start]][blends]
                 for name, value in values.items():
                     if name in prog:
                         prog[name] = value
                 self.small_fbo.viewport = viewport
-                self.vaos[modes[start]].render(moderngl.TRIANGLE_STRIP)
+                self.vaos[modes[start]][blends].render(moderngl.TRIANGLE_STRIP)
             start = end
 
     def draw_magnified(self, fbo, viewports, buffer_size: tuple[int, int]) -> None:
@@ -230,7 +233,8 @@ class PanelRenderer:
         self.magnify_vao.render(moderngl.TRIANGLES)
 
     def release(self) -> None:
-        for obj in (*self.vaos, self.magnify_vao, self.vbo, self.magnify_vbo, *self.programs, self.magnify,
+        for obj in (*(v for pair in self.vaos for v in pair), self.magnify_vao, self.vbo, self.magnify_vbo,
+                    *(p for pair in self.programs for p in pair), self.magnify,
                     self.estimates, self.reference, self.view, self.small_fbo, self.small):
             if obj is not None:
                 obj.release()

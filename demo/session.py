@@ -166,10 +166,11 @@ class DemoSession:
         return self.timing
 
     def planes(self) -> torch.Tensor:
-        """The last iteration's estimates of every row as float32 ``(rows, 3, 3, H, W)`` (raw, gaussian,
-        ours; rows in :attr:`row_times` order): what the display uploads, once per iteration."""
+        """The last iteration's estimates of every row as float32 ``(rows, 3, H, W, 3)`` (raw, gaussian,
+        ours; rows in :attr:`row_times` order; RGB last, the texture's texel layout): what the display
+        uploads, once per iteration, in one copy."""
         s = self.state
-        return torch.stack([s.raw, s.gaussian, s.ours], 1)
+        return torch.stack([x.permute(0, 2, 3, 1) for x in (s.raw, s.gaussian, s.ours)], 1)
 
     @property
     def row_times(self) -> list[float]:

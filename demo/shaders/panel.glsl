@@ -7,6 +7,7 @@
 // pixel (llvmpipe's fastest path; a full-window pass that computed each pixel's panel cost 5x more).
 // Pass 1 has one program per kind (MODE), and adjacent panels of one kind share a draw: llvmpipe runs
 // a shader's branches masked, so one program for all kinds would pay for every kind at every pixel.
+// Likewise BLEND: 1 blends two rows (a time between clip frames), 0 reads the one row shown.
 #if defined VERTEX_SHADER && defined MAGNIFY
 in vec2 in_pos;            // window position in clip space
 in vec2 in_uv;             // where it reads pass 1's result
@@ -66,13 +67,17 @@ void main() {
     // The uploaded planes are top row first (numpy order), GL counts rows bottom-up: flip.
     ivec2 size = textureSize(u_estimates, 0).xy;
     ivec2 at = ivec2(gl_FragCoord.xy);
-    int panel = at.x / size.x;
+    int panel = int((float(at.x) + 0.5) / float(size.x));  // llvmpipe has no vector integer division
     ivec2 px = ivec2(at.x - panel * size.x, size.y - 1 - at.y);
 #if MODE == 1
     frag = vec4(clamp(texelFetch(u_view, px, 0).rgb, 0.0, 1.0), 1.0);
 #else
     int estimate = u_estimate[panel];
+#if BLEND
     vec3 x = mix(row_rgb(u_rows.x, estimate, px), row_rgb(u_rows.y, estimate, px), u_blend);
+#else
+    vec3 x = row_rgb(u_rows.x, estimate, px);
+#endif
 #if MODE == 0
     frag = vec4(srgb(x * u_exposure), 1.0);
 #else

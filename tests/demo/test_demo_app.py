@@ -288,6 +288,28 @@ def test_scrub_shows_in_between_frame(live_app):
     assert app.show_time == 0.0
 
 
+def test_pass_one_shows_a_row_or_blends_two(live_app):
+    """Pass 1 against numpy: a shown clip frame reads its row, a time between two rows blends them (its own
+    program each); the texels come from the upload's (rows, estimates, H, W, RGB) layout."""
+    from demo.panels import MODE_IMAGE
+
+    app = live_app
+    panels = app.panels
+    w, h = panels.image_size
+    g = torch.Generator().manual_seed(5)
+    planes = torch.rand(2, len(SLOTS), h, w, 3, generator=g)
+    panels.upload_estimates(planes)
+    shown = [(MODE_IMAGE, i % len(SLOTS)) for i in range(panels.n_panels)]
+    for rows, blend in (((1, 1), 0.0), ((0, 1), 0.25)):
+        panels.draw_panels(shown, rows, blend, None, 1.0)
+        got = np.frombuffer(panels.small.read(), np.uint8).reshape(h, panels.n_panels * w, 4)[::-1, :, :3]
+        for i in range(panels.n_panels):
+            x = (1 - blend) * planes[rows[0], i % len(SLOTS)] + blend * planes[rows[1], i % len(SLOTS)]
+            diff = np.abs(got[:, i * w:(i + 1) * w].astype(np.float64) - srgb_u8(x.numpy()))
+            assert diff.max() <= 1.5, (rows, blend, i, diff.max())
+    app._uploaded = None  # the next frame uploads the engine's estimates again
+
+
 def test_playback_steps_through_the_clip_and_wraps(live_app):
     app = live_app
     app.set_time(0.0)

@@ -148,7 +148,8 @@ def test_session_through_the_tracer_process_is_the_same_progression(tracer, trac
     for t in times:
         assert torch.equal(direct.ours(t), ahead.ours(t))
         assert torch.equal(direct.raw(t), ahead.raw(t))
-    assert torch.equal(ahead.planes()[:, 2], ahead.state.ours)  # the upload: raw, gaussian, ours per row
+    # the upload: raw, gaussian, ours per row, RGB texels
+    assert torch.equal(ahead.planes()[:, 2], ahead.state.ours.permute(0, 2, 3, 1))
     ahead.restart()  # the look-ahead of the old progression is dropped, the new one starts at sample 0
     assert not tracer_proc._clip
     ahead.step()
