@@ -21,6 +21,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <vector>
 
@@ -52,8 +53,9 @@ class SpacetimeFilter {
  public:
   // values/guide: the image's T frames ((T, C, H, W) / (T, D, H, W)); tau: (T,) this query's time
   // weights; query: (D, H, W); out: (C, H, W).
-  SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query, T* out,
-                  int64_t C, int64_t D, int64_t H, int64_t W, const FilterOptions& opt)
+  // query_frame: the frame whose guide is the query's, bit for bit (-1: none).
+  SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query, int64_t query_frame,
+                  T* out, int64_t C, int64_t D, int64_t H, int64_t W, const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt), df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         bpg_(std::max<int64_t>(1, kGroupRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
@@ -67,6 +69,7 @@ class SpacetimeFilter {
       f_all_.push_back(values + t * C * N_);
       tau_all_.push_back(tau[t]);
       if (tau[t] > T(0)) {
+        if (t == query_frame) query_act_ = static_cast<int64_t>(act_.size());
         act_.emplace_back();
         act_.back().f = values + t * C * N_;
         act_.back().g = guide + t * D * N_;
@@ -322,8 +325,12 @@ class SpacetimeFilter {
             for (int64_t a = 0; a < nf; ++a) {
               const Frame<T>& fr = act_[a];
               const uint8_t* m = fr.all_finite ? nullptr : fr.ms.data() + row;
-              distance_row(fr.g, row, e.data(), ws.data());
-              exp_neg_scaled_row(ws.data(), inv_r2_, ws.data(), W_);
+              if (a == query_act_ && all_q_ && fr.all_finite) {  // the same guide: the query's weight
+                std::copy(wr, wr + W_, ws.data());
+              } else {
+                distance_row(fr.g, row, e.data(), ws.data());
+                exp_neg_scaled_row(ws.data(), inv_r2_, ws.data(), W_);
+              }
               if (m)  // a select, not a product: the distance to a non-finite guide is NaN
                 for (int64_t j = 0; j < W_; ++j) ws[j] = m[j] ? ws[j] * fr.tau : T(0);
               else
@@ -439,6 +446,7 @@ class SpacetimeFilter {
   double ss_low_, sr_low_;
   bool all_q_ = true;
   std::vector<Frame<T>> act_;  // the frames with tau > 0, in order
+  int64_t query_act_ = -1;     // the one of them whose guide is the query's (-1: none)
   std::vector<const T*> f_all_;  // every frame's values, for the fallback
   std::vector<T> tau_all_;
   std::vector<T> c_;
@@ -509,12 +517,20 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
   const std::vector<int64_t> order = smallest_first(sigma_s);
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
+    // A query at a frame's time has that frame's guide: its splat weights are the slice weights
+    std::vector<int64_t> query_frame(B * Q, -1);
+    for (int64_t bq = 0; bq < B * Q; ++bq) {
+      const scalar_t* qg = q.data_ptr<scalar_t>() + bq * D * N;
+      for (int64_t t = 0; t < T && query_frame[bq] < 0; ++t)
+        if (std::memcmp(g.data_ptr<scalar_t>() + (bq / Q * T + t) * D * N, qg, D * N * sizeof(scalar_t)) == 0)
+          query_frame[bq] = t;
+    }
     for_each_image(K * B * Q, [&](int64_t item) {
       const int64_t s = order[item / (B * Q)], b = item / Q % B, k = item % Q;
       const FilterOptions opt{sigma_s[s], sigma_r, tree_height, power_iterations, adjust_outliers};
       SpacetimeFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * T * C * N,
                                      g.data_ptr<scalar_t>() + b * T * D * N, w.data_ptr<scalar_t>() + k * T,
-                                     T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N,
+                                     T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N, query_frame[b * Q + k],
                                      out.data_ptr<scalar_t>() + ((s * B + b) * Q + k) * C * N, C, D, H, W, opt);
       filt.run();
     });
