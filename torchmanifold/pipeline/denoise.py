@@ -64,6 +64,7 @@ __all__ = [
     "FrameState",
     "footprint_width",
     "spatial_sigma",
+    "adapt_to_features",
     "Denoiser",
     "default_guide_sigmas",
     "feature_group",
@@ -378,6 +379,34 @@ def spatial_sigma(settings: DenoiseSettings, samples_per_pixel: float | None) ->
     if not _known_count(samples_per_pixel):
         return float(settings.sigma_s)
     return float(settings.sigma_s) * float(samples_per_pixel) ** _SIGMA_SPP_EXPONENT
+
+
+#: Colour alone (no feature channel guides: a renderer's Combined pass without its AOVs). Measured on the
+#: validation set with every feature left out, frames 0-2 from 1 / 4 spp (findings.md, "Colour alone"):
+#: the log-radiance guide keeps no edge that noise hides, so the bandwidth selection reaches down to
+#: nearly no filtering: two more candidates, a half and a quarter of the narrowest (+0.63 / +1.31 dB; an
+#: eighth as well adds +0.06 / +0.04). Nothing tells a moving view's frames apart, so each frame is
+#: filtered alone: the +-1 window smears a pan's moving ball (-1.2 / -1.4 dB from 4 spp on two scenes),
+#: though it gains 0.7-0.9 dB on still views and +0.21 / -0.16 on average
+_COLOUR_ONLY_NARROWER = (0.25, 0.5)
+#: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where
+#: colour alone guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone,
+#: each frame alone: +0.40 / +0.50 dB over none; 0.025 +0.14 / +0.13 more there but -0.3 / -0.4 on its room
+#: lit by bounce light and -0.7 / -0.8 on the held-out one; 0.1 -0.23 / -0.23
+_CHROMA_SIGMA = 0.05
+
+
+def adapt_to_features(settings: DenoiseSettings, feature_names: Sequence[str]) -> tuple[DenoiseSettings, str | None]:
+    """``settings`` for frames with these feature channels, and a note where they changed: where no
+    feature channel guides (colour alone) the candidates reach down to a quarter of the narrowest and each
+    frame is filtered alone (:data:`_COLOUR_ONLY_NARROWER`); otherwise ``settings`` as they are."""
+    if _select_guide(list(feature_names), settings):
+        return settings, None
+    low = min(float(b) for b in settings.bandwidths)
+    bandwidths = tuple(sorted({low * f for f in _COLOUR_ONLY_NARROWER} | {float(b) for b in settings.bandwidths}))
+    note = (f"no feature channel guides: bandwidths {list(bandwidths)} times sigma_s, each frame filtered alone "
+            f"(nothing tells a moving view's frames apart)")
+    return replace(settings, bandwidths=bandwidths, temporal_radius=0), note
 
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
@@ -913,6 +942,7 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
         raise ValueError("frame_times and query_times must be non-empty and finite")
     if pilot is not None and (not isinstance(pilot, Tensor) or pilot.shape != color.shape):
         raise ValueError(f"pilot must be a tensor shaped like color {tuple(color.shape)}")
+    settings = adapt_to_features(settings, names)[0]
     state = prepare_frames(color, features, names, emission, settings, sigma_s, range_scale, pilot, firefly_k,
                            samples_per_pixel)
     out = denoise_prepared(state, settings, ft, qt, sigma_s, range_scale).to(color.dtype)
@@ -1052,6 +1082,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
+        if not gnames:  # colour alone: its hue tells apart what its luminance does not
+            state.guide, state.sigmas = _with_chromaticity(state.guide, state.sigmas, pe, mask)
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
@@ -1540,6 +1572,16 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     sigmas = sigmas.clone()
     sigmas[:, -1] = rs if noise is None else rs * _noise_widening(noise.to(sigmas.dtype) / rs)
     return guide, sigmas
+
+
+def _with_chromaticity(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The guide ``(T, G, H, W)`` and its sigmas ``(T, G)`` with two more channels: the chromaticity of the
+    pilot ``(T, 3, H, W)``, ``r / (r + g + b)`` and ``g / (r + g + b)`` (the sum offset by a thousandth of
+    the frame's mean luminance, so black pixels stay near 0), at :data:`_CHROMA_SIGMA`."""
+    p = pilot.clamp_min(0.0)
+    total = p.sum(1, keepdim=True) + 1e-3 * _frame_mean(luminance(p), mask).clamp_min(1e-30)
+    chroma = torch.full((guide.shape[0], 2), _CHROMA_SIGMA, dtype=sigmas.dtype)
+    return torch.cat([guide, (p[:, :2] / total).to(guide.dtype)], 1), torch.cat([sigmas, chroma], 1)
 
 
 def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:

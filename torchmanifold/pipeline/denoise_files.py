@@ -16,8 +16,8 @@ from torchmanifold._checks import check_int
 from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
-from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
-                                            prepare_frames, spatial_sigma)
+from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
+                                            footprint_width, prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
 
 __all__ = ["denoise_files", "denoised_frames", "denoise_window", "prepared_window", "filter_window",
@@ -243,6 +243,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     # the first frame fixes the features; fail on it before creating anything
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
     fnames = first.feature_names
+    settings, adapted = adapt_to_features(settings, fnames)
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     outp = prepare_out(outp, overwrite)
 
@@ -267,7 +268,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     n = len(inputs)
     return {"frames": n, "size": list(first.size), "layout": first.layout, "layer": first.layer,
             "feature_channels": fnames, "sources": {k: first.sources[k] for k in ["R", "G", "B", *fnames]},
-            "notes": clip.notes,
+            "notes": clip.notes + ([adapted] if adapted else []),
             "nonfinite_samples": stats_sum["nonfinite_color"] + stats_sum["nonfinite_features"],
             "nonfinite_color": stats_sum["nonfinite_color"],
             "nonfinite_features": stats_sum["nonfinite_features"],

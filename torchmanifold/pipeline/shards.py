@@ -42,7 +42,8 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold.pipeline.denoise import DenoiseSettings, denoise_frames, footprint_width, spatial_sigma
+from torchmanifold.pipeline.denoise import (DenoiseSettings, adapt_to_features, denoise_frames, footprint_width,
+                                             spatial_sigma)
 from torchmanifold.timewindow import frame_at, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
@@ -547,6 +548,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     inputs = [p.resolve() for p in inputs]
     settings = (settings or DenoiseSettings(temporal_radius=1)).check()
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
+    settings = adapt_to_features(settings, first.feature_names)[0]
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     ray, started = connect(address)  # before anything is written: a dead address writes nothing
     try:
