@@ -995,15 +995,19 @@ def test_window_albedo_survives_degenerate_positions(positions):
         assert not bool(counts.any())
 
 
-def test_colour_alone_reaches_narrower_bandwidths_frame_by_frame(mitsuba_dir):
-    """With no feature channel to guide, the candidates reach a quarter of the narrowest and each frame is
-    filtered alone; with one, the settings stay as they are. The shared clip's colour alone (three frames of
-    a pan, cropped): well clear of the best Gaussian blur (it was 0.1 dB clear before the rule)."""
+def test_without_albedo_narrower_bandwidths_and_colour_alone_frame_by_frame(mitsuba_dir):
+    """With no albedo channel to guide, the candidates reach a quarter of the narrowest; with no feature
+    channel at all, each frame is also filtered alone; with albedo, the settings stay as they are. The shared
+    clip's colour alone (three frames of a pan, cropped): well clear of the best Gaussian blur (it was 0.1 dB
+    clear before the rule)."""
     st = DenoiseSettings(temporal_radius=1)
     adapted, note = D.adapt_to_features(st, [])
     assert adapted.bandwidths == (0.125, 0.25, 0.5, 1.0, 2.0, 4.0) and adapted.temporal_radius == 0
     assert "each frame filtered alone" in note
-    assert D.adapt_to_features(st, ["albedo.R", "albedo.G", "albedo.B"]) == (st, None)
+    geometry, note = D.adapt_to_features(st, ["N.X", "N.Y", "N.Z", "Z"])
+    assert geometry.bandwidths == adapted.bandwidths and geometry.temporal_radius == 1
+    assert "no albedo" in note and "alone" not in note
+    assert D.adapt_to_features(st, ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z"]) == (st, None)
     assert D.adapt_to_features(DenoiseSettings(bandwidths=(1.0, 3.0)), ["T"])[0].bandwidths == (0.25, 0.5, 1.0, 3.0)
     crop = (slice(64, 192), slice(32, 224))
     c, _ = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=crop)
@@ -1011,3 +1015,16 @@ def test_colour_alone_reaches_narrower_bandwidths_frame_by_frame(mitsuba_dir):
     out = denoise_frames(c, settings=st)
     best_blur = max(M.psnr(gaussian_baseline(c, s), ref) for s in (1.0, 1.5, 2.0, 3.0))
     assert M.psnr(out, ref) > best_blur + 1.0  # measured: +2.3 dB
+
+
+def test_pilot_noise_is_measured_without_albedo(mitsuba_dir):
+    """Without albedo every pixel is filtered as radiance (none is demodulated); the pilot's noise is still
+    measured over them, so a noisy clip's selection pools wider (it read 0 before: no demodulated pixel)."""
+    c, _ = load_clip(mitsuba_dir, "frame", [0], crop=(slice(64, 192), slice(64, 192)))
+    g = torch.Generator().manual_seed(2)
+    # one sample in ten carries the light, ten times over: a room lit by bounce light alone
+    noisy = c * (torch.rand(c[:, :1].shape, generator=g) < 0.1) * 10.0
+    st = DenoiseSettings()
+    clean = D.prepare_frames(c, c.new_zeros(1, 0, *c.shape[2:]), [], None, st)
+    rough = D.prepare_frames(noisy, c.new_zeros(1, 0, *c.shape[2:]), [], None, st)
+    assert float(clean.pooling[0]) == 1.0 and float(rough.pooling[0]) > 1.2

@@ -381,32 +381,41 @@ def spatial_sigma(settings: DenoiseSettings, samples_per_pixel: float | None) ->
     return float(settings.sigma_s) * float(samples_per_pixel) ** _SIGMA_SPP_EXPONENT
 
 
-#: Colour alone (no feature channel guides: a renderer's Combined pass without its AOVs). Measured on the
-#: validation set with every feature left out, frames 0-2 from 1 / 4 spp (findings.md, "Colour alone"):
-#: the log-radiance guide keeps no edge that noise hides, so the bandwidth selection reaches down to
-#: nearly no filtering: two more candidates, a half and a quarter of the narrowest (+0.63 / +1.31 dB; an
-#: eighth as well adds +0.06 / +0.04). Nothing tells a moving view's frames apart, so each frame is
-#: filtered alone: the +-1 window smears a pan's moving ball (-1.2 / -1.4 dB from 4 spp on two scenes),
-#: though it gains 0.7-0.9 dB on still views and +0.21 / -0.16 on average
-_COLOUR_ONLY_NARROWER = (0.25, 0.5)
+#: Where no albedo channel guides (colour alone, a renderer's Combined pass; or geometry alone), the guide
+#: cannot tell texture from noise, so the bandwidth selection reaches down to nearly no filtering: two more
+#: candidates, a half and a quarter of the narrowest. Frames 0-2 of the validation set from 1 / 4 spp
+#: (findings.md, "Without albedo"): colour alone +0.63 / +1.31 dB (an eighth as well: +0.06 / +0.04);
+#: normals, depth and positions without albedo +0.60 / +1.12, no scene below -0.2. With albedo, a 1 px
+#: candidate lost 0.14 dB from 1 spp.
+_NO_ALBEDO_NARROWER = (0.25, 0.5)
 #: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where
 #: colour alone guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone,
 #: each frame alone: +0.40 / +0.50 dB over none; 0.025 +0.14 / +0.13 more there but -0.3 / -0.4 on its room
-#: lit by bounce light and -0.7 / -0.8 on the held-out one; 0.1 -0.23 / -0.23
+#: lit by bounce light and -0.7 / -0.8 on the held-out one; 0.1 -0.23 / -0.23. Beside geometry without
+#: albedo it gains +0.30 / +0.47 on the tuning part but loses 0.5 / 0.4 on its room: colour alone only.
 _CHROMA_SIGMA = 0.05
 
 
 def adapt_to_features(settings: DenoiseSettings, feature_names: Sequence[str]) -> tuple[DenoiseSettings, str | None]:
-    """``settings`` for frames with these feature channels, and a note where they changed: where no
-    feature channel guides (colour alone) the candidates reach down to a quarter of the narrowest and each
-    frame is filtered alone (:data:`_COLOUR_ONLY_NARROWER`); otherwise ``settings`` as they are."""
-    if _select_guide(list(feature_names), settings):
+    """``settings`` for frames with these feature channels, and a note where they changed.
+
+    Where no albedo channel guides, the candidates reach down to a quarter of the narrowest
+    (:data:`_NO_ALBEDO_NARROWER`). Where no feature channel guides at all (colour alone), each frame is
+    also filtered alone: nothing tells a moving view's frames apart, and the +-1 window smeared a pan's
+    moving ball (-1.2 / -1.4 dB from 4 spp on two validation scenes), though it gained 0.7-0.9 dB on still
+    views and +0.21 / -0.16 on average (frames 0-2, from 1 / 4 spp, findings.md)."""
+    names = list(feature_names)
+    guide = _select_guide(names, settings)
+    if any(feature_group(names[k]) == "albedo" for k in guide):
         return settings, None
     low = min(float(b) for b in settings.bandwidths)
-    bandwidths = tuple(sorted({low * f for f in _COLOUR_ONLY_NARROWER} | {float(b) for b in settings.bandwidths}))
-    note = (f"no feature channel guides: bandwidths {list(bandwidths)} times sigma_s, each frame filtered alone "
-            f"(nothing tells a moving view's frames apart)")
-    return replace(settings, bandwidths=bandwidths, temporal_radius=0), note
+    bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | {float(b) for b in settings.bandwidths}))
+    note = f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s"
+    if guide:
+        return replace(settings, bandwidths=bandwidths), note
+    return (replace(settings, bandwidths=bandwidths, temporal_radius=0),
+            note + "; no feature channel guides: each frame filtered alone (nothing tells a moving view's "
+                   "frames apart)")
 
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
@@ -1080,7 +1089,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         return state
     state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
-        noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & ~flat)
+        # demodulated pixels; every pixel of a frame that has no albedo to demodulate by
+        demodulated = ~flat | flat.flatten(1).all(1).view(-1, 1, 1, 1)
+        noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
         if not gnames:  # colour alone: its hue tells apart what its luminance does not
             state.guide, state.sigmas = _with_chromaticity(state.guide, state.sigmas, pe, mask)
