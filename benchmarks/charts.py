@@ -285,6 +285,7 @@ def validation_section(rel: str) -> list:
               f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
               f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
     lines += tradeoff_section(rel)
+    lines += fewer_features_section()
     if FINDINGS.exists():
         lines += [FINDINGS.read_text().strip(), ""]
     return lines
@@ -303,6 +304,18 @@ def tradeoff_section(rel: str) -> list:
             f"{meta.get('cpu_count')} cores; `benchmarks/validation/tradeoff.py` (each variant through the "
             "command's own path, one frame after another, OIDN in the same run).", "",
             (VALIDATION / "tradeoff.md").read_text().strip(), ""]
+
+
+def fewer_features_section() -> list:
+    """Every scene from colour alone and from geometry without albedo (``results/validation/fewer_features.*``,
+    written by ``validation/fewer_features.py``)."""
+    path = VALIDATION / "fewer_features.md"
+    if not path.exists():
+        return []
+    return ["### Fewer features: colour alone, geometry without albedo", "",
+            "A renderer's Combined pass without its AOVs, and normals, depth and positions without albedo: "
+            "`benchmarks/validation/fewer_features.py` (OIDN from colour alone: it takes normals only beside an "
+            "albedo).", "", path.read_text().strip(), ""]
 
 
 def summary(folder: Path, rel: str) -> str:
