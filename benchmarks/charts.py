@@ -307,15 +307,15 @@ def tradeoff_section(rel: str) -> list:
 
 
 def fewer_features_section() -> list:
-    """Every scene from colour alone and from geometry without albedo (``results/validation/fewer_features.*``,
-    written by ``validation/fewer_features.py``)."""
+    """Every scene from colour alone and from geometry without albedo
+    (``results/validation/fewer_features.*``, written by ``validation/fewer_features.py``)."""
     path = VALIDATION / "fewer_features.md"
     if not path.exists():
         return []
     return ["### Fewer features: colour alone, geometry without albedo", "",
             "A renderer's Combined pass without its AOVs, and normals, depth and positions without albedo: "
-            "`benchmarks/validation/fewer_features.py` (OIDN from colour alone: it takes normals only beside an "
-            "albedo).", "", path.read_text().strip(), ""]
+            "`benchmarks/validation/fewer_features.py` (OIDN from colour alone: it takes normals only "
+            "beside an albedo).", "", path.read_text().strip(), ""]
 
 
 def summary(folder: Path, rel: str) -> str:

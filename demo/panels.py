@@ -119,13 +119,15 @@ class PanelRenderer:
         # per mode, a program that reads one row (a clip frame shown) and one that blends two (a time
         # between frames): the second texel fetch is a sixth of pass 1's time on llvmpipe
         self.programs = [[ctx.program(vertex_shader=stage("VERTEX_SHADER"),
-                                      fragment_shader=stage("FRAGMENT_SHADER", f"MODE {mode}", f"BLEND {blend}"))
-                          for blend in (0, 1)] for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
+                                      fragment_shader=stage("FRAGMENT_SHADER", f"MODE {mode}", f"BLEND {b}"))
+                          for b in (0, 1)]
+                         for mode in (MODE_IMAGE, MODE_DISPLAY, MODE_HEAT)]
         self.magnify = ctx.program(vertex_shader=stage("VERTEX_SHADER", "MAGNIFY"),
                                    fragment_shader=stage("FRAGMENT_SHADER", "MAGNIFY"))
         quad = np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4")
         self.vbo = ctx.buffer(quad.tobytes())
-        self.vaos = [[ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in pair] for pair in self.programs]
+        self.vaos = [[ctx.vertex_array(p, [(self.vbo, "2f", "in_pos")]) for p in pair]
+                     for pair in self.programs]
         # two triangles per panel: (clip-space x, y, u, v) per vertex, rewritten when the viewports change
         self.magnify_vbo = ctx.buffer(reserve=n_panels * 6 * 4 * 4, dynamic=True)
         self.magnify_vao = ctx.vertex_array(self.magnify, [(self.magnify_vbo, "2f 2f", "in_pos", "in_uv")])
@@ -156,7 +158,8 @@ class PanelRenderer:
     def upload_estimates(self, planes: torch.Tensor) -> None:
         """One write per iteration: ``planes`` is float32 ``(rows, len(SLOTS), H, W, 3)`` (RGB texels)."""
         w, h = self.image_size
-        if planes.dim() != 5 or tuple(planes.shape[1:]) != (len(SLOTS), h, w, 3) or planes.dtype != torch.float32:
+        if planes.dim() != 5 or tuple(planes.shape[1:]) != (len(SLOTS), h, w, 3) or \
+                planes.dtype != torch.float32:
             raise ValueError(f"estimates: expected float32 (rows, {len(SLOTS)}, {h}, {w}, 3), got "
                              f"{planes.dtype} {tuple(planes.shape)}")
         rows = planes.shape[0]

@@ -4,8 +4,8 @@ AOVs) and from its colour and geometry without the albedo.
     PYTHONPATH=$PWD .venv/bin/python benchmarks/validation/fewer_features.py [--data-root DIR] [--scenes a b]
 
 Per scene, from 1 and 4 spp, over all frames (PSNR on clamped sRGB, mean over frames, this run): the raw
-input; a Gaussian blur (the best of sigma 1/2/4/8 per scene, as ``score.py``'s); Intel OIDN (``pyoidn``, colour
-alone, ``hdr=True``: OIDN takes normals only beside an albedo); ours, the ``denoise`` command's default
+input; a Gaussian blur (the best of sigma 1/2/4/8 per scene, as ``score.py``'s); Intel OIDN (``pyoidn``,
+colour alone, ``hdr=True``: OIDN takes normals only beside an albedo); ours, the ``denoise`` command's default
 (``DenoiseSettings(temporal_radius=1)``) given no feature channel (``ours, colour``) and given the scene's
 normals, depth and positions (``ours, no albedo``). :func:`torchmanifold.pipeline.denoise.adapt_to_features`
 adds two narrower bandwidth candidates to both, and filters each frame alone for colour alone, guided by the
@@ -45,13 +45,13 @@ def scene_scores(path: Path, spp: int) -> dict:
     psnr = lambda out: float(np.mean([metrics.psnr(o, r) for o, r in zip(out, ref)]))  # noqa: E731
     geometry = [k for k, n in enumerate(ds.names) if group_of(canonical_name(n)) != "albedo"]
     res = {"raw": psnr(x), "gaussian": max(psnr(gaussian_baseline(x, s)) for s in BLURS)}
-    oidn = torch.stack([baselines._from_hwc(baselines._oidn_run(baselines._to_hwc(f), None, None), f) for f in x])
-    res["oidn"] = psnr(oidn)
+    oidn = [baselines._from_hwc(baselines._oidn_run(baselines._to_hwc(f), None, None), f) for f in x]
+    res["oidn"] = psnr(torch.stack(oidn))
     for name, feats in (("ours, colour", []), ("ours, no albedo", geometry)):
         t0 = time.perf_counter()
         out = denoise_frames(x, ds.features[:, feats], [ds.names[k] for k in feats],
-                             settings=DenoiseSettings(temporal_radius=1), frame_times=[float(t) for t in ds.times],
-                             samples_per_pixel=ds.samples_per_pixel)
+                             settings=DenoiseSettings(temporal_radius=1),
+                             frame_times=[float(t) for t in ds.times], samples_per_pixel=ds.samples_per_pixel)
         res[name] = psnr(out)
         res[f"{name} ms/frame"] = (time.perf_counter() - t0) * 1e3 / len(x)
     return {**res, "frames": len(x)}
@@ -80,9 +80,10 @@ def main(argv=None) -> dict:
     for name, r in res.items():
         cells = [f"{r['1spp'][m]:.2f} / {r['4spp'][m]:.2f}" for m in methods]
         margin = [r[k]["ours, colour"] - max(r[k]["raw"], r[k]["gaussian"]) for k in ("1spp", "4spp")]
-        lines.append(f"| {name} | {r['split']} | " + " | ".join(cells) + f" | {margin[0]:+.2f} / {margin[1]:+.2f} |")
-    means = [f"{np.mean([r['1spp'][m] for r in res.values()]):.2f} / {np.mean([r['4spp'][m] for r in res.values()]):.2f}"
-             for m in methods]
+        lines.append(f"| {name} | {r['split']} | " + " | ".join(cells) +
+                     f" | {margin[0]:+.2f} / {margin[1]:+.2f} |")
+    mean = lambda spp, m: np.mean([r[spp][m] for r in res.values()])  # noqa: E731
+    means = [f"{mean('1spp', m):.2f} / {mean('4spp', m):.2f}" for m in methods]
     lines.append("| mean | | " + " | ".join(means) + " | |")
     (OUT / "fewer_features.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -1008,7 +1008,8 @@ def test_without_albedo_narrower_bandwidths_and_colour_alone_frame_by_frame(mits
     assert geometry.bandwidths == adapted.bandwidths and geometry.temporal_radius == 1
     assert "no albedo" in note and "alone" not in note
     assert D.adapt_to_features(st, ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z"]) == (st, None)
-    assert D.adapt_to_features(DenoiseSettings(bandwidths=(1.0, 3.0)), ["T"])[0].bandwidths == (0.25, 0.5, 1.0, 3.0)
+    wider = D.adapt_to_features(DenoiseSettings(bandwidths=(1.0, 3.0)), ["T"])[0]
+    assert wider.bandwidths == (0.25, 0.5, 1.0, 3.0)
     crop = (slice(64, 192), slice(32, 224))
     c, _ = load_clip(mitsuba_dir, "frame", [0, 1, 2], crop=crop)
     ref = load_clip(mitsuba_dir, "reference", [0, 1, 2], crop=crop)

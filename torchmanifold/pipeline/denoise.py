@@ -19,15 +19,18 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
    set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
-   channel and the albedo stop steering (:func:`_noise_widening`).
+   channel and the albedo stop steering (:func:`_noise_widening`). Colour alone adds the pilot's
+   chromaticity (:func:`_with_chromaticity`).
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends
    them by their error, estimated by cross-validation between two interleaved halves of the samples
    (see :func:`_select_bandwidth`): wide where the light is smooth and the samples noisy, narrow at
    detail the features do not show and where more samples make the input better. Where neighbouring
    pixels share samples (a renderer's reconstruction filter splats them), the halves are squares of
-   pixels (:func:`_cv_cell`).
+   pixels (:func:`_cv_cell`). Where no albedo guides, two narrower bandwidths join
+   (:func:`adapt_to_features`): nothing else tells texture from noise.
 7. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
-   time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode.
+   time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; with
+   colour alone each frame is filtered alone (nothing tells a moving view's frames apart).
 8. **Pixel footprint**: a 1-spp pixel shows one point of its area, so thin geometry comes out dotted
    and texture speckled; the result is averaged over a pixel-sized footprint, in a tone-mapped domain
    and only among pixels of similar brightness, so a light's edge does not bleed into the dark beside
@@ -396,7 +399,8 @@ _NO_ALBEDO_NARROWER = (0.25, 0.5)
 _CHROMA_SIGMA = 0.05
 
 
-def adapt_to_features(settings: DenoiseSettings, feature_names: Sequence[str]) -> tuple[DenoiseSettings, str | None]:
+def adapt_to_features(settings: DenoiseSettings,
+                      feature_names: Sequence[str]) -> tuple[DenoiseSettings, str | None]:
     """``settings`` for frames with these feature channels, and a note where they changed.
 
     Where no albedo channel guides, the candidates reach down to a quarter of the narrowest
@@ -409,7 +413,7 @@ def adapt_to_features(settings: DenoiseSettings, feature_names: Sequence[str]) -
     if any(feature_group(names[k]) == "albedo" for k in guide):
         return settings, None
     low = min(float(b) for b in settings.bandwidths)
-    bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | {float(b) for b in settings.bandwidths}))
+    bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | set(map(float, settings.bandwidths))))
     note = f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s"
     if guide:
         return replace(settings, bandwidths=bandwidths), note

@@ -54,8 +54,9 @@ class SpacetimeFilter {
   // values/guide: the image's T frames ((T, C, H, W) / (T, D, H, W)); tau: (T,) this query's time
   // weights; query: (D, H, W); out: (C, H, W).
   // query_frame: the frame whose guide is the query's, bit for bit (-1: none).
-  SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query, int64_t query_frame,
-                  T* out, int64_t C, int64_t D, int64_t H, int64_t W, const FilterOptions& opt)
+  SpacetimeFilter(const T* values, const T* guide, const T* tau, int64_t frames, const T* query,
+                  int64_t query_frame, T* out, int64_t C, int64_t D, int64_t H, int64_t W,
+                  const FilterOptions& opt)
       : C_(C), D_(D), H_(H), W_(W), N_(H * W), opt_(opt), df_(downsample_factor(opt.sigma_s, opt.sigma_r)),
         Hl_((H + df_ - 1) / df_), Wl_((W + df_ - 1) / df_), Nl_(Hl_ * Wl_),
         bpg_(std::max<int64_t>(1, kGroupRows / df_)), groups_((Hl_ + bpg_ - 1) / bpg_),
