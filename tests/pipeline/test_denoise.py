@@ -596,6 +596,25 @@ def test_sky_keeps_its_samples():
     assert (denoise_frames(noisy, blank[:1], names) - 0.35).abs().mean() < 0.3 * (noisy - 0.35).abs().mean()
 
 
+def test_sky_from_the_normals_where_no_depth_is_given():
+    """Albedo and normals alone (OIDN's auxiliary images): where no depth says so, a normal of 0 (no sample
+    hit a surface) marks the sky, which keeps its samples as with depth; a shortened normal (some samples
+    hit) is no sky."""
+    T, H, W = 2, 48, 48
+    f, names = _plane(T, H, W)
+    f, names = f[:, :6], names[:6]  # no depth
+    truth = torch.full((T, 3, H, W), 0.7 * 0.5)
+    sky = (slice(None), slice(None), slice(0, 16))
+    f[sky] = 0.0
+    truth[sky] = (0.2 + 0.6 * (torch.arange(W) % 2).float()).view(1, 1, 1, W)
+    color = _noisy(truth, 6)
+    color[sky] = truth[sky]
+    f[:, 3:6, 16] *= 0.5  # the row below the horizon: half its samples hit the ground
+    out = denoise_frames(color, f, names, settings=DenoiseSettings(footprint_sigma=0.0))
+    torch.testing.assert_close(out[sky], truth[sky])
+    assert not torch.equal(out[:, :, 16], color[:, :, 16])
+
+
 def test_black_object_beside_dark_albedo_stays_black():
     """A black (zero-albedo) object is not demodulated: its radiance must not mix with the irradiance of
     a dark-albedo neighbour, which no guide channel tells apart (albedo 0 vs 0.07)."""
