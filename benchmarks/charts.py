@@ -313,9 +313,9 @@ def fewer_features_section() -> list:
     if not path.exists():
         return []
     return ["### Fewer features: colour alone, geometry without albedo", "",
-            "A renderer's Combined pass without its AOVs, and normals, depth and positions without albedo: "
-            "`benchmarks/validation/fewer_features.py` (OIDN from colour alone: it takes normals only "
-            "beside an albedo).", "", path.read_text().strip(), ""]
+            "A renderer's Combined pass without its AOVs; normals, depth and positions without albedo; albedo "
+            "and normal alone (OIDN's auxiliary images): `benchmarks/validation/fewer_features.py` (OIDN takes "
+            "normals only beside an albedo).", "", path.read_text().strip(), ""]
 
 
 def summary(folder: Path, rel: str) -> str:

@@ -1,16 +1,17 @@
 """Fewer features: every validation scene denoised from its colour alone (a renderer's Combined pass without
-AOVs) and from its colour and geometry without the albedo.
+AOVs), from its colour and geometry without the albedo, and from its colour, albedo and normal (OIDN's own
+auxiliary images, no depth or positions).
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/validation/fewer_features.py [--data-root DIR] [--scenes a b]
 
 Per scene, from 1 and 4 spp, over all frames (PSNR on clamped sRGB, mean over frames, this run): the raw
 input; a Gaussian blur (the best of sigma 1/2/4/8 per scene, as ``score.py``'s); Intel OIDN (``pyoidn``,
-colour alone, ``hdr=True``: OIDN takes normals only beside an albedo); ours, the ``denoise`` command's default
-(``DenoiseSettings(temporal_radius=1)``) given no feature channel (``ours, colour``) and given the scene's
-normals, depth and positions (``ours, no albedo``). :func:`torchmanifold.pipeline.denoise.adapt_to_features`
-adds two narrower bandwidth candidates to both, and filters each frame alone for colour alone, guided by the
-pilot's log radiance and chromaticity. Writes ``benchmarks/results/validation/fewer_features.json`` and
-``fewer_features.md``.
+``hdr=True``) from colour alone and from colour, albedo and normal; ours, the ``denoise`` command's default
+(``DenoiseSettings(temporal_radius=1)``) given no feature channel (``ours, colour``), the scene's normals,
+depth and positions (``ours, no albedo``) and its albedo and normal (``ours, albedo + normal``).
+:func:`torchmanifold.pipeline.denoise.adapt_to_features` adds two narrower bandwidth candidates where no
+albedo guides, and filters each frame alone for colour alone, guided by the pilot's log radiance and
+chromaticity. Writes ``benchmarks/results/validation/fewer_features.json`` and ``fewer_features.md``.
 """
 from __future__ import annotations
 
@@ -43,11 +44,24 @@ def scene_scores(path: Path, spp: int) -> dict:
     ds, _ = score.load_scene(path, spp)
     x, ref = ds.color, ds.reference
     psnr = lambda out: float(np.mean([metrics.psnr(o, r) for o, r in zip(out, ref)]))  # noqa: E731
-    geometry = [k for k, n in enumerate(ds.names) if group_of(canonical_name(n)) != "albedo"]
+    groups = [group_of(canonical_name(n)) for n in ds.names]
+    geometry = [k for k, g in enumerate(groups) if g != "albedo"]
+    albedo_normal = [k for k, g in enumerate(groups) if g in ("albedo", "N")]
     res = {"raw": psnr(x), "gaussian": max(psnr(gaussian_baseline(x, s)) for s in BLURS)}
-    oidn = [baselines._from_hwc(baselines._oidn_run(baselines._to_hwc(f), None, None), f) for f in x]
-    res["oidn"] = psnr(torch.stack(oidn))
-    for name, feats in (("ours, colour", []), ("ours, no albedo", geometry)):
+
+    def oidn(albedo: list, normal: list) -> float:
+        out = []
+        for t in range(len(x)):
+            a = baselines._to_hwc(ds.features[t, albedo].clamp(0, 1)) if albedo else None
+            n = baselines._to_hwc(ds.features[t, normal].clamp(-1, 1)) if normal else None
+            out.append(baselines._from_hwc(baselines._oidn_run(baselines._to_hwc(x[t]), a, n), x[t]))
+        return psnr(torch.stack(out))
+
+    res["oidn"] = oidn([], [])
+    res["oidn, albedo + normal"] = oidn([k for k in albedo_normal if groups[k] == "albedo"],
+                                        [k for k in albedo_normal if groups[k] == "N"])
+    for name, feats in (("ours, colour", []), ("ours, no albedo", geometry),
+                        ("ours, albedo + normal", albedo_normal)):
         t0 = time.perf_counter()
         out = denoise_frames(x, ds.features[:, feats], [ds.names[k] for k in feats],
                              settings=DenoiseSettings(temporal_radius=1),
@@ -73,8 +87,9 @@ def main(argv=None) -> dict:
         print(name, {k: {m: round(v, 2) for m, v in s.items()} for k, s in res[name].items() if k != "split"})
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "fewer_features.json").write_text(json.dumps(res, indent=1) + "\n")
-    methods = ("raw", "gaussian", "oidn", "ours, colour", "ours, no albedo")
-    lines = ["PSNR (dB, clamped sRGB, mean over all frames), from 1 spp / 4 spp; OIDN from colour alone", "",
+    methods = ("raw", "gaussian", "oidn", "ours, colour", "ours, no albedo", "oidn, albedo + normal",
+               "ours, albedo + normal")
+    lines = ["PSNR (dB, clamped sRGB, mean over all frames), from 1 spp / 4 spp; `oidn`: from colour alone", "",
              "| scene | split | " + " | ".join(methods) + " | ours, colour - best classic |",
              "|---|---|" + "---|" * (len(methods) + 1)]
     for name, r in res.items():
