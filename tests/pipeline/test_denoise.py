@@ -173,6 +173,30 @@ def test_splatted_frames_cross_validate_on_squares(clip, monkeypatch):
     assert squares > pixels + 0.3, (squares, pixels)
 
 
+def test_splatted_colour_alone_found_from_its_residuals(clip, monkeypatch):
+    """Without albedo nothing marks a plain surface; the test then reads the colour's residual about its own
+    blur: the shared clip's colour alone keeps per-pixel halves as rendered and splatted (Mitsuba's default
+    gaussian) crosses on squares, which score better than per-pixel halves there. Normals alone (no
+    albedo) take the same test."""
+    c, f, ref = clip
+    settings = DenoiseSettings(temporal_radius=1)
+    none = c.new_zeros(c.shape[0], 0, *c.shape[2:])
+    cell = lambda c, f, names: D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).cv_cell
+    assert bool((cell(c, none, []) == 1).all())
+    c, ref = _splat(c), _splat(ref)
+    assert bool((cell(c, none, []) == D._CORRELATED_CELL_NO_ALBEDO).all())
+    normals = [FEATURES.index(n) for n in ("N.X", "N.Y", "N.Z")]
+    assert bool((cell(c, _splat(f)[:, normals], ["N.X", "N.Y", "N.Z"]) == D._CORRELATED_CELL_NO_ALBEDO).all())
+    # a dim wall lit by bounce light, splatted: per-pixel halves trust the narrow candidates' shared noise
+    T, H, W = 2, 64, 64
+    truth = (0.2 + 0.1 * torch.linspace(0, 1, W)).view(1, 1, 1, W).expand(T, 3, H, W)
+    wall = _splat(_noisy(truth, seed=4) * (torch.rand(T, 1, H, W, generator=torch.Generator().manual_seed(5)) < 0.2) * 5)
+    squares = M.psnr(denoise_frames(wall, settings=settings, samples_per_pixel=1), truth)
+    monkeypatch.setattr(D, "_CORRELATED_CELL_NO_ALBEDO", 1)
+    pixels = M.psnr(denoise_frames(wall, settings=settings, samples_per_pixel=1), truth)
+    assert squares > pixels + 1.0, (squares, pixels)
+
+
 def test_selection_pooling_stops_at_the_widest_candidate(monkeypatch):
     """A frame of sparse, very bright samples has a pilot noisier than any validation scene's; its
     pooling width grows with the noise but not past the widest candidate bandwidth (the pooled errors

@@ -640,6 +640,21 @@ _PLAIN_GROUPS = ("albedo", "N", "Ncam")
 #: pairs of differences the share needs (a frame with fewer says nothing): its standard error is then at
 #: most 0.011, and the bound three of them above one half
 _MIN_SIGN_PAIRS = 2000
+#: Without albedo nothing marks a plain surface (normals alone take in texture, which pulls the share below
+#: one half), so the test runs on every row of four pixels of the colour's residual about its own Gaussian
+#: blur of this width (pixels): the blur takes out most of the texture and shading, and its taps give
+#: independent noise a share a little under one half.
+_RESIDUAL_BLUR = 1.0
+#: the bound on the residuals' share: first frames of the validation clips from 1 and 4 spp 0.47-0.51, the
+#: two Cycles clips with its Blackman-Harris filter 0.45-0.49, the six Mitsuba clips with its gaussian
+#: 0.543-0.589 (benchmarks/validation/findings.md); the bound lies between
+_CORRELATED_RESIDUAL_SIGNS = 0.525
+#: the squares there: without albedo only the narrow candidates keep texture, and inside a square they have
+#: no sample of the other half within reach, so they go unjudged. The six Mitsuba clips with its gaussian,
+#: colour alone, from 1 / 4 spp: squares of 2 / 4 / 8 px 23.57 / 26.82, 24.25 / 27.00, 24.25 / 26.33 dB
+#: (per-pixel halves 22.64 / 25.94); 8 px blurs `mi_still_textures` 2.5 dB under its raw frames from 4 spp,
+#: 4 px leaves the bounce-lit room 3 / 2 dB under a Gaussian blur (7 with per-pixel halves)
+_CORRELATED_CELL_NO_ALBEDO = 4
 
 
 def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tensor:
@@ -647,14 +662,18 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
     noise is correlated, else 1. From the samples ``e`` ``(T, 3, H, W)`` at ``valid`` pixels (bool
     ``(T, 1, H, W)``) and the guide's albedo and normal channels ``(T, F, H, W)`` of range sigmas ``(T, F)``:
     in every row (column) of four valid pixels on one plain surface, whether ``x1 - x0`` and ``x2 - x3`` have
-    one sign (a difference of 0, as between two black pixels, tells nothing)."""
+    one sign (a difference of 0, as between two black pixels, tells nothing). With no such channel (``F`` 0:
+    no albedo guides), in every row of four valid pixels of the residual about a blur
+    (:data:`_RESIDUAL_BLUR`, :data:`_CORRELATED_RESIDUAL_SIGNS`), and the squares are
+    :data:`_CORRELATED_CELL_NO_ALBEDO` wide."""
     with torch.no_grad():
         T, _, H, W = e.shape
         out = torch.ones(T, dtype=torch.int64)
-        if features.shape[1] == 0:
-            return out
-        g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
         x = luminance(torch.where(valid, e, 0.0))
+        residual = features.shape[1] == 0
+        if residual:
+            x = x - footprint_blur(x, _RESIDUAL_BLUR)
+        g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
         agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
         for dim in (-1, -2):
             n = x.shape[dim] - 3
@@ -662,17 +681,21 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
                 continue
             at = [x.narrow(dim, k, n) for k in range(4)]
             near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
-            four = [g.narrow(dim, k, n) for k in range(4)]
-            hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
-            lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
-            plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
+            if residual:
+                plain = torch.ones_like(near, dtype=torch.bool)
+            else:
+                four = [g.narrow(dim, k, n) for k in range(4)]
+                hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
+                lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
+                plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
             for k in range(4):
                 plain &= valid.narrow(dim, k, n)
             counted = plain & (near != 0) & (far != 0)
             agree += (counted & (near == far)).flatten(1).sum(1)
             total += counted.flatten(1).sum(1)
-        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > _CORRELATED_SIGNS * total)
-        return torch.where(correlated, _CORRELATED_CELL, out)
+        bound = _CORRELATED_RESIDUAL_SIGNS if residual else _CORRELATED_SIGNS
+        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > bound * total)
+        return torch.where(correlated, _CORRELATED_CELL_NO_ALBEDO if residual else _CORRELATED_CELL, out)
 
 
 def _halves_stack(e: Tensor, mask: Tensor, cell: int = 1) -> Tensor:
@@ -1062,9 +1085,13 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
-    plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS]
+    # the demodulated pixels; every pixel of a frame that has no albedo to demodulate by
+    demodulated = ~flat | flat.flatten(1).all(1).view(-1, 1, 1, 1)
+    # a plain surface needs its albedo: normals alone take in texture
+    plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS] \
+        if any(feature_group(n) == "albedo" for n in gnames) else []
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
-        _cv_cell(e, (mask > 0) & ~flat, guide[:, plain], sig[:, plain])
+        _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
     state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,
                        torch.ones(c.shape[0], dtype=torch.float64), cell, False, point, counts, fp, base)
     if settings.firefly == "none":
@@ -1093,8 +1120,6 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         return state
     state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
-        # demodulated pixels; every pixel of a frame that has no albedo to demodulate by
-        demodulated = ~flat | flat.flatten(1).all(1).view(-1, 1, 1, 1)
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
         if not gnames:  # colour alone: its hue tells apart what its luminance does not
