@@ -36,10 +36,9 @@ BLURS = (1.0, 2.0, 4.0, 8.0)
 
 def scene_scores(path: Path, spp: int) -> dict:
     from torchmanifold import metrics
+    from torchmanifold.features import canonical_name, group_of
     from torchmanifold.pipeline import DenoiseSettings, denoise_frames
     from torchmanifold.pipeline.progressive import gaussian_baseline
-
-    from torchmanifold.features import canonical_name, group_of
 
     ds, _ = score.load_scene(path, spp)
     x, ref = ds.color, ds.reference
