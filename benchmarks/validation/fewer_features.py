@@ -45,22 +45,22 @@ def scene_scores(path: Path, spp: int) -> dict:
     psnr = lambda out: float(np.mean([metrics.psnr(o, r) for o, r in zip(out, ref)]))  # noqa: E731
     groups = [group_of(canonical_name(n)) for n in ds.names]
     geometry = [k for k, g in enumerate(groups) if g != "albedo"]
-    albedo_normal = [k for k, g in enumerate(groups) if g in ("albedo", "N")]
+    albedo = [k for k, g in enumerate(groups) if g == "albedo"]
+    normal = [k for k, g in enumerate(groups) if g == "N"]
     res = {"raw": psnr(x), "gaussian": max(psnr(gaussian_baseline(x, s)) for s in BLURS)}
 
-    def oidn(albedo: list, normal: list) -> float:
+    def oidn(alb: list, nrm: list) -> float:
         out = []
         for t in range(len(x)):
-            a = baselines._to_hwc(ds.features[t, albedo].clamp(0, 1)) if albedo else None
-            n = baselines._to_hwc(ds.features[t, normal].clamp(-1, 1)) if normal else None
+            a = baselines._to_hwc(ds.features[t, alb].clamp(0, 1)) if alb else None
+            n = baselines._to_hwc(ds.features[t, nrm].clamp(-1, 1)) if nrm else None
             out.append(baselines._from_hwc(baselines._oidn_run(baselines._to_hwc(x[t]), a, n), x[t]))
         return psnr(torch.stack(out))
 
     res["oidn"] = oidn([], [])
-    res["oidn, albedo + normal"] = oidn([k for k in albedo_normal if groups[k] == "albedo"],
-                                        [k for k in albedo_normal if groups[k] == "N"])
+    res["oidn, albedo + normal"] = oidn(albedo, normal)
     for name, feats in (("ours, colour", []), ("ours, no albedo", geometry),
-                        ("ours, albedo + normal", albedo_normal)):
+                        ("ours, albedo + normal", albedo + normal)):
         t0 = time.perf_counter()
         out = denoise_frames(x, ds.features[:, feats], [ds.names[k] for k in feats],
                              settings=DenoiseSettings(temporal_radius=1),
@@ -88,7 +88,8 @@ def main(argv=None) -> dict:
     (OUT / "fewer_features.json").write_text(json.dumps(res, indent=1) + "\n")
     methods = ("raw", "gaussian", "oidn", "ours, colour", "ours, no albedo", "oidn, albedo + normal",
                "ours, albedo + normal")
-    lines = ["PSNR (dB, clamped sRGB, mean over all frames), from 1 spp / 4 spp; `oidn`: from colour alone", "",
+    lines = ["PSNR (dB, clamped sRGB, mean over all frames), from 1 spp / 4 spp; `oidn`: from colour alone",
+             "",
              "| scene | split | " + " | ".join(methods) + " | ours, colour - best classic |",
              "|---|---|" + "---|" * (len(methods) + 1)]
     for name, r in res.items():

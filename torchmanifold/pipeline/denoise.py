@@ -409,8 +409,8 @@ def adapt_to_features(settings: DenoiseSettings,
     moving ball (-1.2 / -1.4 dB from 4 spp on two validation scenes), though it gained 0.7-0.9 dB on still
     views and +0.21 / -0.16 on average (frames 0-2, from 1 / 4 spp, findings.md)."""
     names = list(feature_names)
-    guide = _select_guide(names, settings)
-    if any(feature_group(names[k]) == "albedo" for k in guide):
+    guide = [names[k] for k in _select_guide(names, settings)]
+    if _albedo_guides(guide):
         return settings, None
     low = min(float(b) for b in settings.bandwidths)
     bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | set(map(float, settings.bandwidths))))
@@ -420,6 +420,11 @@ def adapt_to_features(settings: DenoiseSettings,
     return (replace(settings, bandwidths=bandwidths, temporal_radius=0),
             note + "; no feature channel guides: each frame filtered alone (nothing tells a moving view's "
                    "frames apart)")
+
+
+def _albedo_guides(guide_names: Sequence[str]) -> bool:
+    """Whether an albedo channel is among the guide's: the texture the guide can tell from noise."""
+    return any(feature_group(n) == "albedo" for n in guide_names)
 
 
 def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
@@ -673,7 +678,8 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
         residual = features.shape[1] == 0
         if residual:
             x = x - footprint_blur(x, _RESIDUAL_BLUR)
-        g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
+        else:
+            g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
         agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
         for dim in (-1, -2):
             n = x.shape[dim] - 3
@@ -1088,8 +1094,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     # the demodulated pixels; every pixel of a frame that has no albedo to demodulate by
     demodulated = ~flat | flat.flatten(1).all(1).view(-1, 1, 1, 1)
     # a plain surface needs its albedo: normals alone take in texture
-    plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS] \
-        if any(feature_group(n) == "albedo" for n in gnames) else []
+    plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS] if _albedo_guides(gnames) \
+        else []
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
         _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
     state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,

@@ -354,8 +354,8 @@ class ProgressiveRenderer:
                 color, feats, emis = res.color, res.features, res.emission
             # the running estimate is a far better firefly pilot than one sample
             pilot = None if self._sums is None else self.estimate(self.times[k])[None]
-            return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot, k_ff,
-                                  own_pixels=True)
+            return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot,
+                                  k_ff, own_pixels=True)
 
         def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
             state = FrameState.cat([s.result() for s in states])
