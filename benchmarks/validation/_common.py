@@ -131,10 +131,20 @@ class Timer:
         self._cpu0 = now
 
 
+def _size(v: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in v.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 256x256, got {v!r}") from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"expected a size of at least 8x8, got {v!r}")
+    return w, h
+
+
 def clip_main(description: str, clips, render_clip, argv=None) -> None:
     """A renderer script's command line: render the named clips (default all of ``clips``) with
-    ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=...) -> clip folder`` and list each finished
-    one in READY."""
+    ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=..., size=...) -> clip folder`` and list
+    each finished one in READY."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("clips", nargs="*", default=list(clips), help=f"clips to render (default all: {list(clips)})")
     ap.add_argument("--out", type=Path, default=Path("/work/valdata"))
@@ -145,12 +155,16 @@ def clip_main(description: str, clips, render_clip, argv=None) -> None:
                     help="the renderer's own pixel filter and clamping (Mitsuba: gaussian; Cycles: Blackman-Harris "
                          "1.5 px, indirect clamp 10), as a new user's renders have them, instead of the set's box "
                          "filter without clamping (a probe of the denoiser, not part of the set)")
+    ap.add_argument("--size", type=_size, default=None, metavar="WxH",
+                    help="render at WxH instead of the clip's own size (a probe at another resolution, e.g. "
+                         "the 256x256 of the clips the denoiser is scored on outside this set)")
     args = ap.parse_args(argv)
     for name in args.clips:
         if name not in clips:
             ap.error(f"unknown clip {name!r}; known: {list(clips)}")
     for name in args.clips:
-        out = render_clip(name, args.out, args.frames, args.ref_spp, renderer_defaults=args.renderer_defaults)
+        out = render_clip(name, args.out, args.frames, args.ref_spp, renderer_defaults=args.renderer_defaults,
+                          size=args.size)
         if not args.no_ready:
             mark_ready(out)
         print(f"{name}: {out}")

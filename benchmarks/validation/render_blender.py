@@ -530,16 +530,18 @@ def render_to(scene, path: Path, spp: int, seed: int) -> None:
 
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
-                ref_chunk: int = 128, renderer_defaults: bool = False) -> Path:
+                ref_chunk: int = 128, renderer_defaults: bool = False,
+                size: tuple[int, int] | None = None) -> Path:
     """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Cycles' own pixel filter
-    (Blackman-Harris, 1.5 px) and indirect clamp (10) instead of box and none."""
+    (Blackman-Harris, 1.5 px) and indirect clamp (10) instead of box and none; ``size``: (width, height)
+    instead of the clip's own (a probe at another resolution)."""
     builder, clip_id, hazards, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:
         raise ValueError(f"ref_spp {ref_spp} must be a multiple of ref_chunk {ref_chunk}")
     out = Path(out_root) / name
     out.mkdir(parents=True, exist_ok=True)
-    width, height = SIZE.get(name, (C.WIDTH, C.HEIGHT))
+    width, height = size or SIZE.get(name, (C.WIDTH, C.HEIGHT))
     scene = reset()
     setup_render(scene, width, height, renderer_defaults)
     animate, desc, moving = builder(scene, frames)

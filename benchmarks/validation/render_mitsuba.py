@@ -478,15 +478,17 @@ def _channels(scene) -> dict:
 
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
-                ref_chunk: int = 128, renderer_defaults: bool = False) -> Path:
+                ref_chunk: int = 128, renderer_defaults: bool = False,
+                size: tuple[int, int] | None = None) -> Path:
     """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Mitsuba's own reconstruction
-    filter (gaussian, which splats each sample into the pixels around) instead of box."""
+    filter (gaussian, which splats each sample into the pixels around) instead of box; ``size``: (width, height)
+    instead of the clip's own (a probe at another resolution)."""
     builder, clip_id, hazards, moving, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:
         raise ValueError(f"ref_spp {ref_spp} must be a multiple of ref_chunk {ref_chunk}")
     variant = pick_variant()
-    width, height = SIZE.get(name, (C.WIDTH, C.HEIGHT))
+    width, height = size or SIZE.get(name, (C.WIDTH, C.HEIGHT))
     out = Path(out_root) / name
     out.mkdir(parents=True, exist_ok=True)
     noisy = mi.load_dict({"type": "aov", "aovs": AOVS, "integrator": {"type": "path", "max_depth": MAX_DEPTH}})
