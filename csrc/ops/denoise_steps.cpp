@@ -15,7 +15,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def("_normalise_guard_bounds(Tensor num, Tensor den, Tensor fallback, Tensor hi, Tensor nlo, int radius) "
         "-> Tensor");
   // denoise._footprint_average after its knee: x (T, 3, H, W) clamped at 0 (NaN kept), k (T,) the tone-mapping
-  // knee of each frame (PyTorch computes it, so the frame means are its bits) -> (T, 3, H, W).
+  // knee of each frame (PyTorch computes it, so the frame means are its bits) -> (T, 3, H, W); a light's border
+  // between adjacent pixels drops the range weight as there.
   m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma) -> Tensor");
   // denoise._log_radiance's 3x3 Kuwahara filter (replicate borders) of x (N, C, H, W) -> (N, C, H, W).
   m.def("_kuwahara3(Tensor x) -> Tensor");

@@ -353,9 +353,10 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
             static_cast<T>(std::exp(-static_cast<double>(dx * dx + dy * dy) / (2 * sigma * sigma)));
     const T inv_den = static_cast<T>(2 * (range_sigma * range_sigma));
     const int64_t Hp = H + 2 * r, Wp = W + 2 * r;
-    Scratch<T> yb, ypb;  // y (3 planes) and its luminance; the same padded by r
-    yb.resize(4 * HW);
-    ypb.resize(4 * Hp * Wp);
+    // y (3 planes), its luminance and how many adjacent pixels are above the knee; the same padded by r
+    Scratch<T> yb, ypb;
+    yb.resize(5 * HW);
+    ypb.resize(5 * Hp * Wp);
     T* yp = ypb.data();
     for (int64_t t = 0; t < Tn; ++t) {
       const T* px = x.data_ptr<T>() + t * 3 * HW;
@@ -372,8 +373,16 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
           y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
         }
       });
-      // replicate-padded copy of y and its luminance, so the window loops run without clamping
-      for (int64_t c = 0; c < 4; ++c)
+      const T* yl = y + 3 * HW;
+      T* cnt = y + 4 * HW;
+      auto above = [&](int64_t i, int64_t j) {  // none beyond the border
+        return (i >= 0 && i < H && j >= 0 && j < W && yl[i * W + j] > T(0.5)) ? T(1) : T(0);
+      };
+      for (int64_t i = 0; i < H; ++i)
+        for (int64_t j = 0; j < W; ++j)
+          cnt[i * W + j] = above(i - 1, j) + above(i + 1, j) + above(i, j - 1) + above(i, j + 1);
+      // replicate-padded copy of y, its luminance and the counts, so the window loops run without clamping
+      for (int64_t c = 0; c < 5; ++c)
         for (int64_t i = 0; i < Hp; ++i) {
           const T* srow = y + c * HW + clampi(i - r, H) * W;
           T* prow = yp + (c * Hp + i) * Wp;
@@ -399,9 +408,21 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
               const T* __restrict n1 = n0 + Hp * Wp;
               const T* __restrict n2 = n1 + Hp * Wp;
               const T* __restrict nl = n2 + Hp * Wp;
-              for (int64_t xx = 0; xx < W; ++xx) {
-                const T d = nl[xx] - ly[xx];
-                wt[xx] = wsp * exp_lanes(-(d * d) / inv_den);
+              if (std::abs(dx) + std::abs(dy) == 1) {
+                // a light's border through the dimmer of two adjacent pixels: no range weight (NaN fails)
+                const T* __restrict nc = nl + Hp * Wp;
+                const T* __restrict oc = ly + Hp * Wp;
+                for (int64_t xx = 0; xx < W; ++xx) {
+                  const T d = nl[xx] - ly[xx];
+                  const T dimmer = nl[xx] < ly[xx] ? nc[xx] : oc[xx];
+                  const bool border = d == d && (nl[xx] > T(0.5) || ly[xx] > T(0.5)) && dimmer >= T(2);
+                  wt[xx] = border ? wsp : wsp * exp_lanes(-(d * d) / inv_den);
+                }
+              } else {
+                for (int64_t xx = 0; xx < W; ++xx) {
+                  const T d = nl[xx] - ly[xx];
+                  wt[xx] = wsp * exp_lanes(-(d * d) / inv_den);
+                }
               }
               accumulate_weighted(a0, a1, a2, den, wt, n0, n1, n2, W);
             }
