@@ -1258,10 +1258,19 @@ _FOOTPRINT_KNEE = 3.0
 _FOOTPRINT_RANGE = 0.3
 
 
+def _light_share(ly: Tensor) -> Tensor:
+    """How much of a light a pixel of tone-mapped luminance ``ly`` is: 0 up to the footprint's knee
+    (``ly = 0.5``), 1 from three times the knee (``ly = 0.75``), continuous in between so that no rounding
+    flips it. Frames 0-2 of the validation set against a step at the knee: -0.005 / -0.007 dB; rising to
+    ``ly = 1`` instead: -0.011 / -0.021, and the test's border row shows 0.83 in display range (0.99 here,
+    1.00 with the step)."""
+    return (4.0 * ly - 2.0).clamp(0.0, 1.0)
+
+
 def _light_neighbours(ly: Tensor) -> Tensor:
-    """How many of each pixel's four adjacent pixels are above the footprint's knee (``ly > 0.5``, ``ly``
-    ``(T, 1, H, W)`` the tone-mapped luminance; none beyond the border), as ``ly``'s dtype."""
-    b = torch.nn.functional.pad((ly > 0.5).to(ly.dtype), (1, 1, 1, 1))
+    """The light shares (:func:`_light_share`) of each pixel's four adjacent pixels summed (``ly``
+    ``(T, 1, H, W)`` the tone-mapped luminance; none beyond the border)."""
+    b = torch.nn.functional.pad(_light_share(ly), (1, 1, 1, 1))
     return b[..., :-2, 1:-1] + b[..., 2:, 1:-1] + b[..., 1:-1, :-2] + b[..., 1:-1, 2:]
 
 
@@ -1277,15 +1286,17 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
 
     A pixel through which a light's border runs holds part of the light, many times brighter than the
     wall, and its one sample shows all of it or none: such a border looks jagged, and in a display-range
-    image every pixel of it should show the light. Two adjacent pixels, one above the knee (``y > 0.5``),
-    therefore average without the range weight where the dimmer of them has at least two adjacent pixels
-    above the knee: the border runs through its row or column. Beside a border that runs between two rows
-    of pixels the dim pixels have one such neighbour and keep the range weight (no halo). Frames 0-2 of the
-    validation set, the ``denoise`` default, from 1 / 4 spp: +0.07 / +0.07 dB, no scene below -0.01
-    (``mi_dark_glossy`` +0.29 / +0.21, ``mi_ceiling_light`` +0.25 / +0.28; rendered at 256x256 +0.67 /
-    +0.41). Without the count, at a range sigma of 0.6: +0.08 / +0.04 and a 1-px halo where a border runs
-    between rows; for every adjacent pair: ``bl_moving_metal``'s checkered floor -0.23 from 1 spp
-    (``benchmarks/validation/findings.md``).
+    image every pixel of it should show the light. Two adjacent pixels, one of them a light (far above
+    the knee ``y = 0.5``), therefore average without the range weight where the dimmer of them has two
+    adjacent lights: the border runs through its row or column. Beside a border that runs between two
+    rows of pixels the dim pixels have one such neighbour and keep the range weight (no halo). How much of
+    a light each pixel is rises continuously above the knee (:func:`_light_share`), and the range weight
+    gives way by the pair's share times the dimmer's lit neighbours beyond one, so rounding never flips it.
+    Frames 0-2 of the validation set, the ``denoise`` default, from 1 / 4 spp: +0.06 / +0.07 dB, no scene
+    below -0.01 (``mi_dark_glossy`` +0.29 / +0.18, ``mi_ceiling_light`` +0.25 / +0.25; rendered at 256x256
+    +0.67 / +0.39). Without the neighbours, at a range sigma of 0.6: +0.08 / +0.04 and a 1-px halo where a
+    border runs between rows; for every adjacent pair: ``bl_moving_metal``'s checkered floor -0.23 from
+    1 spp (``benchmarks/validation/findings.md``).
     """
     if sigma <= 0:
         return x
@@ -1307,7 +1318,8 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
             w = torch.exp(-(nb[:, 3:4] - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
             if abs(dx) + abs(dy) == 1:  # a light's border through the dimmer one: no range weight
                 dimmer = torch.where(nb[:, 3:4] < ly, nb[:, 4:5], count)
-                w = torch.where((torch.maximum(nb[:, 3:4], ly) > 0.5) & (dimmer >= 2), 1.0, w)
+                border = _light_share(torch.maximum(nb[:, 3:4], ly)) * (dimmer - 1.0).clamp(0.0, 1.0)
+                w = w + (1.0 - w) * border
             w = math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)) * w
             num += w * nb[:, :3]
             den += w

@@ -34,6 +34,13 @@ inline T lum(T r, T g, T b) {
   return T(0.2126) * r + T(0.7152) * g + T(0.0722) * b;
 }
 
+// denoise._light_share: 4 y - 2 clamped to [0, 1] (NaN kept, as torch.clamp)
+template <typename T>
+inline T light_share(T y) {
+  const T v = T(4) * y - T(2);
+  return v < T(0) ? T(0) : (v > T(1) ? T(1) : v);
+}
+
 // max that propagates NaN from either side, as torch.maximum does
 template <typename T>
 inline T nan_max(T a, T b) {
@@ -375,13 +382,13 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
       });
       const T* yl = y + 3 * HW;
       T* cnt = y + 4 * HW;
-      auto above = [&](int64_t i, int64_t j) {  // none beyond the border
-        return (i >= 0 && i < H && j >= 0 && j < W && yl[i * W + j] > T(0.5)) ? T(1) : T(0);
+      auto lit = [&](int64_t i, int64_t j) {  // the light share; none beyond the border
+        return (i >= 0 && i < H && j >= 0 && j < W) ? light_share(yl[i * W + j]) : T(0);
       };
       for (int64_t i = 0; i < H; ++i)
         for (int64_t j = 0; j < W; ++j)
-          cnt[i * W + j] = above(i - 1, j) + above(i + 1, j) + above(i, j - 1) + above(i, j + 1);
-      // replicate-padded copy of y, its luminance and the counts, so the window loops run without clamping
+          cnt[i * W + j] = lit(i - 1, j) + lit(i + 1, j) + lit(i, j - 1) + lit(i, j + 1);
+      // replicate-padded copy of y, its luminance and the light shares: the window loops run without clamping
       for (int64_t c = 0; c < 5; ++c)
         for (int64_t i = 0; i < Hp; ++i) {
           const T* srow = y + c * HW + clampi(i - r, H) * W;
@@ -409,14 +416,17 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
               const T* __restrict n2 = n1 + Hp * Wp;
               const T* __restrict nl = n2 + Hp * Wp;
               if (std::abs(dx) + std::abs(dy) == 1) {
-                // a light's border through the dimmer of two adjacent pixels: no range weight (NaN fails)
+                // a light's border through the dimmer of two adjacent pixels: the range weight gives way
                 const T* __restrict nc = nl + Hp * Wp;
                 const T* __restrict oc = ly + Hp * Wp;
                 for (int64_t xx = 0; xx < W; ++xx) {
                   const T d = nl[xx] - ly[xx];
+                  const T w = exp_lanes(-(d * d) / inv_den);
                   const T dimmer = nl[xx] < ly[xx] ? nc[xx] : oc[xx];
-                  const bool border = d == d && (nl[xx] > T(0.5) || ly[xx] > T(0.5)) && dimmer >= T(2);
-                  wt[xx] = border ? wsp : wsp * exp_lanes(-(d * d) / inv_den);
+                  const T over = dimmer - T(1);
+                  const T border = light_share(nan_max(nl[xx], ly[xx])) *
+                                   (over < T(0) ? T(0) : (over > T(1) ? T(1) : over));
+                  wt[xx] = wsp * (w + (T(1) - w) * border);
                 }
               } else {
                 for (int64_t xx = 0; xx < W; ++xx) {
