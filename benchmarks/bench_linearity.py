@@ -93,10 +93,12 @@ def main(argv=None) -> dict:
     for _ in range(a.rounds):
         for key in data:
             times[key].append(_step(*data[key], key[1]))
-    med = {k: (statistics.median(p for p, _ in v), statistics.median(f for _, f in v)) for k, v in times.items()}
+    med = {k: (statistics.median(p for p, _ in v), statistics.median(f for _, f in v))
+           for k, v in times.items()}
+    order = sorted(data, key=lambda k: (k[1] != 1, k[0], k[1]))  # the sizes at +-1 first, then the windows
     rows = [{"size": s, "radius": r, "frames": 2 * r + 1, "pixels": s * s,
              "prepare_ms": 1e3 * med[(s, r)][0], "filter_ms": 1e3 * med[(s, r)][1],
-             "step_ms": 1e3 * sum(med[(s, r)])} for s, r in sorted(data, key=lambda k: (k[1] != 1, k[0], k[1]))]
+             "step_ms": 1e3 * sum(med[(s, r)])} for s, r in order]
     by_size = [r for r in rows if r["radius"] == 1]
     by_window = sorted([r for r in rows if r["size"] == 256], key=lambda r: r["frames"])
     fit = np.polyfit([r["frames"] for r in by_window], [r["filter_ms"] for r in by_window], 1)
@@ -118,10 +120,11 @@ def main(argv=None) -> dict:
     (RESULTS / "linearity.json").write_text(json.dumps(out, indent=1))
     _chart(out, RESULTS / "linearity.png")
     for r in rows:
-        print(f"{r['size']:4d}^2 +-{r['radius']}: prepare {r['prepare_ms']:7.1f} ms  filter {r['filter_ms']:7.1f} ms"
-              f"  step {r['step_ms']:7.1f} ms  ({r['step_ms'] * 1e3 / r['pixels']:.2f} us/pixel)")
-    print(f"pixels^{out['pixel_slope_step']:.3f} from 128^2 up ({out['pixel_slope_step_all']:.3f} from 64^2); "
-          f"window filter {fit[0]:.1f} ms per frame + {fit[1]:.1f} ms, largest misfit {resid:.1%}")
+        print(f"{r['size']:4d}^2 +-{r['radius']}: prepare {r['prepare_ms']:7.1f} ms  "
+              f"filter {r['filter_ms']:7.1f} ms  step {r['step_ms']:7.1f} ms  "
+              f"({r['step_ms'] * 1e3 / r['pixels']:.2f} us/pixel)")
+    print(f"pixels^{out['pixel_slope_step']:.3f} from 128^2 up ({out['pixel_slope_step_all']:.3f} from "
+          f"64^2); window filter {fit[0]:.1f} ms per frame + {fit[1]:.1f} ms, largest misfit {resid:.1%}")
     return out
 
 
@@ -149,7 +152,8 @@ def _chart(out: dict, path: Path) -> None:
     b.set_ylabel("ms")
     b.legend()
     b.set_title(f"{out['window_fit_ms_per_frame']:.1f} ms per window frame")
-    fig.suptitle(f"denoise frame step, {out['machine']['threads']} thread(s), medians of {out['rounds']} rounds")
+    threads, rounds = out["machine"]["threads"], out["rounds"]
+    fig.suptitle(f"denoise frame step, {threads} thread(s), medians of {rounds} rounds")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
