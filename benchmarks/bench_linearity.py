@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -85,8 +86,9 @@ def main(argv=None) -> dict:
     import torch
 
     torch.set_num_threads(a.threads)
-    configs = [("pixels", s, 1) for s in SIZES] + [("window", 256, r) for r in RADII if r != 1]
-    data = {(s, r): _frames(s, 2 * r + 1) for _, s, r in configs}
+    # (size, radius): the sizes at +-1, then the other windows at 256x256
+    keys = [(s, 1) for s in SIZES] + [(256, r) for r in RADII if r != 1]
+    data = {(s, r): _frames(s, 2 * r + 1) for s, r in keys}
     for key in data:  # warm-up: first calls build the ops' workspaces
         _step(*data[key], key[1])
     times = {key: [] for key in data}
@@ -95,10 +97,9 @@ def main(argv=None) -> dict:
             times[key].append(_step(*data[key], key[1]))
     med = {k: (statistics.median(p for p, _ in v), statistics.median(f for _, f in v))
            for k, v in times.items()}
-    order = sorted(data, key=lambda k: (k[1] != 1, k[0], k[1]))  # the sizes at +-1 first, then the windows
     rows = [{"size": s, "radius": r, "frames": 2 * r + 1, "pixels": s * s,
              "prepare_ms": 1e3 * med[(s, r)][0], "filter_ms": 1e3 * med[(s, r)][1],
-             "step_ms": 1e3 * sum(med[(s, r)])} for s, r in order]
+             "step_ms": 1e3 * sum(med[(s, r)])} for s, r in data]
     by_size = [r for r in rows if r["radius"] == 1]
     by_window = sorted([r for r in rows if r["size"] == 256], key=lambda r: r["frames"])
     fit = np.polyfit([r["frames"] for r in by_window], [r["filter_ms"] for r in by_window], 1)
@@ -106,7 +107,7 @@ def main(argv=None) -> dict:
     resid = max(abs(p - r["filter_ms"]) / r["filter_ms"] for p, r in zip(pred, by_window))
     out = {
         "machine": {"cpu": platform.processor() or platform.machine(), "threads": a.threads,
-                    "load": list(__import__("os").getloadavg())},
+                    "load": list(os.getloadavg())},
         "rounds": a.rounds,
         "rows": rows,
         # time ~ pixels^slope: 1 is linear; the fixed per-call cost pulls small frames' slope below 1
