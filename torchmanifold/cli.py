@@ -48,7 +48,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                    help="how sure the evidence must be before a bandwidth is left out at a pixel, in "
                         "standard errors; 0 keeps the least-error bandwidth alone (%(default)s)")
     g.add_argument("--tree-height", type=int, default=tree_height,
-                   help="manifold tree height (1 to %d; default %%(default)s)" % MAX_TREE_HEIGHT)
+                   help="manifold tree height at the base bandwidth, one level more per doubling of a "
+                        "wider one (1 to %d; default %%(default)s)" % MAX_TREE_HEIGHT)
     g.add_argument("--guide", nargs="+", default=None, metavar="CHANNEL",
                    help="feature channels that guide the filter (default: albedo, normals, position or depth)")
     g.add_argument("--guide-sigma", action="append", metavar="NAME=SIGMA",

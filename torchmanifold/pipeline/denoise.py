@@ -54,7 +54,8 @@ import torch
 from torch import Tensor, nn
 
 from torchmanifold import features as feature_table
-from torchmanifold._checks import check_choice, check_int, check_nonnegative, check_positive, check_tree_height
+from torchmanifold._checks import (MAX_TREE_HEIGHT, check_choice, check_int, check_nonnegative,
+                                   check_positive, check_tree_height)
 from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
 from torchmanifold.timewindow import bracket, frame_at, interpolate, window
@@ -253,8 +254,16 @@ class DenoiseSettings:
             and world position ``P`` (or depth ``Z`` without ``P``): the sampled directions ``D``/``S`` are
             one random draw per sample and only add noise to the range weights (measured).
         guide_sigmas: range sigma per guide channel (``{name: sigma}`` overrides); missing ones default.
-        tree_height: manifold tree height: 3 measured best on the tuning part (2: -0.13 dB, 4: the same;
-            over the whole set from 1 / 4 spp, 3 beats 2 by 0.27 / 0.40 dB, at about twice the op's time).
+        tree_height: manifold tree height at ``sigma_s``: 3 measured best on the tuning part (2: -0.13 dB, 4:
+            the same; over the whole set from 1 / 4 spp, 3 beats 2 by 0.27 / 0.40 dB, at about twice the op's
+            time).
+        levels_per_doubling: levels the tree gains per doubling of a bandwidth beyond ``sigma_s``
+            (:func:`tree_height_at`). A wider kernel mixes more of the pixels that lie far from every
+            manifold, whose values it takes from the nearest manifolds': with one height for all, the
+            widest candidate bled a cube's top face into its side (``findings.md``). 1 against 0, frames
+            0-2 from 1 / 4 spp: the validation set +0.08 / +0.08 dB (``bl_moving_metal`` -0.11 / -0.07, no
+            other scene below -0.02), five of its clips rendered at 256x256 +0.18 / +0.13, for 1.2 times
+            the frame step's time per frame and 1.3 in space-time (``findings.md``).
         firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
             biased dark), or ``"none"``.
         firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor). 5 since the blend
@@ -298,6 +307,7 @@ class DenoiseSettings:
     guide: Sequence[str] | None = None
     guide_sigmas: Mapping[str, float] = field(default_factory=dict)
     tree_height: int = 3
+    levels_per_doubling: int = 1
     firefly: str = "clamp"
     firefly_k: float = 5.0
     footprint_sigma: float | None = None
@@ -330,6 +340,7 @@ class DenoiseSettings:
         check_choice("mode", self.mode, MODES)
         check_int("temporal_radius", self.temporal_radius, min=0)
         check_int("albedo_radius", self.albedo_radius, min=0)
+        check_int("levels_per_doubling", self.levels_per_doubling, min=0)
         check_tree_height(self.tree_height)
         for k, v in dict(self.guide_sigmas).items():
             check_positive(f"guide_sigmas[{k!r}]", v)
@@ -462,6 +473,17 @@ def _window_max(x: Tensor, r: int, dim: int) -> Tensor:
 #: Largest output of the bandwidths filtered in one call, in elements (256 MB of float32: four 16-channel
 #: bandwidths of a 1 MP frame); a larger frame filters one bandwidth at a time.
 _BANDWIDTHS_AT_ONCE = 1 << 26
+#: the doublings that add tree levels (:func:`tree_height_at`): up to the default's widest candidate, 4
+#: times ``sigma_s``; wider ones were not measured, and every level doubles the op's time
+_MAX_DOUBLINGS = 2
+
+
+def tree_height_at(settings: DenoiseSettings, bandwidth: float) -> int:
+    """The manifold tree's height for a spatial sigma of ``bandwidth`` times ``sigma_s``:
+    ``settings.tree_height``, plus ``settings.levels_per_doubling`` for each whole doubling beyond 1
+    (a half step rounds down), for at most :data:`_MAX_DOUBLINGS` doublings."""
+    doublings = min(_MAX_DOUBLINGS, max(0, math.floor(math.log2(float(bandwidth)) + 1e-9)))
+    return min(MAX_TREE_HEIGHT, settings.tree_height + settings.levels_per_doubling * doublings)
 
 
 class _Filter:
@@ -473,9 +495,10 @@ class _Filter:
 
     def __init__(self, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
                  frame_times: list[float], query_times: list[float],
-                 sigma_s: float | None = None, range_scale: float = 1.0):
+                 sigma_s: float | None = None, range_scale: float = 1.0, tree_height: int | None = None):
         self.g, self.gs, self.st = guide, sigmas * range_scale, settings
         self.sigma_s = settings.sigma_s if sigma_s is None else sigma_s
+        self.tree_height = settings.tree_height if tree_height is None else tree_height
         self.ft, self.qt = frame_times, query_times
 
     def _window(self, q: float) -> list[int]:
@@ -492,32 +515,40 @@ class _Filter:
 
     @staticmethod
     def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
-        """:meth:`apply` of filters that differ in ``sigma_s`` alone: per query, one op call for all of them
-        (on CPU their images share the threads; the bits of one call each), as many at once as
-        ``_BANDWIDTHS_AT_ONCE`` allows."""
+        """:meth:`apply` of filters that differ in ``sigma_s`` and ``tree_height`` alone: per query and
+        height, one op call for all of them (on CPU their images share the threads; the bits of one call
+        each), as many at once as ``_BANDWIDTHS_AT_ONCE`` allows."""
         from torchmanifold.ops import temporal_adaptive_manifold_filter
         from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
         from torchmanifold.ops.temporal import _spacetime_bandwidths
 
+        heights = sorted({f.tree_height for f in filters})
+        if len(heights) > 1:
+            out = [None] * len(filters)
+            for h in heights:
+                ks = [k for k, f in enumerate(filters) if f.tree_height == h]
+                for k, y in zip(ks, _Filter.apply_each([filters[k] for k in ks], x)):
+                    out[k] = y
+            return out
         per_call = max(1, _BANDWIDTHS_AT_ONCE // max(1, x[0].numel()))
         if len(filters) > per_call:
             return [y for i in range(0, len(filters), per_call) for y in _Filter.apply_each(filters[i:i + per_call], x)]
-        f0, st = filters[0], filters[0].st
+        f0, st, height = filters[0], filters[0].st, heights[0]
         sigmas = [f.sigma_s for f in filters]
         outs = []  # per query (K, C, H, W)
         for q in f0.qt:
             k = frame_at(f0.ft, q)
             if st.temporal_radius == 0 and k is not None:
-                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, st.tree_height, f0.gs[k])[:, 0]
+                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, height, f0.gs[k])[:, 0]
             else:
                 ids = f0._window(q)
                 xw, gw, ftw = _frames(x, ids)[None], _frames(f0.g, ids)[None], [f0.ft[i] for i in ids]
                 if st.mode == "spacetime":
-                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, st.tree_height,
+                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, height,
                                               f0._sigmas_at(q))[:, 0, 0]
                 else:  # the window mean, then the spatial filter, per bandwidth
                     y = torch.stack([temporal_adaptive_manifold_filter(
-                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=st.tree_height,
+                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=height,
                         guide_sigmas=f0._sigmas_at(q))[0, 0] for s in sigmas])
             outs.append(y)
         return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
@@ -768,7 +799,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     cv_times = qt if at_frames else ft
     idx = query_frames if at_frames else list(range(T))
     preds, fulls, cv_outs = [], [], []
-    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale) for b in st.bandwidths]
+    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale,
+                       tree_height_at(st, b)) for b in st.bandwidths]
     stack = _halves_stack(e, mask, cell)
     # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
     windowed = not filters[0]._per_frame() and e.dtype != torch.float64
@@ -781,7 +813,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         if at_frames:
             fulls.append(cv_out)
         else:
-            fulls.append(_Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale)(e, mask))
+            wide = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
+            fulls.append(wide(e, mask))
     if level is None:
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
@@ -1153,8 +1186,9 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = at_queries(s.level)
     else:
         if len(settings.bandwidths) == 1:
-            sigma = base * float(settings.bandwidths[0])
-            filt = _Filter(s.guide, s.sigmas, settings, ft, qt, sigma, range_scale)
+            b = float(settings.bandwidths[0])
+            filt = _Filter(s.guide, s.sigmas, settings, ft, qt, base * b, range_scale,
+                           tree_height_at(settings, b))
         else:
             def filt(values, mask):
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
