@@ -9,11 +9,12 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def(
       "adaptive_manifold(Tensor values, Tensor guide, float sigma_s, float sigma_r, int tree_height, "
       "int power_iterations, bool adjust_outliers) -> Tensor");
-  // Private (the denoiser's bandwidth candidates): the same filter at each of K spatial sigmas ->
-  // (K, B, C, H, W), each slice the bits adaptive_manifold gives at that sigma. The CPU kernel runs
+  // Private (the denoiser's bandwidth candidates): the same filter at each of K spatial sigmas, with
+  // one tree height for all or one per sigma -> (K, B, C, H, W), each slice the bits adaptive_manifold
+  // gives at that sigma and height. The CPU kernel runs
   // the K B images side by side, one per thread, when there are at least as many images as threads:
   // one image's passes scale poorly on few cores (1.35x on 2), independent images nearly 2x.
   m.def(
       "_adaptive_manifold_bandwidths(Tensor values, Tensor guide, float[] sigma_s, float sigma_r, "
-      "int tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
+      "int[] tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
 }

@@ -11,10 +11,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def(
       "spacetime_adaptive_manifold(Tensor values, Tensor guide, Tensor weights, Tensor query_guide, "
       "float sigma_s, float sigma_r, int tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
-  // Private (the denoiser's bandwidth candidates): the same at each of K spatial sigmas ->
-  // (K, B, Q, C, H, W), each slice the bits of spacetime_adaptive_manifold at that sigma; on CPU the
-  // K B Q images run side by side, one per thread, when there are at least as many as threads.
+  // Private (the denoiser's bandwidth candidates): the same at each of K spatial sigmas, with one tree
+  // height for all or one per sigma -> (K, B, Q, C, H, W), each slice the bits of
+  // spacetime_adaptive_manifold at that sigma and height; on CPU the K B Q images run side by side, one
+  // per thread, when there are at least as many as threads.
   m.def(
       "_spacetime_adaptive_manifold_bandwidths(Tensor values, Tensor guide, Tensor weights, Tensor query_guide, "
-      "float[] sigma_s, float sigma_r, int tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
+      "float[] sigma_s, float sigma_r, int[] tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
 }

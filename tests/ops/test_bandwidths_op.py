@@ -1,5 +1,6 @@
 """torchmanifold::_adaptive_manifold_bandwidths: the filter at K spatial sigmas in one call (the denoiser's
-bandwidth candidates), against the op called once per sigma, for any thread count."""
+bandwidth candidates; one tree height for all or one per sigma), against the op called once per sigma, for
+any thread count."""
 import pytest
 import torch
 
@@ -12,15 +13,17 @@ single = torch.ops.torchmanifold.adaptive_manifold.default
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-@pytest.mark.parametrize("B, sigmas", [(2, (2.0, 8.0, 3.0)), (1, (4.0,)), (1, (16.0, 2.0))])
-def test_each_slice_is_the_single_op(random_inputs, threads, B, sigmas):
+@pytest.mark.parametrize("B, sigmas, heights", [(2, (2.0, 8.0, 3.0), (3,)), (1, (4.0,), (3,)),
+                                                (1, (16.0, 2.0), (3,)), (2, (2.0, 8.0, 16.0), (1, 4, 5))])
+def test_each_slice_is_the_single_op(random_inputs, threads, B, sigmas, heights):
     # (1, (4,)) runs on one thread's loop, (2, ...) has more images than threads: side by side
     v, g = random_inputs(B, 5, 4, 40, 52, seed=3)
     with torch_threads(threads):
-        out = op(v, g, list(sigmas), 0.4, 3, 8, False)
+        out = op(v, g, list(sigmas), 0.4, list(heights), 8, False)
     assert out.shape == (len(sigmas), *v.shape)
     for k, s in enumerate(sigmas):
-        assert torch.equal(out[k], single(v, g, s, 0.4, 3, 8, False)), (k, s)
+        h = heights[k if len(heights) > 1 else 0]
+        assert torch.equal(out[k], single(v, g, s, 0.4, h, 8, False)), (k, s, h)
 
 
 def test_filter_bandwidths_matches_the_public_filter(random_inputs):
@@ -29,6 +32,9 @@ def test_filter_bandwidths_matches_the_public_filter(random_inputs):
     out = _filter_bandwidths(v, g, [2.0, 6.0], 1.0, 2, sig)
     for k, s in enumerate((2.0, 6.0)):
         assert torch.equal(out[k], adaptive_manifold_filter(v, g, s, 1.0, 2, guide_sigmas=sig))
+    out = _filter_bandwidths(v, g, [2.0, 6.0], 1.0, [2, 4], sig)
+    for k, (s, h) in enumerate(((2.0, 2), (6.0, 4))):
+        assert torch.equal(out[k], adaptive_manifold_filter(v, g, s, 1.0, h, guide_sigmas=sig))
 
 
 def test_filter_bandwidths_keeps_gradients(random_inputs):
@@ -44,14 +50,19 @@ def test_filter_bandwidths_keeps_gradients(random_inputs):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_opcheck(random_inputs, dtype):
     v, g = random_inputs(2, 2, 3, 9, 11, dtype=dtype)
-    torch.library.opcheck(op, (v, g, [2.0, 5.0], 0.3, 2, 5, False))
+    torch.library.opcheck(op, (v, g, [2.0, 5.0], 0.3, [2, 3], 5, False))
 
 
-@pytest.mark.parametrize("sigmas, match", [([], "at least one sigma"), ([2.0, -1.0], "sigma_s")])
-def test_bad_sigmas_are_named(random_inputs, sigmas, match):
+@pytest.mark.parametrize("sigmas, heights, match", [([], [2], "at least one sigma"), ([2.0, -1.0], [2], "sigma_s"),
+                                                     ([2.0, 4.0], [2, 3, 4], "one per sigma"),
+                                                     ([2.0, 4.0], [2, 0], "tree_height")])
+def test_bad_sigmas_and_heights_are_named(random_inputs, sigmas, heights, match):
     v, g = random_inputs(1, 2, 3, 8, 8)
     with pytest.raises(ValueError, match=match):
-        op(v, g, sigmas, 0.3, 2, 5, False)
+        op(v, g, sigmas, 0.3, heights, 5, False)
+    if len(heights) > 1:  # the wrapper names them too
+        with pytest.raises(ValueError, match=match):
+            _filter_bandwidths(v, g, sigmas, 0.3, heights)
 
 
 spacetime = torch.ops.torchmanifold.spacetime_adaptive_manifold.default
@@ -69,11 +80,12 @@ def _window(random_inputs, B=2, T=3, Q=2, seed=4):
 def test_spacetime_slices_are_the_single_op(random_inputs, threads):
     v, g, w, gq = _window(random_inputs)
     with torch_threads(threads):
-        out = spacetime_k(v, g, w, gq, [6.0, 2.0], 0.5, 2, 8, False)
+        out = spacetime_k(v, g, w, gq, [6.0, 2.0], 0.5, [4, 2], 8, False)
     assert out.shape == (2, *v.shape[:1], w.shape[0], *v.shape[2:])
-    for k, s in enumerate((6.0, 2.0)):
+    for k, (s, h) in enumerate(((6.0, 4), (2.0, 2))):
         for b in range(v.shape[0]):  # each window alone: the batched op runs its images side by side
-            assert torch.equal(out[k, b:b + 1], spacetime(v[b:b + 1], g[b:b + 1], w, gq[b:b + 1], s, 0.5, 2, 8, False))
+            want = spacetime(v[b:b + 1], g[b:b + 1], w, gq[b:b + 1], s, 0.5, h, 8, False)
+            assert torch.equal(out[k, b:b + 1], want), (k, b)
 
 
 @pytest.mark.parametrize("threads", [1, 2])
@@ -88,12 +100,14 @@ def test_batched_op_images_are_the_single_images(random_inputs, threads):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_spacetime_opcheck(random_inputs, dtype):
     v, g, w, gq = (t.to(dtype) for t in _window(random_inputs, B=1, Q=1))
-    torch.library.opcheck(spacetime_k, (v, g, w, gq, [2.0, 5.0], 0.3, 2, 5, False))
+    torch.library.opcheck(spacetime_k, (v, g, w, gq, [2.0, 5.0], 0.3, [2], 5, False))
 
 
 def test_spacetime_bad_sigmas_are_named(random_inputs):
     v, g, w, gq = _window(random_inputs, B=1, Q=1)
     with pytest.raises(ValueError, match="at least one sigma"):
-        spacetime_k(v, g, w, gq, [], 0.3, 2, 5, False)
+        spacetime_k(v, g, w, gq, [], 0.3, [2], 5, False)
     with pytest.raises(ValueError, match="sigma_s"):
-        spacetime_k(v, g, w, gq, [0.0], 0.3, 2, 5, False)
+        spacetime_k(v, g, w, gq, [0.0], 0.3, [2], 5, False)
+    with pytest.raises(ValueError, match="one per sigma"):
+        spacetime_k(v, g, w, gq, [2.0, 3.0], 0.3, [2, 2, 2], 5, False)

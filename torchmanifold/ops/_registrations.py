@@ -72,8 +72,11 @@ def _register() -> None:
     def _bandwidths_fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
         torch._check(len(sigma_s) > 0,
                      lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
-        for s in sigma_s:
-            _check_op_args(values, guide, s, sigma_r, tree_height, power_iterations)
+        torch._check(len(tree_height) in (1, len(sigma_s)),
+                     lambda: "_adaptive_manifold_bandwidths: tree_height must hold one height or one per sigma")
+        for k, s in enumerate(sigma_s):
+            _check_op_args(values, guide, s, sigma_r, tree_height[k if len(tree_height) > 1 else 0],
+                           power_iterations)
         return values.new_empty((len(sigma_s), *values.shape))
 
     @torch.library.custom_op(BACKWARD_NAME, mutates_args=())
@@ -172,6 +175,9 @@ def _register_spacetime() -> None:
                          adjust_outliers):
         torch._check(len(sigma_s) > 0,
                      lambda: "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
+        torch._check(len(tree_height) in (1, len(sigma_s)),
+                     lambda: "_spacetime_adaptive_manifold_bandwidths: tree_height must hold one height or one "
+                             "per sigma")
         _check_spacetime_shapes(values, guide, weights, query_guide)
         B, _, C, H, W = values.shape
         return values.new_empty((len(sigma_s), B, weights.shape[0], C, H, W))

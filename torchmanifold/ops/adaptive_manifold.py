@@ -104,24 +104,35 @@ def _working_inputs(values: Tensor, guide: Tensor, sigma_r: float, guide_sigmas)
 
 
 def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float], sigma_r: float,
-                       tree_height: int, guide_sigmas: Sequence[float] | Tensor | None = None,
+                       tree_height: int | Sequence[int], guide_sigmas: Sequence[float] | Tensor | None = None,
                        power_iterations: int = 32) -> Tensor:
-    """:func:`adaptive_manifold_filter` of ``(B, C, H, W)`` values at every spatial sigma of ``sigmas_s``:
-    ``(K, B, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
-    op call whose images share the threads (``_adaptive_manifold_bandwidths``); otherwise one call each."""
+    """:func:`adaptive_manifold_filter` of ``(B, C, H, W)`` values at every spatial sigma of ``sigmas_s``,
+    with ``tree_height`` for all or one height per sigma: ``(K, B, C, H, W)``, each slice the bits of that
+    call. With the CPU kernel and no gradient it is one op call whose images share the threads
+    (``_adaptive_manifold_bandwidths``); otherwise one call each."""
+    heights = _bandwidth_heights(tree_height, len(sigmas_s))
     if not (values.dim() == 4 and values.device.type == "cpu" and _has_kernel_for("cpu") and values.numel()
             and not (torch.is_grad_enabled() and values.requires_grad)):
-        return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, tree_height,
-                                                     guide_sigmas=guide_sigmas, power_iterations=power_iterations)
-                            for s in sigmas_s])
+        return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, h, guide_sigmas=guide_sigmas,
+                                                     power_iterations=power_iterations)
+                            for s, h in zip(sigmas_s, heights)])
     _check_inputs(values, guide)
-    sigma_r, tree_height = check_positive("sigma_r", sigma_r), check_tree_height(tree_height)
+    sigma_r = check_positive("sigma_r", sigma_r)
     power_iterations = check_int("power_iterations", power_iterations, min=0)
     sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
     v, g = _working_inputs(values, guide, sigma_r, guide_sigmas)
     out = call_parallel(torch.ops.torchmanifold._adaptive_manifold_bandwidths, v.contiguous(), g.contiguous(),
-                        sigmas, sigma_r, tree_height, power_iterations, False)
+                        sigmas, sigma_r, heights, power_iterations, False)
     return out.to(values.dtype)
+
+
+def _bandwidth_heights(tree_height: int | Sequence[int], k: int) -> list[int]:
+    """``tree_height`` (one height, or one per bandwidth) as ``k`` checked heights, one per bandwidth."""
+    if isinstance(tree_height, Sequence) and not isinstance(tree_height, (str, bytes)):
+        if len(tree_height) != k:
+            raise ValueError(f"tree_height: one height or one per sigma ({k}), got {len(tree_height)}")
+        return [check_tree_height(h, name=f"tree_height[{j}]") for j, h in enumerate(tree_height)]
+    return [check_tree_height(tree_height)] * k
 
 
 def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,

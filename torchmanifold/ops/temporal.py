@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchmanifold._checks import (check_choice, check_int, check_numbers, check_positive, check_same_dtype_device,
-                                   check_tensor, check_tree_height)
+                                   check_tensor)
 from torchmanifold._threads import call_parallel
 from torchmanifold.ops._reference import (
     GRAM_BAND,
@@ -48,6 +48,7 @@ from torchmanifold.ops._reference import (
 )
 from torchmanifold.ops.adaptive_manifold import (
     _DISPATCH_KEYS,
+    _bandwidth_heights,
     _constant_when_compiled,
     _FilterSettings,
     _check_settings,
@@ -223,29 +224,29 @@ def _query_guides(g: Tensor, ft: Tensor, qt: Tensor) -> Tensor:
 
 
 def _spacetime_bandwidths(values: Tensor, guide: Tensor, frame_times, query_times, sigmas_s: Sequence[float],
-                          sigma_r: float, sigma_t: float, tree_height: int,
+                          sigma_r: float, sigma_t: float, tree_height: int | Sequence[int],
                           guide_sigmas: Sequence[float] | Tensor | None = None,
                           power_iterations: int = 32) -> Tensor:
     """:func:`temporal_adaptive_manifold_filter` in ``"spacetime"`` mode at every spatial sigma of
-    ``sigmas_s``: ``(K, B, Q, C, H, W)``, each slice the bits of that call. With the CPU kernel and no gradient it is one
-    op call whose images share the threads (``_spacetime_adaptive_manifold_bandwidths``); otherwise one
-    call each."""
+    ``sigmas_s``, with ``tree_height`` for all or one height per sigma: ``(K, B, Q, C, H, W)``, each slice
+    the bits of that call. With the CPU kernel and no gradient it is one op call whose images share the
+    threads (``_spacetime_adaptive_manifold_bandwidths``); otherwise one call each."""
+    heights = _bandwidth_heights(tree_height, len(sigmas_s))
     if not (values.dim() == 5 and values.device.type == "cpu" and _has_spacetime_kernel_for("cpu")
             and values.numel() and not (torch.is_grad_enabled() and values.requires_grad)):
         return torch.stack([temporal_adaptive_manifold_filter(
-            values, guide, frame_times, query_times, s, sigma_r, sigma_t, "spacetime", tree_height,
-            guide_sigmas=guide_sigmas, power_iterations=power_iterations) for s in sigmas_s])
+            values, guide, frame_times, query_times, s, sigma_r, sigma_t, "spacetime", h,
+            guide_sigmas=guide_sigmas, power_iterations=power_iterations) for s, h in zip(sigmas_s, heights)])
     check_same_dtype_device("guide", guide, "values", values)
     ft = check_numbers("frame_times", frame_times, n=values.shape[1]).cpu()
     qt = check_numbers("query_times", query_times, allow_scalar=True).cpu()
     sigma_r, sigma_t = check_positive("sigma_r", sigma_r), check_positive("sigma_t", sigma_t)
-    tree_height = check_tree_height(tree_height)
     power_iterations = check_int("power_iterations", power_iterations, min=0)
     sigmas = [check_positive(f"sigmas_s[{k}]", s) for k, s in enumerate(sigmas_s)]
     v, g, tw = _window_inputs(values, guide, ft, qt, sigma_r, sigma_t, guide_sigmas)
     gq = _query_guides(g, ft, qt)
     out = call_parallel(torch.ops.torchmanifold._spacetime_adaptive_manifold_bandwidths, v.contiguous(),
-                        g.contiguous(), tw.contiguous(), gq.contiguous(), sigmas, sigma_r, tree_height,
+                        g.contiguous(), tw.contiguous(), gq.contiguous(), sigmas, sigma_r, heights,
                         power_iterations, False)
     return out.to(values.dtype)
 

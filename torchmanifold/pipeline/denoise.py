@@ -515,41 +515,33 @@ class _Filter:
 
     @staticmethod
     def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
-        """:meth:`apply` of filters that differ in ``sigma_s`` and ``tree_height`` alone: per query and
-        height, one op call for all of them (on CPU their images share the threads; the bits of one call
-        each), as many at once as ``_BANDWIDTHS_AT_ONCE`` allows."""
+        """:meth:`apply` of filters that differ in ``sigma_s`` and ``tree_height`` alone: per query, one op
+        call for all of them (on CPU their images share the threads; the bits of one call each), as many at
+        once as ``_BANDWIDTHS_AT_ONCE`` allows."""
         from torchmanifold.ops import temporal_adaptive_manifold_filter
         from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
         from torchmanifold.ops.temporal import _spacetime_bandwidths
 
-        heights = sorted({f.tree_height for f in filters})
-        if len(heights) > 1:
-            out = [None] * len(filters)
-            for h in heights:
-                ks = [k for k, f in enumerate(filters) if f.tree_height == h]
-                for k, y in zip(ks, _Filter.apply_each([filters[k] for k in ks], x)):
-                    out[k] = y
-            return out
         per_call = max(1, _BANDWIDTHS_AT_ONCE // max(1, x[0].numel()))
         if len(filters) > per_call:
             return [y for i in range(0, len(filters), per_call) for y in _Filter.apply_each(filters[i:i + per_call], x)]
-        f0, st, height = filters[0], filters[0].st, heights[0]
-        sigmas = [f.sigma_s for f in filters]
+        f0, st = filters[0], filters[0].st
+        sigmas, heights = [f.sigma_s for f in filters], [f.tree_height for f in filters]
         outs = []  # per query (K, C, H, W)
         for q in f0.qt:
             k = frame_at(f0.ft, q)
             if st.temporal_radius == 0 and k is not None:
-                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, height, f0.gs[k])[:, 0]
+                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, heights, f0.gs[k])[:, 0]
             else:
                 ids = f0._window(q)
                 xw, gw, ftw = _frames(x, ids)[None], _frames(f0.g, ids)[None], [f0.ft[i] for i in ids]
                 if st.mode == "spacetime":
-                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, height,
+                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, heights,
                                               f0._sigmas_at(q))[:, 0, 0]
                 else:  # the window mean, then the spatial filter, per bandwidth
                     y = torch.stack([temporal_adaptive_manifold_filter(
-                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=height,
-                        guide_sigmas=f0._sigmas_at(q))[0, 0] for s in sigmas])
+                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=h,
+                        guide_sigmas=f0._sigmas_at(q))[0, 0] for s, h in zip(sigmas, heights)])
             outs.append(y)
         return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
 

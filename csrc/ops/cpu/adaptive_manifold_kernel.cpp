@@ -624,13 +624,18 @@ class ImageFilter {
   PhaseClock clock_;
 };
 
-// (K, B, C, H, W): every image b at every spatial sigma k, the images side by side (for_each_image),
-// the costliest first. op names the caller in messages.
+// (K, B, C, H, W): every image b at every spatial sigma k (tree height tree_heights[k], or
+// tree_heights[0] for all), the images side by side (for_each_image), the costliest first. op names
+// the caller in messages.
 at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Tensor& guide,
-                         c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height, int64_t power_iterations,
-                         bool adjust_outliers) {
-  for (double s : sigma_s)
-    check_adaptive_manifold_args(values, guide, s, sigma_r, tree_height, power_iterations);
+                         c10::ArrayRef<double> sigma_s, double sigma_r, c10::ArrayRef<int64_t> tree_heights,
+                         int64_t power_iterations, bool adjust_outliers) {
+  TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigma_s.size(), op,
+                    ": tree_height must hold one height or one per sigma (", sigma_s.size(), "), got ",
+                    tree_heights.size());
+  const auto height = [&](size_t k) { return tree_heights[tree_heights.size() == 1 ? 0 : k]; };
+  for (size_t k = 0; k < sigma_s.size(); ++k)
+    check_adaptive_manifold_args(values, guide, sigma_s[k], sigma_r, height(k), power_iterations);
   TORCH_CHECK_VALUE(values.device().is_cpu(), op, ": values and guide must be CPU tensors for this kernel, got ",
                     values.device());
   const at::Tensor f = values.contiguous();
@@ -639,11 +644,11 @@ at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Ten
   const int64_t B = f.size(0), C = f.size(1), H = f.size(2), W = f.size(3), D = g.size(1);
   at::Tensor out = at::empty({K, B, C, H, W}, f.options());
   if (out.numel() == 0) return out;
-  const std::vector<int64_t> order = smallest_first(sigma_s);
+  const std::vector<int64_t> order = costliest_first(sigma_s, tree_heights, sigma_r);
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
     for_each_image(K * B, [&](int64_t item) {
       const int64_t k = order[item / B], b = item % B;
-      const FilterOptions opt{sigma_s[k], sigma_r, tree_height, power_iterations, adjust_outliers};
+      const FilterOptions opt{sigma_s[k], sigma_r, height(k), power_iterations, adjust_outliers};
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W, g.data_ptr<scalar_t>() + b * D * H * W,
                                  out.data_ptr<scalar_t>() + (k * B + b) * C * H * W, C, D, H, W, opt);
       filt.run();
@@ -655,13 +660,14 @@ at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Ten
 at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
                                  double sigma_s, double sigma_r, int64_t tree_height,
                                  int64_t power_iterations, bool adjust_outliers) {
-  return filter_images("adaptive_manifold", values, guide, {sigma_s}, sigma_r, tree_height, power_iterations,
+  return filter_images("adaptive_manifold", values, guide, {sigma_s}, sigma_r, {tree_height}, power_iterations,
                        adjust_outliers)[0];
 }
 
 at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
-                                            c10::ArrayRef<double> sigma_s, double sigma_r, int64_t tree_height,
-                                            int64_t power_iterations, bool adjust_outliers) {
+                                            c10::ArrayRef<double> sigma_s, double sigma_r,
+                                            c10::ArrayRef<int64_t> tree_height, int64_t power_iterations,
+                                            bool adjust_outliers) {
   TORCH_CHECK_VALUE(!sigma_s.empty(), "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
   return filter_images("_adaptive_manifold_bandwidths", values, guide, sigma_s, sigma_r, tree_height,
                        power_iterations, adjust_outliers);

@@ -501,13 +501,17 @@ void check_spacetime_args(const at::Tensor& values, const at::Tensor& guide, con
                     op, "weights must be finite and >= 0");
 }
 
-// (K, B, Q, C, H, W): every window b, query q and spatial sigma k, the images side by side
-// (for_each_image), the smallest sigma (the costliest) first.
+// (K, B, Q, C, H, W): every window b, query q and spatial sigma k (tree height tree_heights[k], or
+// tree_heights[0] for all), the images side by side (for_each_image), the costliest first.
 at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, const at::Tensor& weights,
                             const at::Tensor& query_guide, c10::ArrayRef<double> sigma_s, double sigma_r,
-                            int64_t tree_height, int64_t power_iterations, bool adjust_outliers) {
-  for (double s : sigma_s)
-    check_spacetime_args(values, guide, weights, query_guide, s, sigma_r, tree_height, power_iterations);
+                            c10::ArrayRef<int64_t> tree_heights, int64_t power_iterations, bool adjust_outliers) {
+  TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigma_s.size(),
+                    "spacetime_adaptive_manifold: tree_height must hold one height or one per sigma (",
+                    sigma_s.size(), "), got ", tree_heights.size());
+  const auto height = [&](size_t k) { return tree_heights[tree_heights.size() == 1 ? 0 : k]; };
+  for (size_t k = 0; k < sigma_s.size(); ++k)
+    check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height(k), power_iterations);
   const int64_t K = static_cast<int64_t>(sigma_s.size());
   const int64_t B = values.size(0), T = values.size(1), C = values.size(2), H = values.size(3),
                 W = values.size(4), D = guide.size(2), Q = weights.size(0);
@@ -515,7 +519,7 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
                    q = query_guide.contiguous();
   at::Tensor out = at::empty({K, B, Q, C, H, W}, values.options());
   if (out.numel() == 0) return out;
-  const std::vector<int64_t> order = smallest_first(sigma_s);
+  const std::vector<int64_t> order = costliest_first(sigma_s, tree_heights, sigma_r);
   const int64_t N = H * W;
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "spacetime_adaptive_manifold_cpu", [&] {
     // A query at a frame's time has that frame's guide: its splat weights are the slice weights
@@ -528,7 +532,7 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
     }
     for_each_image(K * B * Q, [&](int64_t item) {
       const int64_t s = order[item / (B * Q)], b = item / Q % B, k = item % Q;
-      const FilterOptions opt{sigma_s[s], sigma_r, tree_height, power_iterations, adjust_outliers};
+      const FilterOptions opt{sigma_s[s], sigma_r, height(s), power_iterations, adjust_outliers};
       SpacetimeFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * T * C * N,
                                      g.data_ptr<scalar_t>() + b * T * D * N, w.data_ptr<scalar_t>() + k * T,
                                      T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N, query_frame[b * Q + k],
@@ -543,15 +547,15 @@ at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::T
                                            const at::Tensor& weights, const at::Tensor& query_guide,
                                            double sigma_s, double sigma_r, int64_t tree_height,
                                            int64_t power_iterations, bool adjust_outliers) {
-  return spacetime_images(values, guide, weights, query_guide, {sigma_s}, sigma_r, tree_height, power_iterations,
-                          adjust_outliers)[0];
+  return spacetime_images(values, guide, weights, query_guide, {sigma_s}, sigma_r, {tree_height},
+                          power_iterations, adjust_outliers)[0];
 }
 
 at::Tensor spacetime_adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
                                                       const at::Tensor& weights, const at::Tensor& query_guide,
                                                       c10::ArrayRef<double> sigma_s, double sigma_r,
-                                                      int64_t tree_height, int64_t power_iterations,
-                                                      bool adjust_outliers) {
+                                                      c10::ArrayRef<int64_t> tree_height,
+                                                      int64_t power_iterations, bool adjust_outliers) {
   TORCH_CHECK_VALUE(!sigma_s.empty(),
                     "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
   return spacetime_images(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
