@@ -17,5 +17,6 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // per thread, when there are at least as many as threads.
   m.def(
       "_spacetime_adaptive_manifold_bandwidths(Tensor values, Tensor guide, Tensor weights, Tensor query_guide, "
-      "float[] sigma_s, float sigma_r, int[] tree_height, int power_iterations, bool adjust_outliers) -> Tensor");
+      "float[] sigma_s, float sigma_r, int[] tree_height, int power_iterations, bool adjust_outliers) "
+      "-> Tensor");
 }

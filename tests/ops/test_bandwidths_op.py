@@ -53,9 +53,9 @@ def test_opcheck(random_inputs, dtype):
     torch.library.opcheck(op, (v, g, [2.0, 5.0], 0.3, [2, 3], 5, False))
 
 
-@pytest.mark.parametrize("sigmas, heights, match", [([], [2], "at least one sigma"), ([2.0, -1.0], [2], "sigma_s"),
-                                                     ([2.0, 4.0], [2, 3, 4], "one per sigma"),
-                                                     ([2.0, 4.0], [2, 0], "tree_height")])
+@pytest.mark.parametrize("sigmas, heights, match", [
+    ([], [2], "at least one sigma"), ([2.0, -1.0], [2], "sigma_s"), ([2.0, 4.0], [2, 3, 4], "one per sigma"),
+    ([2.0, 4.0], [2, 0], "tree_height")])
 def test_bad_sigmas_and_heights_are_named(random_inputs, sigmas, heights, match):
     v, g = random_inputs(1, 2, 3, 8, 8)
     with pytest.raises(ValueError, match=match):

@@ -73,7 +73,8 @@ def _register() -> None:
         torch._check(len(sigma_s) > 0,
                      lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
         torch._check(len(tree_height) in (1, len(sigma_s)),
-                     lambda: "_adaptive_manifold_bandwidths: tree_height must hold one height or one per sigma")
+                     lambda: "_adaptive_manifold_bandwidths: tree_height must hold one height or one per "
+                             "sigma")
         for k, s in enumerate(sigma_s):
             _check_op_args(values, guide, s, sigma_r, tree_height[k if len(tree_height) > 1 else 0],
                            power_iterations)
@@ -176,8 +177,8 @@ def _register_spacetime() -> None:
         torch._check(len(sigma_s) > 0,
                      lambda: "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
         torch._check(len(tree_height) in (1, len(sigma_s)),
-                     lambda: "_spacetime_adaptive_manifold_bandwidths: tree_height must hold one height or one "
-                             "per sigma")
+                     lambda: "_spacetime_adaptive_manifold_bandwidths: tree_height must hold one height or "
+                             "one per sigma")
         _check_spacetime_shapes(values, guide, weights, query_guide)
         B, _, C, H, W = values.shape
         return values.new_empty((len(sigma_s), B, weights.shape[0], C, H, W))

@@ -262,8 +262,8 @@ class DenoiseSettings:
             manifold, whose values it takes from the nearest manifolds': with one height for all, the
             widest candidate bled a cube's top face into its side (``findings.md``). 1 against 0, frames
             0-2 from 1 / 4 spp: the validation set +0.08 / +0.08 dB (``bl_moving_metal`` -0.11 / -0.07, no
-            other scene below -0.02), five of its clips rendered at 256x256 +0.18 / +0.13, for 1.2 times
-            the frame step's time per frame and 1.3 in space-time (``findings.md``).
+            other scene below -0.02), five of its clips rendered at 256x256 +0.18 / +0.13; the frame step
+            with +-1 frames takes 1.3 times as long on one thread, 1.13-1.18 times on two (``findings.md``).
         firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
             biased dark), or ``"none"``.
         firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor). 5 since the blend
@@ -805,8 +805,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         if at_frames:
             fulls.append(cv_out)
         else:
-            wide = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
-            fulls.append(wide(e, mask))
+            at_queries = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
+            fulls.append(at_queries(e, mask))
     if level is None:
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:

@@ -660,8 +660,8 @@ at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Ten
 at::Tensor adaptive_manifold_cpu(const at::Tensor& values, const at::Tensor& guide,
                                  double sigma_s, double sigma_r, int64_t tree_height,
                                  int64_t power_iterations, bool adjust_outliers) {
-  return filter_images("adaptive_manifold", values, guide, {sigma_s}, sigma_r, {tree_height}, power_iterations,
-                       adjust_outliers)[0];
+  return filter_images("adaptive_manifold", values, guide, {sigma_s}, sigma_r, {tree_height},
+                       power_iterations, adjust_outliers)[0];
 }
 
 at::Tensor adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,

@@ -98,15 +98,16 @@ inline void for_each_image(int64_t items, const F& fn) {
 // op at 2 and 4 px, 16-channel 256x256 images: 48 against 19 ms) and shrinks as 1 / df^2.
 constexpr double kLowResWork = 4.0;
 
-inline std::vector<int64_t> costliest_first(c10::ArrayRef<double> sigma_s, c10::ArrayRef<int64_t> tree_heights,
-                                            double sigma_r) {
+inline std::vector<int64_t> costliest_first(c10::ArrayRef<double> sigma_s,
+                                            c10::ArrayRef<int64_t> tree_heights, double sigma_r) {
   std::vector<int64_t> order(sigma_s.size());
   std::vector<double> cost(sigma_s.size());
   for (size_t k = 0; k < order.size(); ++k) {
     order[k] = static_cast<int64_t>(k);
     const int64_t h = tree_heights[tree_heights.size() == 1 ? 0 : k];
     const double df = static_cast<double>(downsample_factor(sigma_s[k], sigma_r));
-    cost[k] = std::ldexp(1.0, static_cast<int>(std::min<int64_t>(h, 60))) * (1.0 + kLowResWork / (df * df));
+    const double nodes = std::ldexp(1.0, static_cast<int>(std::min<int64_t>(h, 60))) - 1.0;
+    cost[k] = nodes * (1.0 + kLowResWork / (df * df));
   }
   std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return cost[a] > cost[b]; });
   return order;

@@ -505,13 +505,15 @@ void check_spacetime_args(const at::Tensor& values, const at::Tensor& guide, con
 // tree_heights[0] for all), the images side by side (for_each_image), the costliest first.
 at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, const at::Tensor& weights,
                             const at::Tensor& query_guide, c10::ArrayRef<double> sigma_s, double sigma_r,
-                            c10::ArrayRef<int64_t> tree_heights, int64_t power_iterations, bool adjust_outliers) {
+                            c10::ArrayRef<int64_t> tree_heights, int64_t power_iterations,
+                            bool adjust_outliers) {
   TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigma_s.size(),
                     "spacetime_adaptive_manifold: tree_height must hold one height or one per sigma (",
                     sigma_s.size(), "), got ", tree_heights.size());
   const auto height = [&](size_t k) { return tree_heights[tree_heights.size() == 1 ? 0 : k]; };
   for (size_t k = 0; k < sigma_s.size(); ++k)
-    check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height(k), power_iterations);
+    check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height(k),
+                         power_iterations);
   const int64_t K = static_cast<int64_t>(sigma_s.size());
   const int64_t B = values.size(0), T = values.size(1), C = values.size(2), H = values.size(3),
                 W = values.size(4), D = guide.size(2), Q = weights.size(0);
