@@ -33,12 +33,14 @@ import harness  # noqa: E402
 import score  # noqa: E402
 
 OUT = score.OUT
-#: the command's default (``torchmanifold denoise``: +-1 frame space-time, tree height 3), variants of it that
-#: change one thing, and the two cheapest changes that lose least together
+#: the command's default (``torchmanifold denoise``: +-1 frame space-time, tree height 3 at ``sigma_s`` and one
+#: level more per doubling of a wider candidate), variants of it that change one thing, and the two cheapest
+#: changes that lose least together
 VARIANTS = {
     "default": {},
     "bandwidths 0.5 to 8": {"bandwidths": (0.5, 1.0, 2.0, 4.0, 8.0)},
     "tree height 2": {"tree_height": 2},
+    "one tree height (3)": {"levels_per_doubling": 0},
     "bandwidths 1, 2, 4": {"bandwidths": (1.0, 2.0, 4.0)},
     "bandwidths 0.5, 1, 2": {"bandwidths": (0.5, 1.0, 2.0)},
     "bandwidths 1, 2": {"bandwidths": (1.0, 2.0)},
