@@ -630,12 +630,10 @@ class ImageFilter {
 at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Tensor& guide,
                          c10::ArrayRef<double> sigma_s, double sigma_r, c10::ArrayRef<int64_t> tree_heights,
                          int64_t power_iterations, bool adjust_outliers) {
-  TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigma_s.size(), op,
-                    ": tree_height must hold one height or one per sigma (", sigma_s.size(), "), got ",
-                    tree_heights.size());
-  const auto height = [&](size_t k) { return tree_heights[tree_heights.size() == 1 ? 0 : k]; };
+  check_height_count(op, tree_heights, sigma_s.size());
   for (size_t k = 0; k < sigma_s.size(); ++k)
-    check_adaptive_manifold_args(values, guide, sigma_s[k], sigma_r, height(k), power_iterations);
+    check_adaptive_manifold_args(values, guide, sigma_s[k], sigma_r, height_of(tree_heights, k),
+                                 power_iterations);
   TORCH_CHECK_VALUE(values.device().is_cpu(), op, ": values and guide must be CPU tensors for this kernel, got ",
                     values.device());
   const at::Tensor f = values.contiguous();
@@ -648,7 +646,8 @@ at::Tensor filter_images(const char* op, const at::Tensor& values, const at::Ten
   AT_DISPATCH_FLOATING_TYPES(f.scalar_type(), "adaptive_manifold_cpu", [&] {
     for_each_image(K * B, [&](int64_t item) {
       const int64_t k = order[item / B], b = item % B;
-      const FilterOptions opt{sigma_s[k], sigma_r, height(k), power_iterations, adjust_outliers};
+      const FilterOptions opt{sigma_s[k], sigma_r, height_of(tree_heights, k), power_iterations,
+                              adjust_outliers};
       ImageFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * C * H * W, g.data_ptr<scalar_t>() + b * D * H * W,
                                  out.data_ptr<scalar_t>() + (k * B + b) * C * H * W, C, D, H, W, opt);
       filt.run();

@@ -91,8 +91,20 @@ inline void for_each_image(int64_t items, const F& fn) {
   for (int64_t item = 0; item < items; ++item) fn(item);
 }
 
-// The indices of the K images (spatial sigma sigma_s[k], tree height tree_heights[k], or
-// tree_heights[0] for all), the costliest first, so that for_each_image's queue ends with cheap
+// The tree height of image k: tree_heights holds one height for all images or one per image.
+inline int64_t height_of(c10::ArrayRef<int64_t> tree_heights, size_t k) {
+  return tree_heights[tree_heights.size() == 1 ? 0 : k];
+}
+
+// tree_heights holds one height or one per sigma (op names the caller in the message).
+inline void check_height_count(const char* op, c10::ArrayRef<int64_t> tree_heights, size_t sigmas) {
+  TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigmas, op,
+                    ": tree_height must hold one height or one per sigma (", sigmas, "), got ",
+                    tree_heights.size());
+}
+
+// The indices of the K images (spatial sigma sigma_s[k], tree height height_of(tree_heights, k)),
+// each one already checked, the costliest first, so that for_each_image's queue ends with cheap
 // images. An image costs about its nodes, 2^height - 1, times a node's full-resolution passes plus its
 // blur on the low-resolution grid, which at df = 1 measured about kLowResWork times the former (the
 // op at 2 and 4 px, 16-channel 256x256 images: 48 against 19 ms) and shrinks as 1 / df^2.
@@ -104,9 +116,8 @@ inline std::vector<int64_t> costliest_first(c10::ArrayRef<double> sigma_s,
   std::vector<double> cost(sigma_s.size());
   for (size_t k = 0; k < order.size(); ++k) {
     order[k] = static_cast<int64_t>(k);
-    const int64_t h = tree_heights[tree_heights.size() == 1 ? 0 : k];
     const double df = static_cast<double>(downsample_factor(sigma_s[k], sigma_r));
-    const double nodes = std::ldexp(1.0, static_cast<int>(std::min<int64_t>(h, 60))) - 1.0;
+    const double nodes = std::ldexp(1.0, static_cast<int>(height_of(tree_heights, k))) - 1.0;
     cost[k] = nodes * (1.0 + kLowResWork / (df * df));
   }
   std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) { return cost[a] > cost[b]; });

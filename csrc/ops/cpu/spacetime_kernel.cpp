@@ -507,12 +507,9 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
                             const at::Tensor& query_guide, c10::ArrayRef<double> sigma_s, double sigma_r,
                             c10::ArrayRef<int64_t> tree_heights, int64_t power_iterations,
                             bool adjust_outliers) {
-  TORCH_CHECK_VALUE(tree_heights.size() == 1 || tree_heights.size() == sigma_s.size(),
-                    "spacetime_adaptive_manifold: tree_height must hold one height or one per sigma (",
-                    sigma_s.size(), "), got ", tree_heights.size());
-  const auto height = [&](size_t k) { return tree_heights[tree_heights.size() == 1 ? 0 : k]; };
+  check_height_count("spacetime_adaptive_manifold", tree_heights, sigma_s.size());
   for (size_t k = 0; k < sigma_s.size(); ++k)
-    check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height(k),
+    check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height_of(tree_heights, k),
                          power_iterations);
   const int64_t K = static_cast<int64_t>(sigma_s.size());
   const int64_t B = values.size(0), T = values.size(1), C = values.size(2), H = values.size(3),
@@ -534,7 +531,8 @@ at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, c
     }
     for_each_image(K * B * Q, [&](int64_t item) {
       const int64_t s = order[item / (B * Q)], b = item / Q % B, k = item % Q;
-      const FilterOptions opt{sigma_s[s], sigma_r, height(s), power_iterations, adjust_outliers};
+      const FilterOptions opt{sigma_s[s], sigma_r, height_of(tree_heights, s), power_iterations,
+                              adjust_outliers};
       SpacetimeFilter<scalar_t> filt(f.data_ptr<scalar_t>() + b * T * C * N,
                                      g.data_ptr<scalar_t>() + b * T * D * N, w.data_ptr<scalar_t>() + k * T,
                                      T, q.data_ptr<scalar_t>() + (b * Q + k) * D * N, query_frame[b * Q + k],
