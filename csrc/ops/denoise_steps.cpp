@@ -5,9 +5,10 @@
 #include <torch/library.h>
 
 TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
-  // _Filter.normalise at frame queries: out = den > 1e-8 ? num / den : values * mask, then (radius > 0)
-  // clamped to the range of the valid (mask > 0) values in the (2 radius + 1)^2 box around each pixel
-  // (_Filter._guard). num/values (N, C, H, W), den/mask (N, 1, H, W) -> (N, C, H, W).
+  // _Filter.normalise at frame queries: out = den > min_support ? num / den : values * mask (min_support:
+  // denoise._min_support of the dtype), then (radius > 0) clamped to the range of the valid (mask > 0)
+  // values in the (2 radius + 1)^2 box around each pixel (_Filter._guard). num/values (N, C, H, W),
+  // den/mask (N, 1, H, W) -> (N, C, H, W).
   m.def("_normalise_guard(Tensor num, Tensor den, Tensor values, Tensor mask, int radius) -> Tensor");
   // The same where a query mixes a window of frames: fallback (N, C, H, W) replaces values * mask, and the
   // bounds are box maxima of hi and nlo (N, C, H, W), the window's largest valid value and largest minus
@@ -36,8 +37,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   m.def("_cv_halves(Tensor e, Tensor mask) -> Tensor");
   // The same written into out, a workspace the caller reuses across calls (fresh pages cost more than the pass).
   m.def("_cv_halves_out(Tensor e, Tensor mask, Tensor(a!) out) -> ()");
-  // The op's output on that stack, y (T, 8, H, W) -> the prediction from the other half (T, 3, H, W), and
-  // both halves' sums num (T, 3, H, W), den (T, 1, H, W).
+  // The op's output on that stack, y (T, 8, H, W) -> the prediction from the other half (T, 3, H, W; NaN
+  // where that half's den is at most min_support), and both halves' sums num (T, 3, H, W), den (T, 1, H, W).
   m.def("_cv_split(Tensor y) -> (Tensor, Tensor, Tensor)");
   // denoise._sanitize's finite check: c (T, C, H, W), f (T, D, H, W) -> c and f with non-finite values 0,
   // mask (T, 1, H, W) (1 where all of a pixel's values are finite), counts int64 (3,): non-finite colour

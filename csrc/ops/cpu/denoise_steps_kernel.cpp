@@ -49,6 +49,13 @@ inline T nan_max(T a, T b) {
 
 inline int64_t clampi(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
+// denoise._min_support: the least den whose num / den keeps three digits through the filter's float
+// rounding, 1e3 eps, not below 1e-8 (in double, rounded once to T as PyTorch rounds the Python float)
+template <typename T>
+inline T min_support() {
+  return static_cast<T>(std::max(1e-8, 1e3 * static_cast<double>(std::numeric_limits<T>::epsilon())));
+}
+
 // Rows of about this many pixels per parallel task.
 inline int64_t row_grain(int64_t W) { return std::max<int64_t>(1, 16384 / std::max<int64_t>(W, 1)); }
 
@@ -148,7 +155,8 @@ void masked_row(const T* __restrict v, const T* __restrict m, T sign, T fill, in
 template <typename T>
 void normalise_row(const T* __restrict a, const T* __restrict d, const T* __restrict v, const T* __restrict m,
                    int64_t W, T* __restrict o) {
-  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > T(1e-8) ? a[x] / d[x] : v[x] * m[x];
+  const T support = min_support<T>();
+  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > support ? a[x] / d[x] : v[x] * m[x];
 }
 
 // out = min(max(out, lo), hi) where the box held a valid sample (hi > -max/2), as torch.maximum /
@@ -168,7 +176,8 @@ void clamp_row(const T* __restrict hi, const T* __restrict nlo, int64_t W, T* __
 template <typename T>
 void normalise_fallback_row(const T* __restrict a, const T* __restrict d, const T* __restrict fb, int64_t W,
                             T* __restrict o) {
-  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > T(1e-8) ? a[x] / d[x] : fb[x];
+  const T support = min_support<T>();
+  for (int64_t x = 0; x < W; ++x) o[x] = d[x] > support ? a[x] / d[x] : fb[x];
 }
 
 // The guarded normalisation over (N, C, H, W) into po: bound_plane(b, dst) writes plane b = (n, c, side)
@@ -838,6 +847,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_
     using T = scalar_t;
     const T* py = y.data_ptr<T>();
     T *pp = pred.data_ptr<T>(), *pn = num.data_ptr<T>(), *pd = den.data_ptr<T>();
+    const T support = min_support<T>();
     at::parallel_for(0, Tn * H, row_grain(W * 8), [&](int64_t r0, int64_t r1) {
       for (int64_t row = r0; row < r1; ++row) {
         const int64_t t = row / H, yy = row % H, i0 = yy * W;
@@ -856,7 +866,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> cv_split_cpu(const at::Tensor& y_
             const bool first_half = (yy + x) % 2 == 0;  // predicted from the second half, and the other way round
             const T on = first_half ? nb[x] : na[x];
             const T od = first_half ? db[x] : da[x];
-            p[x] = od > T(1e-8) ? on / od : std::numeric_limits<T>::quiet_NaN();  // no support
+            p[x] = od > support ? on / od : std::numeric_limits<T>::quiet_NaN();  // no support
           }
         }
       }
