@@ -68,6 +68,22 @@ def test_float32_guide_far_from_zero(offset):
     assert _rel_err(got.double(), ref) < 2e-6 + 1e-6 * offset
 
 
+def test_float32_dim_values_beside_a_bright_one():
+    """High dynamic range keeps float32 accuracy at the dim pixels: values are filtered about the point of
+    their range nearest 0. About the range's middle (5e3 here) every dim result was a small difference of
+    large numbers, rounded to about 3e-4 (a rendered frame's light neighbour read 3641 for 2048)."""
+    gen = torch.Generator().manual_seed(4)
+    f = 0.2 + 0.1 * torch.rand(1, 3, 40, 53, generator=gen, dtype=torch.float64)
+    f[..., 20, 26] = 1e4
+    g = torch.rand(1, 3, 40, 53, generator=gen, dtype=torch.float64)
+    g[..., 20, 26] = 3.0  # a light apart from the rest, as its radiance guide keeps it
+    for height in (1, 3):
+        ref = adaptive_manifold_torch(f, g, 10.0, 0.4, height, 3, False)
+        got = op(f.float(), g.float(), 10.0, 0.4, height, 3, False).double()
+        dim = f < 1.0  # the light itself, alone on its manifold, is another case (S0 under the float32 floor)
+        assert float(((got - ref).abs() / ref)[dim].max()) < 1e-5  # was 1e-3 and more
+
+
 @pytest.mark.parametrize("sigma_s", [3.0, 8.0, 16.0, 32.0])  # downsampling factor 1, 2, 4, 8
 def test_float32_vector_paths_match_reference(random_inputs, sigma_s):
     """Wide enough rows for the kernel's vector paths (8-lane upsampling per factor, 8-block sums) and

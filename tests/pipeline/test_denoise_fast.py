@@ -58,8 +58,8 @@ def test_normalise_guard_equals_reference_bitwise(frame, dtype):
         g = torch.Generator().manual_seed(1)
         num = torch.rand(e.shape, generator=g, dtype=dtype) * e
         den = torch.rand(m.shape, generator=g, dtype=dtype) * m
-        # around the least support (denoise._min_support): float32's 1.2e-4 and float64's 1e-8
-        den.view(-1)[1:5] = torch.tensor([2e-4, 1e-5, 1e-9, 0.0], dtype=dtype)[:den.numel() - 1]
+        # around the least support (denoise._min_support): float32's 1.2e-5 and float64's 1e-8
+        den.view(-1)[1:5] = torch.tensor([2e-5, 1e-6, 1e-9, 0.0], dtype=dtype)[:den.numel() - 1]
         num[..., 0, 0] = math.nan  # a NaN result stays NaN through the guard
         for sigma_s in (0.5, 2.0, 8.0, 40.0):  # radius 1 to wider than the image
             filt = D._Filter(torch.zeros(e.shape[0], 1, *e.shape[2:], dtype=dtype), torch.ones(e.shape[0], 1),
@@ -78,7 +78,7 @@ def test_window_normalise_guard_equals_reference_bitwise(dtype):
         g = torch.Generator().manual_seed(2)
         num = torch.rand(1, *e.shape[1:], generator=g, dtype=dtype)
         den = torch.rand(1, 1, *e.shape[2:], generator=g, dtype=dtype) * m[:1]
-        den.view(-1)[1:5] = torch.tensor([2e-4, 1e-5, 1e-9, 0.0], dtype=dtype)[:den.numel() - 1]
+        den.view(-1)[1:5] = torch.tensor([2e-5, 1e-6, 1e-9, 0.0], dtype=dtype)[:den.numel() - 1]
         num[..., 0, 0] = math.nan
         st = DenoiseSettings(temporal_radius=1, mode="spacetime")
         for q, sigma_s in ((0.0, 0.5), (1.0, 8.0), (0.5, 40.0)):  # a frame, and between frames
@@ -125,7 +125,7 @@ def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
     _same(_fast.cv_halves(e, m), torch.cat([p for h in (half, 1 - half) for p in (e * (m * h), m * h)], 1))
     T, H, W = e.shape[0], *e.shape[2:]
     y = torch.rand(T, 8, H, W, generator=torch.Generator().manual_seed(3)) * (torch.rand(T, 8, H, W) > 0.1)
-    y[:, 3, 0, :4] = y[:, 7, 0, 4:8] = torch.tensor([2e-4, 1e-5, 1e-9, 0.0])  # around float32's least support
+    y[:, 3, 0, :4] = y[:, 7, 0, 4:8] = torch.tensor([2e-5, 1e-6, 1e-9, 0.0])  # around float32's least support
     pred, num, den = _fast.cv_split(y)
     with _fast.reference():
         ref = D._split_halves(y)

@@ -9,9 +9,11 @@ values f (C channels), guide g (D channels, already scaled), sigma_s, sigma_r:
  1. Work dtype: float64 for float64 input, float32 otherwise (fp16/bf16 accumulate in float32).
  2. Sanitising: ``mg`` = pixel's guide channels all finite; ``mv`` = pixel's value channels all finite.
     Splat mask ``ms = mg & mv``. Non-finite samples are replaced by 0 (``f_s``, ``g0``) and never splat.
- 3. Exact constants: per image and value channel, ``c = lo + (hi - lo) / 2`` with lo/hi the min/max of
-    f over splat pixels (``c = 0`` if that is not finite or there are none). The filter runs on
-    ``f' = (f_s - c) * ms`` and adds ``c`` back, so constant values come back bit-exact.
+ 3. Exact constants: per image and value channel, ``c = clamp(0, lo, hi)``, the point of [lo, hi] nearest
+    0, with lo/hi the min/max of f over splat pixels (``c = 0`` if that is not finite or there are none).
+    The filter runs on ``f' = (f_s - c) * ms`` and adds ``c`` back, so constant values come back
+    bit-exact, values far from 0 lose no precision to their offset, and dim values beside a bright one
+    keep theirs (about the range's middle, a light 1e4 times the rest rounded every dim result to 1e-3).
  4. df = max(1, 2**floor(log2(min(sigma_s / 2, 256 * sigma_r)))); low-res size ceil(H/df) x ceil(W/df).
     down(x): mean over the existing pixels of each df x df block (partial edge blocks average fewer).
     up(x): bilinear at pixel centres, source coordinate u = (x + 0.5) / df - 0.5 clamped to
@@ -266,7 +268,7 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
         sel = (ms > 0).unsqueeze(1)
         lo = torch.where(sel, f_s, torch.full((), math.inf, dtype=wd, device=f.device)).amin((2, 3))
         hi = torch.where(sel, f_s, torch.full((), -math.inf, dtype=wd, device=f.device)).amax((2, 3))
-        c = lo + (hi - lo) / 2
+        c = torch.clamp(torch.zeros_like(lo), lo, hi)
         c = torch.where(torch.isfinite(c), c, torch.zeros((), dtype=wd, device=f.device))
         c = c[:, :, None, None]
     fp = (f_s - c) * ms.unsqueeze(1)

@@ -112,7 +112,7 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         sel = (ms > 0).unsqueeze(2)
         lo = torch.where(sel, f_s, math.inf).amin((1, 3, 4))
         hi = torch.where(sel, f_s, -math.inf).amax((1, 3, 4))
-        c = lo + (hi - lo) / 2
+        c = torch.clamp(torch.zeros_like(lo), lo, hi)
         c = torch.where(torch.isfinite(c), c, zero)[:, :, None, None]  # (B,C,1,1)
     fp = (f_s - c.unsqueeze(1)) * (ms > 0).to(wd).unsqueeze(2)
     # fallback where nothing slices: the time-weighted average of the finite samples at the pixel,

@@ -183,7 +183,7 @@ class ImageFilter {
   }
 
   void prepare_values() {
-    // Values: finiteness, then c = lo + (hi - lo) / 2 over splat pixels (min/max are order
+    // Values: finiteness, then c = clamp(0, lo, hi) over splat pixels (min/max are order
     // independent), and the splat mask ms.
     mv_.resize(N_);
     const int64_t chunks = (H_ + kReduceRows - 1) / kReduceRows;

@@ -49,11 +49,11 @@ inline T nan_max(T a, T b) {
 
 inline int64_t clampi(int64_t i, int64_t n) { return i < 0 ? 0 : (i >= n ? n - 1 : i); }
 
-// denoise._min_support: the least den whose num / den keeps three digits through the filter's float
-// rounding, 1e3 eps, not below 1e-8 (in double, rounded once to T as PyTorch rounds the Python float)
+// denoise._min_support: the least den whose num / den is taken, 100 eps (den rounds to about eps), not
+// below 1e-8 (in double, rounded once to T as PyTorch rounds the Python float)
 template <typename T>
 inline T min_support() {
-  return static_cast<T>(std::max(1e-8, 1e3 * static_cast<double>(std::numeric_limits<T>::epsilon())));
+  return static_cast<T>(std::max(1e-8, 1e2 * static_cast<double>(std::numeric_limits<T>::epsilon())));
 }
 
 // Rows of about this many pixels per parallel task.

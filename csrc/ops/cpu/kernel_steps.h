@@ -120,7 +120,7 @@ void masked_root_and_guide(const T* acc, const T* g, const uint8_t* m, int64_t D
   });
 }
 
-// 3. The per-channel offset c = lo + (hi - lo) / 2 from `parts` partial minima / maxima
+// 3. The per-channel offset c = the point of [lo, hi] nearest 0 from `parts` partial minima / maxima
 // ((parts, C) each), 0 where that is not finite (no splat sample).
 template <typename T>
 std::vector<T> channel_centres(const std::vector<T>& lo, const std::vector<T>& hi, int64_t parts, int64_t C) {
@@ -128,8 +128,8 @@ std::vector<T> channel_centres(const std::vector<T>& lo, const std::vector<T>& h
   for (int64_t k = 0; k < C; ++k) {
     T l = std::numeric_limits<T>::infinity(), h = -l;
     for (int64_t p = 0; p < parts; ++p) l = std::min(l, lo[p * C + k]), h = std::max(h, hi[p * C + k]);
-    const T mid = l + (h - l) / T(2);
-    c[k] = std::isfinite(mid) ? mid : T(0);
+    const T near = std::min(std::max(T(0), l), h);
+    c[k] = std::isfinite(near) ? near : T(0);
   }
   return c;
 }

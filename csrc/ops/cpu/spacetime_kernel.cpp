@@ -193,7 +193,7 @@ class SpacetimeFilter {
   }
 
   // 2., 3. over the splatting frames: each frame's splat mask (finite values and guide), and
-  // c = lo + (hi - lo) / 2 per channel over every splat sample of every frame.
+  // c = clamp(0, lo, hi) per channel over every splat sample of every frame.
   void prepare_frames() {
     const int64_t nf = static_cast<int64_t>(act_.size());
     std::vector<T> lo(nf * H_ * C_), hi(nf * H_ * C_);
