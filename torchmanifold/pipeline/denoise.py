@@ -175,9 +175,10 @@ _LOG_RADIANCE_OFFSET = 0.1
 #: from 1 spp, and 0.22 dB over the whole set from 4 spp; the pilot's at 1.0 or 0.25 lost)
 _SAMPLE_RADIANCE_WIDENING = 2.0
 #: a bandwidth whose pooled cross-validated error is over this many times the least one's is left out,
-#: whatever the evidence: one catastrophic residual (a float32 breakdown of the op far from every
-#: manifold) widens its own standard error, so z alone would keep it (frames 0-2 of the validation set:
-#: -0.01 / 0.00 dB from 1 / 4 spp; it removes 20-700x bright pixels from mi_glass_mirror)
+#: whatever the evidence: one catastrophic residual widens its own standard error, so z alone would keep
+#: it (frames 0-2 of the validation set: -0.01 / 0.00 dB from 1 / 4 spp, and it removed 20-700x bright
+#: pixels from mi_glass_mirror, while the op centred values at their range's middle; since they are
+#: centred nearest 0, without it 0.000 / -0.008, `bl_moving_metal` -0.07 from 4 spp)
 _SELECTION_ERROR_CUT = 2.0
 #: z^2 of a bandwidth left out (weight exp(-z^2 / 2) = 0)
 _LEFT_OUT = 1e30
