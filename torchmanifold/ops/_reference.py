@@ -77,7 +77,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = ["adaptive_manifold_torch", "downsample_factor", "gram_band_stride", "GRAM_BAND", "downsample", "upsample",
-           "recursive_lowpass", "normalise", "root_manifold", "s0_floor"]
+           "recursive_lowpass", "normalise", "root_manifold", "s0_floor", "value_offsets"]
+
+
+def value_offsets(lo: Tensor, hi: Tensor) -> Tensor:
+    """3. Each channel's offset from its splat values' minima ``lo`` and maxima ``hi``: the point of [lo, hi]
+    nearest 0, 0 where that is not finite (no splat value)."""
+    c = torch.clamp(torch.zeros_like(lo), lo, hi)
+    return torch.where(torch.isfinite(c), c, torch.zeros_like(c))
 
 
 def s0_floor(dtype: torch.dtype) -> float:
@@ -268,9 +275,7 @@ def adaptive_manifold_torch(values: Tensor, guide: Tensor, sigma_s: float, sigma
         sel = (ms > 0).unsqueeze(1)
         lo = torch.where(sel, f_s, torch.full((), math.inf, dtype=wd, device=f.device)).amin((2, 3))
         hi = torch.where(sel, f_s, torch.full((), -math.inf, dtype=wd, device=f.device)).amax((2, 3))
-        c = torch.clamp(torch.zeros_like(lo), lo, hi)
-        c = torch.where(torch.isfinite(c), c, torch.zeros((), dtype=wd, device=f.device))
-        c = c[:, :, None, None]
+        c = value_offsets(lo, hi)[:, :, None, None]
     fp = (f_s - c) * ms.unsqueeze(1)
 
     # 6. root manifold

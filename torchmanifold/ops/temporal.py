@@ -45,6 +45,7 @@ from torchmanifold.ops._reference import (
     recursive_lowpass,
     root_manifold,
     upsample,
+    value_offsets,
 )
 from torchmanifold.ops.adaptive_manifold import (
     _DISPATCH_KEYS,
@@ -112,8 +113,7 @@ def spacetime_adaptive_manifold_torch(values: Tensor, guide: Tensor, weights: Te
         sel = (ms > 0).unsqueeze(2)
         lo = torch.where(sel, f_s, math.inf).amin((1, 3, 4))
         hi = torch.where(sel, f_s, -math.inf).amax((1, 3, 4))
-        c = torch.clamp(torch.zeros_like(lo), lo, hi)
-        c = torch.where(torch.isfinite(c), c, zero)[:, :, None, None]  # (B,C,1,1)
+        c = value_offsets(lo, hi)[:, :, None, None]  # (B,C,1,1)
     fp = (f_s - c.unsqueeze(1)) * (ms > 0).to(wd).unsqueeze(2)
     # fallback where nothing slices: the time-weighted average of the finite samples at the pixel,
     # taken about c so that constant values come back exactly
