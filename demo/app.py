@@ -18,6 +18,7 @@ import os
 import statistics
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -43,7 +44,7 @@ from tqdm import tqdm  # noqa: E402
 
 from demo import controls  # noqa: E402
 from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams  # noqa: E402
-from demo.overlay import BACKGROUND, Canvas, OverlayRenderer, draw_overlay  # noqa: E402
+from demo.overlay import BACKGROUND, Canvas, OverlayRenderer, draw_backdrop, draw_live, plot_axes  # noqa: E402
 from demo.panels import (MAX_WINDOW_WIDTH, MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout,  # noqa: E402
                          PanelRenderer)
 from demo.session import DemoSession  # noqa: E402
@@ -59,6 +60,10 @@ STATS_FIELDS = ("iterations_per_second", "ms_per_iteration", "trace_ms", "trace_
 
 #: Iterations the on-screen numbers summarise (the most recent ones).
 SCREEN_WINDOW = 16
+
+#: The stats block's first lines change every iteration (iteration, stage times, the shrinking
+#: bandwidth); the rest change with the settings and live in the cached backdrop.
+LIVE_LINES = 3
 
 
 def summarize(log: list[tuple[float, float, float, float, float]]) -> dict[str, float]:
@@ -134,6 +139,9 @@ class DemoApp(WindowConfig):
     def __init__(self, **kwargs):
         super().__init__(**kwargs)
         args = self.argv
+        if self.wnd.samples:
+            raise ValueError(f"--samples: the demo draws into a single-sampled window (its backdrop is copied in, "
+                             f"which a multisampled one does not take), got {self.wnd.samples}")
         self.layout = Layout(args.width, args.height, scale=args.scale)
         self.frame_times = [float(i) for i in range(args.clip)]
         self.max_iterations = args.max_iterations
@@ -296,9 +304,13 @@ class DemoApp(WindowConfig):
 
     def draw(self) -> None:
         layout, prog = self.layout, self.progression
-        if prog.state is not None and self._uploaded != prog.version:
-            self._uploaded = prog.version  # one upload per iteration, none while nothing changes
-            self.panels.upload_estimates(prog.planes())
+        rows, blend = self.shown_rows() if prog.state is not None else ((0, 0), 0.0)
+        if prog.state is not None and self._uploaded != (prog.version, rows):
+            # the rows shown, once per iteration or shown time: the upload stays one or two rows however
+            # long the clip
+            self._uploaded = (prog.version, rows)
+            self.panels.upload_estimates(prog.planes(list(dict.fromkeys(rows))))
+        rows = (0, int(rows[1] != rows[0]))  # their layers in the upload
         view = None
         if self.feature_view is not None:
             key = (prog.version, self.show_time, self.feature_view)
@@ -307,20 +319,26 @@ class DemoApp(WindowConfig):
                 self._view_key = key
                 self.panels.upload_view(view)
         ref_frame = frame_at(prog.frame_times, self.show_time) if prog.reference is not None else None
-        rows, blend = self.shown_rows() if prog.state is not None else ((0, 0), 0.0)
         panels = [(MODE_DISPLAY if (i == 0 and view is not None) else MODE_IMAGE, i) for i in range(len(SLOTS))]
         panels.append((MODE_HEAT, self.heat_slot))
         self.ctx.disable(moderngl.DEPTH_TEST)
         self.panels.draw_panels(panels, rows, blend, ref_frame, self.exposure)
-        self.wnd.fbo.use()
-        self.wnd.fbo.clear(*self.clear_color)  # here, not in the loop: the clear is display time too
+        key, backdrop, live = self.overlay_layers(ref_frame is not None)
+        # the backdrop replaces the window's clear (here, not in the loop: it is display time too)
+        self.overlay.draw_backdrop(self.wnd.fbo, key, backdrop, layout.window_size)
         buffer_size = self.wnd.buffer_size
         viewports = [layout.gl_viewport(layout.panel_rect(i), buffer_size) for i in range(layout.n_panels)]
         self.panels.draw_magnified(self.wnd.fbo, viewports, buffer_size)
-        self.overlay.draw(self.canvas(ref_frame is not None), layout.window_size, (0, 0, *buffer_size))
+        self.overlay.draw(live, layout.window_size, (0, 0, *buffer_size))
 
-    def canvas(self, has_heat: bool) -> Canvas:
-        """Everything drawn over the panels this frame (built from cached glyph quads: no rasterising)."""
+    def overlay_layers(self, has_heat: bool) -> tuple[tuple, Callable[[], Canvas], Canvas]:
+        """The overlay of this frame in two layers (built from cached glyph quads: no rasterising).
+
+        Returns ``(key, backdrop, live)``: ``backdrop()`` builds what changes rarely (panel labels, the
+        plot's frame, the settings lines, the clip bar), drawn into the cached backdrop only when ``key``,
+        its inputs, changes; ``live`` holds what changes every iteration or frame (the first three stats
+        lines, the curves, the clip bar's marker, help).
+        """
         layout, prog = self.layout, self.progression
         labels = []
         for i, slot in enumerate(SLOTS):
@@ -352,11 +370,20 @@ class DemoApp(WindowConfig):
             "",
             "H: help   SPACE: play/pause   arrows: scrub   R: restart",
         ]
-        return draw_overlay(
-            Canvas(self.overlay.atlas), layout.window_size, labels, layout.plot_rect(), prog.history,
-            layout.text_rect(), lines, controls.help_lines() if self.show_help else None,
-            (prog.frame_times, self.show_time, layout.timeline_span()),
-        )
+        live_lines = lines[:LIVE_LINES] + [None] * (len(lines) - LIVE_LINES)
+        still_lines = [None] * LIVE_LINES + lines[LIVE_LINES:]
+        axes = plot_axes(prog.history)
+        atlas, times = self.overlay.atlas, prog.frame_times
+        key = (tuple(labels), tuple(still_lines), axes, tuple(times), layout.window_size)
+
+        def backdrop() -> Canvas:
+            return draw_backdrop(Canvas(atlas), labels, layout.plot_rect(), axes, layout.text_rect(), still_lines,
+                                 (times, layout.timeline_span()))
+
+        live = draw_live(Canvas(atlas), layout.window_size, layout.plot_rect(), prog.history, axes,
+                         layout.text_rect(), live_lines, controls.help_lines() if self.show_help else None,
+                         (times, self.show_time, layout.timeline_span()))
+        return key, backdrop, live
 
     # ------------------------------------------------------------------------------ capture
     def read_frame(self) -> np.ndarray:

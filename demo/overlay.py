@@ -22,6 +22,7 @@ DIM = (150, 150, 150, 255)
 BACKGROUND = (15, 15, 18, 255)
 AXIS = (120, 120, 130, 255)
 SIZES = (11, 12, 13)
+PLOT_TITLE = "PSNR (dB, clamped sRGB) vs iteration"
 FIRST, LAST = 32, 127  # printable ASCII; other characters draw as "?"
 
 
@@ -235,6 +236,7 @@ class OverlayRenderer:
         self.quads = ctx.buffer(reserve=12 * 4 * 1024, dynamic=True)
         self.lines = ctx.buffer(reserve=6 * 4 * 4096, dynamic=True)
         self._vaos()
+        self._backdrop = self._backdrop_texture = self._backdrop_key = None
 
     def _vaos(self) -> None:
         self.quad_vao = self.ctx.vertex_array(self.quad_prog, [
@@ -269,32 +271,65 @@ class OverlayRenderer:
             self.line_vao.render(moderngl.LINES, vertices=len(lines))
         self.ctx.disable(moderngl.BLEND)
 
+    def draw_backdrop(self, fbo: moderngl.Framebuffer, key, build, window_size: tuple[int, int]) -> None:
+        """Fill ``fbo`` with the backdrop: the background colour and the overlay's rarely changing part,
+        ``build()`` (a :class:`Canvas`, see :func:`draw_backdrop`), drawn into a cached framebuffer of
+        ``fbo``'s size when ``key`` (everything ``build`` reads) changes, and copied into ``fbo`` each
+        frame. The copy costs what the window's clear did; the text it holds is not built or drawn again."""
+        if self._backdrop is None or self._backdrop.size != fbo.size:
+            if self._backdrop is not None:
+                self._backdrop.release()
+                self._backdrop_texture.release()
+            self._backdrop_texture = self.ctx.texture(fbo.size, 4)
+            self._backdrop = self.ctx.framebuffer(color_attachments=[self._backdrop_texture])
+            self._backdrop_key = None
+        if key != self._backdrop_key:
+            self._backdrop.use()
+            self._backdrop.clear(*(c / 255.0 for c in BACKGROUND))
+            self.draw(build(), window_size, (0, 0, *fbo.size))
+            self._backdrop_key = key
+        self.ctx.copy_framebuffer(fbo, self._backdrop)
+        fbo.use()
+
     def release(self) -> None:
         for obj in (self.quad_vao, self.line_vao, self.quads, self.lines, self.corners, self.quad_prog,
-                    self.line_prog, self.glyphs):
-            obj.release()
+                    self.line_prog, self.glyphs, self._backdrop, self._backdrop_texture):
+            if obj is not None:
+                obj.release()
 
 
-def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
-              title: str = "PSNR (dB, clamped sRGB) vs iteration") -> None:
-    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x."""
-    x0, y0, w, h = rect
-    # drawn every frame: plain Python over the few points costs less than numpy's per-call overhead
-    finite = {name: [(it, val) for it, val in curve if math.isfinite(val)] for name, curve in curves.items()}
-    values = [val for curve in finite.values() for _, val in curve]
-    left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
+def plot_axes(curves: dict[str, list[tuple[int, float]]]) -> tuple[int, float, float] | None:
+    """The plot's axis ranges ``(max iteration, lo, hi)`` for ``curves``, or None when no value is finite.
+
+    The x axis ends at a power of two and the y axis at whole dB beyond the values, so the ranges (and the
+    cached frame drawn from them) change log2 times, not every iteration."""
+    values = [val for curve in curves.values() for _, val in curve if math.isfinite(val)]
     if not values:
-        canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, None, 0.0, 0.0))
-        canvas.text((left, top + 10), "no reference: no error curve", 12, DIM)
-        return
-    # the axis ends at a power of two, so its frame (cached) is rebuilt log2 times, not every iteration
-    last = max(it for curve in finite.values() for it, _ in curve)
+        return None
+    last = max(it for curve in curves.values() for it, val in curve if math.isfinite(val))
     max_it = 1 << (max(2, int(last)) - 1).bit_length()
-    lo, hi = float(math.floor(min(values) - 0.5)), float(math.ceil(max(values) + 0.5))
-    canvas.extend(_plot_frame(canvas.atlas, tuple(rect), title, max_it, lo, hi))
-    to_px = _plot_mapping(rect, max_it, lo, hi)
-    legend_x = left + 6
-    for name, good in finite.items():
+    return max_it, float(math.floor(min(values) - 0.5)), float(math.ceil(max(values) + 0.5))
+
+
+def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]], title: str = PLOT_TITLE) -> None:
+    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x: its
+    frame (:func:`plot_frame`) and its curves (:func:`draw_curves`)."""
+    axes = plot_axes(curves)
+    canvas.extend(plot_frame(canvas.atlas, tuple(rect), title, axes))
+    draw_curves(canvas, rect, curves, axes)
+
+
+def draw_curves(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
+                axes: tuple[int, float, float] | None) -> None:
+    """The curves of :func:`draw_plot` on ``axes`` (:func:`plot_axes`), two pixels thick, with their legend
+    (a curve of one point is a dot; non-finite values are skipped)."""
+    if axes is None:
+        return
+    x0, y0, w, h = rect
+    to_px = _plot_mapping(rect, *axes)
+    legend_x = x0 + 46
+    for name, curve in curves.items():
+        good = [(it, val) for it, val in curve if math.isfinite(val)]
         colour = CURVE_COLOURS.get(name, (255, 255, 255)) + (255,)
         if len(good) >= 2:
             canvas.polyline(to_px(*np.asarray(good, np.float64).T), colour, thickness=2)
@@ -302,7 +337,7 @@ def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
             px, py = to_px(*good[0])
             canvas.rect(px - 2, py - 2, 4, 4, colour)
         label = f"{name} {good[-1][1]:.1f}" if good else name
-        legend_x += canvas.text((legend_x, top + 2), label, 11, colour) + 12
+        legend_x += canvas.text((legend_x, y0 + 24), label, 11, colour) + 12
 
 
 def _plot_mapping(rect, max_it: int, lo: float, hi: float):
@@ -317,15 +352,18 @@ def _plot_mapping(rect, max_it: int, lo: float, hi: float):
 
 
 @lru_cache(maxsize=64)
-def _plot_frame(atlas: GlyphAtlas, rect, title: str, max_it: int | None, lo: float, hi: float) -> Canvas:
-    """The plot's box, title, axes and ticks: they change only when the axis ranges do."""
+def plot_frame(atlas: GlyphAtlas, rect, title: str, axes: tuple[int, float, float] | None) -> Canvas:
+    """The plot's box, title, axes and ticks (or a note that there is no curve): they change only when
+    the axis ranges do."""
     canvas = Canvas(atlas)
     x0, y0, w, h = rect
     canvas.box(x0, y0, w, h)
     canvas.text((x0 + 6, y0 + 3), title, 12, TEXT, w - 10)
-    if max_it is None:
-        return canvas
     left, top, right, bottom = x0 + 40, y0 + 22, x0 + w - 8, y0 + h - 20
+    if axes is None:
+        canvas.text((left, top + 10), "no reference: no error curve", 12, DIM)
+        return canvas
+    max_it, lo, hi = axes
     to_px = _plot_mapping(rect, max_it, lo, hi)
     canvas.polyline([(left, top), (left, bottom), (right, bottom)], AXIS)
     for val in np.linspace(lo, hi, 4):
@@ -339,47 +377,70 @@ def _plot_frame(atlas: GlyphAtlas, rect, title: str, max_it: int | None, lo: flo
     return canvas
 
 
-def draw_overlay(
+def draw_backdrop(
     canvas: Canvas,
-    size: tuple[int, int],
     labels: list[tuple[tuple[int, int], str, int]],
     plot_rect: tuple[int, int, int, int],
-    curves: dict[str, list[tuple[int, float]]],
+    axes: tuple[int, float, float] | None,
     text_rect: tuple[int, int, int, int],
-    text_lines: list[str],
+    text_lines: list[str | None],
+    timeline: tuple[list[float], tuple[int, int, int]] | None = None,
+) -> Canvas:
+    """The part of the overlay that changes rarely into ``canvas``: it is drawn once into the cached backdrop
+    (:meth:`OverlayRenderer.draw_backdrop`), the live part (:func:`draw_live`) over it every frame.
+
+    Args:
+        labels: ((x, y), text, max width) panel titles.
+        plot_rect, axes: the plot's place and axis ranges (:func:`plot_axes`): its frame.
+        text_rect, text_lines: the stats block; the lines given (not None) are drawn here (the first line
+            is highlighted).
+        timeline: (frame times, (x0, x1, y)): the clip bar with a tick per frame, without its marker.
+    """
+    for (x, y), text, max_width in labels:
+        canvas.text((x + 2, y + 3), text, 13, TEXT, max_width - 4)
+    canvas.extend(plot_frame(canvas.atlas, tuple(plot_rect), PLOT_TITLE, axes))
+    canvas.box(*text_rect)
+    _text_block(canvas, text_rect, text_lines)
+    if timeline is not None and len(timeline[0]) > 1:
+        times, (x0, x1, y) = timeline
+        canvas.rect(x0, y - 1, x1 - x0, 2, AXIS)
+        for t in times:
+            x = _timeline_x(times, (x0, x1), t)
+            canvas.polyline([(x, y - 4), (x, y + 4)], (170, 170, 180, 255))
+        canvas.text((x0 - 12, y + 4), f"{times[0]:g}", 11, DIM)
+        canvas.text((x1 - 4, y + 4), f"{times[-1]:g}", 11, DIM)
+    return canvas
+
+
+def draw_live(
+    canvas: Canvas,
+    size: tuple[int, int],
+    plot_rect: tuple[int, int, int, int],
+    curves: dict[str, list[tuple[int, float]]],
+    axes: tuple[int, float, float] | None,
+    text_rect: tuple[int, int, int, int],
+    text_lines: list[str | None],
     help_lines: list[str] | None = None,
     timeline: tuple[list[float], float, tuple[int, int, int]] | None = None,
 ) -> Canvas:
-    """Everything over the panels into ``canvas``.
+    """The part of the overlay that changes every iteration or frame into ``canvas`` (drawn over the
+    backdrop of :func:`draw_backdrop`).
 
     Args:
         size: window size (width, height).
-        labels: ((x, y), text, max width) panel titles.
-        plot_rect, curves: where and what to plot (see :func:`draw_plot`).
-        text_rect, text_lines: the stats block (the first line highlighted).
+        plot_rect, curves, axes: the plot's curves and legend (:func:`draw_curves`).
+        text_rect, text_lines: the stats lines given (not None) here.
         help_lines: when given, a translucent help screen over everything.
-        timeline: (frame times, shown time, (x0, x1, y)): a clip bar with a marker at the shown time.
+        timeline: (frame times, shown time, (x0, x1, y)): the clip bar's marker at the shown time.
     """
     width, height = size
-    for (x, y), text, max_width in labels:
-        canvas.text((x + 2, y + 3), text, 13, TEXT, max_width - 4)
-    draw_plot(canvas, plot_rect, curves)
-    tx, ty, tw, th = text_rect
-    canvas.box(tx, ty, tw, th)
-    for i, line in enumerate(text_lines):
-        canvas.text((tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
+    draw_curves(canvas, plot_rect, curves, axes)
+    _text_block(canvas, text_rect, text_lines)
     if timeline is not None and len(timeline[0]) > 1:
         times, shown, (x0, x1, y) = timeline
-        span = times[-1] - times[0]
-        to_x = lambda t: x0 + (t - times[0]) / span * (x1 - x0)  # noqa: E731
-        canvas.rect(x0, y - 1, x1 - x0, 2, AXIS)
-        for t in times:
-            canvas.polyline([(to_x(t), y - 4), (to_x(t), y + 4)], (170, 170, 180, 255))
-        mx = to_x(shown)
+        mx = _timeline_x(times, (x0, x1), shown)
         for k in range(6):  # a small downward triangle
             canvas.rect(mx - 5 + k, y - 9 + k, 11 - 2 * k, 1, (255, 210, 120, 255))
-        canvas.text((x0 - 12, y + 4), f"{times[0]:g}", 11, DIM)
-        canvas.text((x1 - 4, y + 4), f"{times[-1]:g}", 11, DIM)
     if help_lines:
         canvas.rect(0, 0, width, height, (0, 0, 0, 200))
         columns = 2 if len(help_lines) > (height - 20) // 16 else 1
@@ -388,3 +449,16 @@ def draw_overlay(
             col, row = divmod(i, per_col)
             canvas.text((16 + col * width // 2, 10 + 16 * row), line, 13, TEXT)
     return canvas
+
+
+def _text_block(canvas: Canvas, text_rect, lines: list[str | None]) -> None:
+    """Line ``i`` of the stats block at its row, the first highlighted; None lines are left out."""
+    tx, ty, tw, th = text_rect
+    for i, line in enumerate(lines):
+        if line is not None:
+            canvas.text((tx + 6, ty + 4 + 15 * i), line, 12, TEXT if i else (255, 210, 120, 255), tw - 10)
+
+
+def _timeline_x(times: list[float], span: tuple[int, int], t: float) -> float:
+    x0, x1 = span
+    return x0 + (t - times[0]) / (times[-1] - times[0]) * (x1 - x0)

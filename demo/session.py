@@ -10,6 +10,7 @@ PSNR curves against the reference, the mean feature buffers for the feature view
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -165,12 +166,13 @@ class DemoSession:
         self.timing = StepTiming(trace * 1e3, state.render_seconds * 1e3, (wall - state.render_seconds) * 1e3)
         return self.timing
 
-    def planes(self) -> torch.Tensor:
-        """The last iteration's estimates of every row as float32 ``(rows, 3, H, W, 3)`` (raw, gaussian,
-        ours; rows in :attr:`row_times` order; RGB last, the texture's texel layout): what the display
-        uploads, once per iteration, in one copy."""
+    def planes(self, rows: Sequence[int] | None = None) -> torch.Tensor:
+        """The last iteration's estimates of ``rows`` (indices into :attr:`row_times`; None: every row) as
+        float32 ``(len(rows), 3, H, W, 3)`` (raw, gaussian, ours; RGB last, the texture's texel layout):
+        what the display uploads, in one copy."""
         s = self.state
-        return torch.stack([x.permute(0, 2, 3, 1) for x in (s.raw, s.gaussian, s.ours)], 1)
+        pick = slice(None) if rows is None else list(rows)
+        return torch.stack([x[pick].permute(0, 2, 3, 1) for x in (s.raw, s.gaussian, s.ours)], 1)
 
     @property
     def row_times(self) -> list[float]:

@@ -79,7 +79,8 @@ def _canvas_texts(app):
 
     Canvas.text = record
     try:
-        app.canvas(True)
+        _, backdrop, _ = app.overlay_layers(True)
+        backdrop()
     finally:
         Canvas.text = original
     return seen
@@ -334,6 +335,28 @@ def test_click_on_clip_bar_scrubs(live_app):
     assert app.show_time == 0.25
     app.on_mouse_press_event(x0, y, 1)
     assert app.show_time == 0.0
+
+
+def test_backdrop_follows_its_inputs(live_app):
+    """The cached backdrop (labels, settings lines, the plot's frame, the clip bar) is redrawn whenever what it
+    shows changes: each frame equals the same frame drawn with the backdrop rebuilt from scratch."""
+    app = live_app
+    app.progressing = False  # the same panels in both draws
+    before = step_frame(app)
+    try:
+        for change in (lambda: app.apply_action("exposure_up"), lambda: app.apply_action("heat_source"),
+                       lambda: app.set_time(0.5), lambda: app.apply_action("help")):
+            change()
+            cached = step_frame(app)
+            app.overlay._backdrop_key = None
+            rebuilt = step_frame(app)
+            assert np.array_equal(cached, rebuilt)
+            assert not np.array_equal(cached, before)
+            before = cached
+    finally:
+        app.apply_action("help")
+        app.set_time(0.0)
+        app.progressing = True
 
 
 def test_play_pause_restart_help(live_app):

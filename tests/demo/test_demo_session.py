@@ -150,6 +150,7 @@ def test_session_through_the_tracer_process_is_the_same_progression(tracer, trac
         assert torch.equal(direct.raw(t), ahead.raw(t))
     # the upload: raw, gaussian, ours per row, RGB texels
     assert torch.equal(ahead.planes()[:, 2], ahead.state.ours.permute(0, 2, 3, 1))
+    assert torch.equal(ahead.planes([2, 0]), ahead.planes()[[2, 0]])
     ahead.restart()  # the look-ahead of the old progression is dropped, the new one starts at sample 0
     assert not tracer_proc._clip
     ahead.step()
