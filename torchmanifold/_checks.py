@@ -133,6 +133,17 @@ def check_tree_height(value: Any, *, name: str = "tree_height", allow_none: bool
     return check_int(name, value, min=1, max=MAX_TREE_HEIGHT)
 
 
+def check_tree_heights(value: Any, k: int, *, name: str = "tree_height") -> list[int]:
+    """One tree height for ``k`` bandwidths, or one per bandwidth (an int, or a sequence of 1 or ``k`` as the
+    ops take it), as ``k`` checked heights."""
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        if len(value) not in (1, k):
+            raise ValueError(f"{name}: one height or one per sigma ({k}), got {len(value)}")
+        heights = [check_tree_height(h, name=f"{name}[{j}]") for j, h in enumerate(value)]
+        return heights * k if len(heights) == 1 else heights
+    return [check_tree_height(value, name=name)] * k
+
+
 def check_choice(name: str, value: Any, choices: Iterable[Any]) -> Any:
     """One of ``choices``; TypeError when it is not even of their type (e.g. not a string)."""
     choices = tuple(choices)

@@ -109,5 +109,22 @@ def test_spacetime_bad_sigmas_are_named(random_inputs):
         spacetime_k(v, g, w, gq, [], 0.3, [2], 5, False)
     with pytest.raises(ValueError, match="sigma_s"):
         spacetime_k(v, g, w, gq, [0.0], 0.3, [2], 5, False)
-    with pytest.raises(ValueError, match="one per sigma"):
+    with pytest.raises(ValueError, match="^_spacetime_adaptive_manifold_bandwidths: tree_height .* one per sigma"):
         spacetime_k(v, g, w, gq, [2.0, 3.0], 0.3, [2, 2, 2], 5, False)
+
+
+def test_fake_kernels_check_the_heights(random_inputs):
+    """Traced (fake tensors), the ops take one height or one per sigma as the kernels do."""
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    v, g = random_inputs(1, 2, 3, 8, 8)
+    sv, sg, w, gq = _window(random_inputs, B=1, Q=1)
+    with FakeTensorMode() as mode:
+        v, g, sv, sg, w, gq = (mode.from_tensor(t) for t in (v, g, sv, sg, w, gq))
+        assert op(v, g, [2.0, 4.0], 0.3, [2], 5, False).shape == (2, *v.shape)
+        assert spacetime_k(sv, sg, w, gq, [2.0, 4.0], 0.3, [2, 3], 5, False).shape[0] == 2
+        for bad, match in (([2, 3, 4], "one per sigma"), ([2, 0], r"tree_height\[1\]")):
+            with pytest.raises(ValueError, match=match):
+                op(v, g, [2.0, 4.0], 0.3, bad, 5, False)
+            with pytest.raises(ValueError, match=match):
+                spacetime_k(sv, sg, w, gq, [2.0, 4.0], 0.3, bad, 5, False)

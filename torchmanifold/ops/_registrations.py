@@ -21,6 +21,7 @@ from torchmanifold._checks import (
     check_same_dtype_device,
     check_tensor,
     check_tree_height,
+    check_tree_heights,
 )
 from torchmanifold.ops._reference import adaptive_manifold_torch
 
@@ -72,12 +73,8 @@ def _register() -> None:
     def _bandwidths_fake(values, guide, sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers):
         torch._check(len(sigma_s) > 0,
                      lambda: "_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
-        torch._check(len(tree_height) in (1, len(sigma_s)),
-                     lambda: "_adaptive_manifold_bandwidths: tree_height must hold one height or one per "
-                             "sigma")
-        for k, s in enumerate(sigma_s):
-            _check_op_args(values, guide, s, sigma_r, tree_height[k if len(tree_height) > 1 else 0],
-                           power_iterations)
+        for s, h in zip(sigma_s, check_tree_heights(tree_height, len(sigma_s))):
+            _check_op_args(values, guide, s, sigma_r, h, power_iterations)
         return values.new_empty((len(sigma_s), *values.shape))
 
     @torch.library.custom_op(BACKWARD_NAME, mutates_args=())
@@ -176,9 +173,7 @@ def _register_spacetime() -> None:
                          adjust_outliers):
         torch._check(len(sigma_s) > 0,
                      lambda: "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma")
-        torch._check(len(tree_height) in (1, len(sigma_s)),
-                     lambda: "_spacetime_adaptive_manifold_bandwidths: tree_height must hold one height or "
-                             "one per sigma")
+        check_tree_heights(tree_height, len(sigma_s))
         _check_spacetime_shapes(values, guide, weights, query_guide)
         B, _, C, H, W = values.shape
         return values.new_empty((len(sigma_s), B, weights.shape[0], C, H, W))

@@ -24,6 +24,7 @@ from torchmanifold._checks import (
     check_same_dtype_device,
     check_sigmas,
     check_tree_height,
+    check_tree_heights,
     check_values_and_guide,
 )
 from torchmanifold._threads import call_parallel
@@ -110,7 +111,7 @@ def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float],
     with ``tree_height`` for all or one height per sigma: ``(K, B, C, H, W)``, each slice the bits of that
     call. With the CPU kernel and no gradient it is one op call whose images share the threads
     (``_adaptive_manifold_bandwidths``); otherwise one call each."""
-    heights = _bandwidth_heights(tree_height, len(sigmas_s))
+    heights = check_tree_heights(tree_height, len(sigmas_s))
     if not (values.dim() == 4 and values.device.type == "cpu" and _has_kernel_for("cpu") and values.numel()
             and not (torch.is_grad_enabled() and values.requires_grad)):
         return torch.stack([adaptive_manifold_filter(values, guide, s, sigma_r, h, guide_sigmas=guide_sigmas,
@@ -124,15 +125,6 @@ def _filter_bandwidths(values: Tensor, guide: Tensor, sigmas_s: Sequence[float],
     out = call_parallel(torch.ops.torchmanifold._adaptive_manifold_bandwidths, v.contiguous(), g.contiguous(),
                         sigmas, sigma_r, heights, power_iterations, False)
     return out.to(values.dtype)
-
-
-def _bandwidth_heights(tree_height: int | Sequence[int], k: int) -> list[int]:
-    """``tree_height`` (one height, or one per bandwidth) as ``k`` checked heights, one per bandwidth."""
-    if isinstance(tree_height, Sequence) and not isinstance(tree_height, (str, bytes)):
-        if len(tree_height) != k:
-            raise ValueError(f"tree_height: one height or one per sigma ({k}), got {len(tree_height)}")
-        return [check_tree_height(h, name=f"tree_height[{j}]") for j, h in enumerate(tree_height)]
-    return [check_tree_height(tree_height)] * k
 
 
 def adaptive_manifold_filter(values: Tensor, guide: Tensor, sigma_s: float, sigma_r: float,

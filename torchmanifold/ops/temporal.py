@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchmanifold._checks import (check_choice, check_int, check_numbers, check_positive, check_same_dtype_device,
-                                   check_tensor)
+                                   check_tensor, check_tree_heights)
 from torchmanifold._threads import call_parallel
 from torchmanifold.ops._reference import (
     GRAM_BAND,
@@ -49,7 +49,6 @@ from torchmanifold.ops._reference import (
 )
 from torchmanifold.ops.adaptive_manifold import (
     _DISPATCH_KEYS,
-    _bandwidth_heights,
     _constant_when_compiled,
     _FilterSettings,
     _check_settings,
@@ -231,7 +230,7 @@ def _spacetime_bandwidths(values: Tensor, guide: Tensor, frame_times, query_time
     ``sigmas_s``, with ``tree_height`` for all or one height per sigma: ``(K, B, Q, C, H, W)``, each slice
     the bits of that call. With the CPU kernel and no gradient it is one op call whose images share the
     threads (``_spacetime_adaptive_manifold_bandwidths``); otherwise one call each."""
-    heights = _bandwidth_heights(tree_height, len(sigmas_s))
+    heights = check_tree_heights(tree_height, len(sigmas_s))
     if not (values.dim() == 5 and values.device.type == "cpu" and _has_spacetime_kernel_for("cpu")
             and values.numel() and not (torch.is_grad_enabled() and values.requires_grad)):
         return torch.stack([temporal_adaptive_manifold_filter(

@@ -502,12 +502,14 @@ void check_spacetime_args(const at::Tensor& values, const at::Tensor& guide, con
 }
 
 // (K, B, Q, C, H, W): every window b, query q and spatial sigma k (tree height tree_heights[k], or
-// tree_heights[0] for all), the images side by side (for_each_image), the costliest first.
-at::Tensor spacetime_images(const at::Tensor& values, const at::Tensor& guide, const at::Tensor& weights,
-                            const at::Tensor& query_guide, c10::ArrayRef<double> sigma_s, double sigma_r,
+// tree_heights[0] for all), the images side by side (for_each_image), the costliest first. op names
+// the caller in messages.
+at::Tensor spacetime_images(const char* op, const at::Tensor& values, const at::Tensor& guide,
+                            const at::Tensor& weights, const at::Tensor& query_guide,
+                            c10::ArrayRef<double> sigma_s, double sigma_r,
                             c10::ArrayRef<int64_t> tree_heights, int64_t power_iterations,
                             bool adjust_outliers) {
-  check_height_count("spacetime_adaptive_manifold", tree_heights, sigma_s.size());
+  check_height_count(op, tree_heights, sigma_s.size());
   for (size_t k = 0; k < sigma_s.size(); ++k)
     check_spacetime_args(values, guide, weights, query_guide, sigma_s[k], sigma_r, height_of(tree_heights, k),
                          power_iterations);
@@ -547,8 +549,8 @@ at::Tensor spacetime_adaptive_manifold_cpu(const at::Tensor& values, const at::T
                                            const at::Tensor& weights, const at::Tensor& query_guide,
                                            double sigma_s, double sigma_r, int64_t tree_height,
                                            int64_t power_iterations, bool adjust_outliers) {
-  return spacetime_images(values, guide, weights, query_guide, {sigma_s}, sigma_r, {tree_height},
-                          power_iterations, adjust_outliers)[0];
+  return spacetime_images("spacetime_adaptive_manifold", values, guide, weights, query_guide, {sigma_s},
+                          sigma_r, {tree_height}, power_iterations, adjust_outliers)[0];
 }
 
 at::Tensor spacetime_adaptive_manifold_bandwidths_cpu(const at::Tensor& values, const at::Tensor& guide,
@@ -558,8 +560,8 @@ at::Tensor spacetime_adaptive_manifold_bandwidths_cpu(const at::Tensor& values, 
                                                       int64_t power_iterations, bool adjust_outliers) {
   TORCH_CHECK_VALUE(!sigma_s.empty(),
                     "_spacetime_adaptive_manifold_bandwidths: sigma_s must hold at least one sigma");
-  return spacetime_images(values, guide, weights, query_guide, sigma_s, sigma_r, tree_height, power_iterations,
-                          adjust_outliers);
+  return spacetime_images("_spacetime_adaptive_manifold_bandwidths", values, guide, weights, query_guide,
+                          sigma_s, sigma_r, tree_height, power_iterations, adjust_outliers);
 }
 
 }  // namespace
