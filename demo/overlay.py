@@ -322,7 +322,9 @@ def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]], 
 def draw_curves(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
                 axes: tuple[int, float, float] | None) -> None:
     """The curves of :func:`draw_plot` on ``axes`` (:func:`plot_axes`), two pixels thick, with their legend
-    (a curve of one point is a dot; non-finite values are skipped)."""
+    (a curve of one point is a dot; non-finite values are skipped). A curve keeps its last point in each
+    pixel column: on the log x axis late iterations share columns, and the segments drawn stay bounded by
+    the plot's width however long the run (on llvmpipe each segment costs its own setup)."""
     if axes is None:
         return
     x0, y0, w, h = rect
@@ -332,7 +334,9 @@ def draw_curves(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]]
         good = [(it, val) for it, val in curve if math.isfinite(val)]
         colour = CURVE_COLOURS.get(name, (255, 255, 255)) + (255,)
         if len(good) >= 2:
-            canvas.polyline(to_px(*np.asarray(good, np.float64).T), colour, thickness=2)
+            pts = to_px(*np.asarray(good, np.float64).T)
+            column = np.floor(pts[:, 0])
+            canvas.polyline(pts[np.append(column[1:] != column[:-1], True)], colour, thickness=2)
         elif good:
             px, py = to_px(*good[0])
             canvas.rect(px - 2, py - 2, 4, 4, colour)

@@ -176,6 +176,22 @@ def test_plot_draws_finite_points_two_pixels_thick():
     assert len(dots) == 1 and np.allclose(dots[0, :2], to_px(1, 25.0) - 2)
 
 
+def test_long_curves_keep_one_point_per_pixel_column():
+    """However many iterations, a curve draws at most one point per pixel column of the plot, and ends at its
+    last value."""
+    from demo.overlay import Canvas, GlyphAtlas, _plot_mapping, draw_plot, plot_axes
+
+    rect = (4, 100, 356, 198)
+    curve = [(i, 20.0 + np.log(i)) for i in range(1, 5001)]
+    canvas = Canvas(GlyphAtlas())
+    draw_plot(canvas, rect, {"ours": curve})
+    _, lines = canvas.arrays()
+    ours = lines[np.all(np.isclose(lines[:, 2:5] * 255, (255, 150, 40)), 1)].reshape(2, -1, 2, 6)[0]  # one row
+    xs = np.concatenate([ours[:, 0, 0], ours[-1:, 1, 0]])
+    assert len(xs) <= rect[2] and np.all(np.diff(np.floor(xs)) > 0)
+    assert np.allclose(ours[-1, 1, :2], _plot_mapping(rect, *plot_axes({"ours": curve}))(*curve[-1]))
+
+
 def test_glyph_quads_hold_all_of_each_glyphs_ink():
     """A glyph's quad is cut to its ink: pasting the quads of a string gives the same alpha as pasting
     each character's whole atlas cell at its pen position (PIL draws every printable character)."""
