@@ -3,7 +3,9 @@
 Glyphs of PIL's default font are rendered once into an atlas texture; a frame's text, boxes and lines
 are then a few small arrays of quads and line segments (a string's quads are cached, so a line that
 did not change costs a lookup), drawn with two draw calls. Nothing is rasterised on the CPU per frame,
-so the numbers can change every iteration at no cost.
+so the numbers can change every iteration at no cost. The layer comes in two parts: a backdrop of what
+changes with the settings alone (:func:`draw_backdrop`, drawn into a cached framebuffer that each frame
+copies into the window in place of a clear) and what changes every iteration or frame (:func:`draw_live`).
 """
 from __future__ import annotations
 
