@@ -34,7 +34,8 @@ BASE = "b32903e"
 
 def _base_package(commit: str, into: Path) -> str:
     """``demo/`` at ``commit`` as the package ``demo_base`` under ``into`` (its own imports renamed)."""
-    data = subprocess.run(["git", "archive", commit, "demo"], cwd=ROOT, capture_output=True, check=True).stdout
+    data = subprocess.run(["git", "archive", commit, "demo"], cwd=ROOT, capture_output=True,
+                          check=True).stdout
     with tarfile.open(fileobj=io.BytesIO(data)) as tar:
         tar.extractall(into, filter="data")
     (into / "demo").rename(into / "demo_base")

@@ -44,7 +44,8 @@ from tqdm import tqdm  # noqa: E402
 
 from demo import controls  # noqa: E402
 from demo.controls import FEATURE_SETS, FEATURE_VIEWS, TEMPORAL_MODES, FilterParams  # noqa: E402
-from demo.overlay import BACKGROUND, Canvas, OverlayRenderer, draw_backdrop, draw_live, plot_axes  # noqa: E402
+from demo.overlay import (BACKGROUND, Canvas, CurveArrays, OverlayRenderer, draw_backdrop,  # noqa: E402
+                          draw_live, plot_axes)
 from demo.panels import (MAX_WINDOW_WIDTH, MODE_DISPLAY, MODE_HEAT, MODE_IMAGE, SLOTS, Layout,  # noqa: E402
                          PanelRenderer)
 from demo.session import DemoSession  # noqa: E402
@@ -140,8 +141,8 @@ class DemoApp(WindowConfig):
         super().__init__(**kwargs)
         args = self.argv
         if self.wnd.samples:
-            raise ValueError(f"--samples: the demo draws into a single-sampled window (its backdrop is copied in, "
-                             f"which a multisampled one does not take), got {self.wnd.samples}")
+            raise ValueError(f"--samples: the demo draws into a single-sampled window (its backdrop is "
+                             f"copied in, which a multisampled one does not take), got {self.wnd.samples}")
         self.layout = Layout(args.width, args.height, scale=args.scale)
         self.frame_times = [float(i) for i in range(args.clip)]
         self.max_iterations = args.max_iterations
@@ -175,6 +176,7 @@ class DemoApp(WindowConfig):
         #: one record per iteration: (end time s, trace ms, trace wait ms, filter ms, display ms)
         self.stage_log: list[tuple[float, float, float, float, float]] = []
         self._uploaded = None  # (session version, rows) of the estimates on the GPU
+        self._curves = CurveArrays()  # the PSNR curves as arrays, converted as they grow
         self._view_key = None
         self._key_actions = {}
         for key_name, action, _ in controls.BINDINGS:
@@ -372,15 +374,16 @@ class DemoApp(WindowConfig):
         ]
         live_lines = lines[:LIVE_LINES] + [None] * (len(lines) - LIVE_LINES)
         still_lines = [None] * LIVE_LINES + lines[LIVE_LINES:]
-        axes = plot_axes(prog.history)
+        curves = self._curves(prog.history)
+        axes = plot_axes(curves)
         atlas, times = self.overlay.atlas, prog.frame_times
         key = (tuple(labels), tuple(still_lines), axes, tuple(times), layout.window_size)
 
         def backdrop() -> Canvas:
-            return draw_backdrop(Canvas(atlas), labels, layout.plot_rect(), axes, layout.text_rect(), still_lines,
-                                 (times, layout.timeline_span()))
+            return draw_backdrop(Canvas(atlas), labels, layout.plot_rect(), axes, layout.text_rect(),
+                                 still_lines, (times, layout.timeline_span()))
 
-        live = draw_live(Canvas(atlas), layout.window_size, layout.plot_rect(), prog.history, axes,
+        live = draw_live(Canvas(atlas), layout.window_size, layout.plot_rect(), curves, axes,
                          layout.text_rect(), live_lines, controls.help_lines() if self.show_help else None,
                          (times, self.show_time, layout.timeline_span()))
         return key, backdrop, live

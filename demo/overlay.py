@@ -300,31 +300,65 @@ class OverlayRenderer:
                 obj.release()
 
 
-def plot_axes(curves: dict[str, list[tuple[int, float]]]) -> tuple[int, float, float] | None:
-    """The plot's axis ranges ``(max iteration, lo, hi)`` for ``curves``, or None when no value is finite.
+class CurveArrays:
+    """Growing curves (name -> [(iteration, value), ...], appended to) as arrays of their finite points.
+
+    A call returns name -> ``(2, n)`` float64 (iterations, values) and converts only the points appended
+    since the last call (a curve replaced by a new list, as on a restart, starts again): the plot's Python
+    per frame does not grow with the run.
+    """
+
+    def __init__(self):
+        self._state: dict[str, tuple[list, int, np.ndarray, int]] = {}
+
+    def __call__(self, curves: dict[str, list[tuple[int, float]]]) -> dict[str, np.ndarray]:
+        out = {}
+        for name, curve in curves.items():
+            source, seen, buf, n = self._state.get(name, (None, 0, np.empty((2, 0)), 0))
+            if source is not curve or len(curve) < seen:
+                seen, n = 0, 0
+            new = [p for p in curve[seen:] if math.isfinite(p[1])]
+            if new:
+                if n + len(new) > buf.shape[1]:
+                    grown = np.empty((2, max(2 * buf.shape[1], n + len(new), 64)))
+                    grown[:, :n] = buf[:, :n]
+                    buf = grown
+                buf[:, n:n + len(new)] = np.asarray(new, np.float64).T
+                n += len(new)
+            self._state[name] = (curve, len(curve), buf, n)
+            out[name] = buf[:, :n]
+        return out
+
+
+def plot_axes(curves: dict[str, np.ndarray]) -> tuple[int, float, float] | None:
+    """The plot's axis ranges ``(max iteration, lo, hi)`` for ``curves`` (:class:`CurveArrays`' output), or
+    None when there is no point.
 
     The x axis ends at a power of two and the y axis at whole dB beyond the values, so the ranges (and the
     cached frame drawn from them) change log2 times, not every iteration."""
-    values = [val for curve in curves.values() for _, val in curve if math.isfinite(val)]
-    if not values:
+    points = [c for c in curves.values() if c.shape[1]]
+    if not points:
         return None
-    last = max(it for curve in curves.values() for it, val in curve if math.isfinite(val))
+    last = max(float(c[0].max()) for c in points)
     max_it = 1 << (max(2, int(last)) - 1).bit_length()
-    return max_it, float(math.floor(min(values) - 0.5)), float(math.ceil(max(values) + 0.5))
+    lo, hi = min(float(c[1].min()) for c in points), max(float(c[1].max()) for c in points)
+    return max_it, float(math.floor(lo - 0.5)), float(math.ceil(hi + 0.5))
 
 
-def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]], title: str = PLOT_TITLE) -> None:
+def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
+              title: str = PLOT_TITLE) -> None:
     """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x: its
     frame (:func:`plot_frame`) and its curves (:func:`draw_curves`)."""
-    axes = plot_axes(curves)
+    arrays = CurveArrays()(curves)
+    axes = plot_axes(arrays)
     canvas.extend(plot_frame(canvas.atlas, tuple(rect), title, axes))
-    draw_curves(canvas, rect, curves, axes)
+    draw_curves(canvas, rect, arrays, axes)
 
 
-def draw_curves(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
+def draw_curves(canvas: Canvas, rect, curves: dict[str, np.ndarray],
                 axes: tuple[int, float, float] | None) -> None:
-    """The curves of :func:`draw_plot` on ``axes`` (:func:`plot_axes`), two pixels thick, with their legend
-    (a curve of one point is a dot; non-finite values are skipped). A curve keeps its last point in each
+    """The curves of :func:`draw_plot` (:class:`CurveArrays`' output) on ``axes`` (:func:`plot_axes`), two
+    pixels thick, with their legend (a curve of one point is a dot). A curve keeps its last point in each
     pixel column: on the log x axis late iterations share columns, and the segments drawn stay bounded by
     the plot's width however long the run (on llvmpipe each segment costs its own setup)."""
     if axes is None:
@@ -332,17 +366,16 @@ def draw_curves(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]]
     x0, y0, w, h = rect
     to_px = _plot_mapping(rect, *axes)
     legend_x = x0 + 46
-    for name, curve in curves.items():
-        good = [(it, val) for it, val in curve if math.isfinite(val)]
+    for name, (its, vals) in curves.items():
         colour = CURVE_COLOURS.get(name, (255, 255, 255)) + (255,)
-        if len(good) >= 2:
-            pts = to_px(*np.asarray(good, np.float64).T)
+        if len(its) >= 2:
+            pts = to_px(its, vals)
             column = np.floor(pts[:, 0])
             canvas.polyline(pts[np.append(column[1:] != column[:-1], True)], colour, thickness=2)
-        elif good:
-            px, py = to_px(*good[0])
+        elif len(its):
+            px, py = to_px(its[0], vals[0])
             canvas.rect(px - 2, py - 2, 4, 4, colour)
-        label = f"{name} {good[-1][1]:.1f}" if good else name
+        label = f"{name} {vals[-1]:.1f}" if len(vals) else name
         legend_x += canvas.text((legend_x, y0 + 24), label, 11, colour) + 12
 
 
@@ -422,7 +455,7 @@ def draw_live(
     canvas: Canvas,
     size: tuple[int, int],
     plot_rect: tuple[int, int, int, int],
-    curves: dict[str, list[tuple[int, float]]],
+    curves: dict[str, np.ndarray],
     axes: tuple[int, float, float] | None,
     text_rect: tuple[int, int, int, int],
     text_lines: list[str | None],
@@ -434,7 +467,8 @@ def draw_live(
 
     Args:
         size: window size (width, height).
-        plot_rect, curves, axes: the plot's curves and legend (:func:`draw_curves`).
+        plot_rect, curves, axes: the plot's curves (:class:`CurveArrays`' output) and legend
+            (:func:`draw_curves`).
         text_rect, text_lines: the stats lines given (not None) here.
         help_lines: when given, a translucent help screen over everything.
         timeline: (frame times, shown time, (x0, x1, y)): the clip bar's marker at the shown time.

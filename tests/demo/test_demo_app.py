@@ -179,17 +179,34 @@ def test_plot_draws_finite_points_two_pixels_thick():
 def test_long_curves_keep_one_point_per_pixel_column():
     """However many iterations, a curve draws at most one point per pixel column of the plot, and ends at its
     last value."""
-    from demo.overlay import Canvas, GlyphAtlas, _plot_mapping, draw_plot, plot_axes
+    from demo.overlay import Canvas, CurveArrays, GlyphAtlas, _plot_mapping, draw_plot, plot_axes
 
     rect = (4, 100, 356, 198)
     curve = [(i, 20.0 + np.log(i)) for i in range(1, 5001)]
     canvas = Canvas(GlyphAtlas())
     draw_plot(canvas, rect, {"ours": curve})
     _, lines = canvas.arrays()
-    ours = lines[np.all(np.isclose(lines[:, 2:5] * 255, (255, 150, 40)), 1)].reshape(2, -1, 2, 6)[0]  # one row
+    ours = lines[np.all(np.isclose(lines[:, 2:5] * 255, (255, 150, 40)), 1)]
+    ours = ours.reshape(2, -1, 2, 6)[0]  # the upper of the two pixel rows
     xs = np.concatenate([ours[:, 0, 0], ours[-1:, 1, 0]])
     assert len(xs) <= rect[2] and np.all(np.diff(np.floor(xs)) > 0)
-    assert np.allclose(ours[-1, 1, :2], _plot_mapping(rect, *plot_axes({"ours": curve}))(*curve[-1]))
+    to_px = _plot_mapping(rect, *plot_axes(CurveArrays()({"ours": curve})))
+    assert np.allclose(ours[-1, 1, :2], to_px(*curve[-1]))
+
+
+def test_curve_arrays_convert_what_was_appended():
+    """The curves as arrays of their finite points, converted as the lists grow: the same as a fresh
+    conversion at every step; a new list (a restart) starts again."""
+    from demo.overlay import CurveArrays
+
+    arrays, curve = CurveArrays(), []
+    for i in range(1, 200):
+        curve.append((i, float("nan") if i % 7 == 0 else 20.0 + 1.0 / i))
+        got = arrays({"ours": curve})["ours"]
+        want = np.array([(it, v) for it, v in curve if np.isfinite(v)], np.float64).T
+        assert np.array_equal(got, want)
+    restarted = [(1, 30.0)]
+    assert np.array_equal(arrays({"ours": restarted})["ours"], [[1.0], [30.0]])
 
 
 def test_glyph_quads_hold_all_of_each_glyphs_ink():
@@ -354,8 +371,8 @@ def test_click_on_clip_bar_scrubs(live_app):
 
 
 def test_backdrop_follows_its_inputs(live_app):
-    """The cached backdrop (labels, settings lines, the plot's frame, the clip bar) is redrawn whenever what it
-    shows changes: each frame equals the same frame drawn with the backdrop rebuilt from scratch."""
+    """The cached backdrop (labels, settings lines, the plot's frame, the clip bar) is redrawn whenever what
+    it shows changes: each frame equals the same frame drawn with the backdrop rebuilt from scratch."""
     app = live_app
     app.progressing = False  # the same panels in both draws
     before = step_frame(app)

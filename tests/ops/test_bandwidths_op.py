@@ -109,7 +109,7 @@ def test_spacetime_bad_sigmas_are_named(random_inputs):
         spacetime_k(v, g, w, gq, [], 0.3, [2], 5, False)
     with pytest.raises(ValueError, match="sigma_s"):
         spacetime_k(v, g, w, gq, [0.0], 0.3, [2], 5, False)
-    with pytest.raises(ValueError, match="^_spacetime_adaptive_manifold_bandwidths: tree_height .* one per sigma"):
+    with pytest.raises(ValueError, match="^_spacetime_adaptive_manifold_bandwidths: tree_height"):
         spacetime_k(v, g, w, gq, [2.0, 3.0], 0.3, [2, 2, 2], 5, False)
 
 
