@@ -32,7 +32,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 BASE = "b32903e"
 
 
-def _base_package(commit: str, into: Path) -> str:
+def _base_package(commit: str, into: Path) -> None:
     """``demo/`` at ``commit`` as the package ``demo_base`` under ``into`` (its own imports renamed)."""
     data = subprocess.run(["git", "archive", commit, "demo"], cwd=ROOT, capture_output=True,
                           check=True).stdout
@@ -41,7 +41,6 @@ def _base_package(commit: str, into: Path) -> str:
     (into / "demo").rename(into / "demo_base")
     for path in (into / "demo_base").glob("*.py"):
         path.write_text(re.sub(r"\bfrom demo(\.| import)", r"from demo_base\1", path.read_text()))
-    return "demo_base"
 
 
 def run_one(base_dir: str, frames: int) -> dict:
