@@ -50,6 +50,7 @@ class GlyphAtlas:
     def __init__(self):
         chars = [chr(c) for c in range(FIRST, LAST)]
         self.cells, self.ink, self.advance, self.cell_size = {}, {}, {}, {}
+        self.glyph_quads, self.has_ink = {}, {}
         rows, y = [], 4  # the first 4 pixel rows hold the solid patch
         for size in SIZES:
             f = font(size)
@@ -75,6 +76,9 @@ class GlyphAtlas:
                     ink[i] = (x0, y0, x1 - x0, y1 - y0)
                     cells[i] = (cx + x0, y + cy + y0, cx + x1, y + cy + y1)
             self.cells[size], self.ink[size] = cells, ink
+            # per character, its quad at the pen position (ink box, then atlas box) and whether it has ink
+            self.glyph_quads[size] = np.concatenate([ink, cells], 1)
+            self.has_ink[size] = (ink[:, 2] > 0) & (ink[:, 3] > 0)
             rows.append(alpha)
             y += alpha.shape[0]
         width = max(r.shape[1] for r in rows)
@@ -92,21 +96,29 @@ class GlyphAtlas:
         return _layout(self, text, size, max_width)
 
 
+#: Latin-1 code -> glyph index (characters outside printable ASCII draw as "?").
+_GLYPH_OF = np.full(256, ord("?") - FIRST, np.intp)
+_GLYPH_OF[FIRST:LAST] = np.arange(LAST - FIRST)
+
+
 @lru_cache(maxsize=4096)
 def _layout(atlas: GlyphAtlas, text: str, size: int, max_width: float | None) -> tuple[np.ndarray, float]:
-    idx = np.array([ord(c) - FIRST if FIRST <= ord(c) < LAST else ord("?") - FIRST for c in text], np.int64)
-    adv = atlas.advance[size][idx]
-    pen = np.concatenate([[0.0], np.cumsum(adv)]).astype(np.float32)
-    keep = len(text) if max_width is None else int(np.searchsorted(pen[1:], max_width, side="right"))
-    idx, x = idx[:keep], np.round(pen[:keep])
-    ink = atlas.ink[size][idx]
-    quads = np.zeros((keep, 8), np.float32)
-    quads[:, :4] = ink
-    quads[:, 0] += x
-    quads[:, 4:] = atlas.cells[size][idx]
-    quads = quads[(ink[:, 2] > 0) & (ink[:, 3] > 0)]  # spaces draw nothing
+    # a few whole-array steps: the stats lines are new strings every iteration
+    idx = _GLYPH_OF[np.frombuffer(text.encode("latin-1", "replace"), np.uint8)]
+    pen = np.zeros(len(idx) + 1, np.float32)
+    np.cumsum(atlas.advance[size][idx], out=pen[1:])
+    keep = len(idx) if max_width is None else int(np.searchsorted(pen[1:], max_width, side="right"))
+    inked = atlas.has_ink[size][idx[:keep]]  # spaces draw nothing
+    quads = atlas.glyph_quads[size][idx[:keep][inked]]
+    quads[:, 0] += np.round(pen[:keep][inked])
     quads.setflags(write=False)
     return quads, float(pen[keep])
+
+
+@lru_cache(maxsize=64)
+def _rgba(fill: tuple) -> np.ndarray:
+    """An 8-bit colour as float32 in [0, 1]."""
+    return np.asarray(fill, np.float32) / 255.0
 
 
 @lru_cache(maxsize=4096)
@@ -116,9 +128,8 @@ def _placed_text(atlas: GlyphAtlas, x: int, y: int, text: str, size: int, fill: 
     quads, width = atlas.layout(text, size, max_width)
     out = np.empty((len(quads), 12), np.float32)
     out[:, :8] = quads
-    out[:, 0] += x
-    out[:, 1] += y
-    out[:, 8:] = np.asarray(fill, np.float32) / 255.0
+    out[:, :2] += np.array((x, y), np.float32)
+    out[:, 8:] = _rgba(fill)
     out.setflags(write=False)
     return out, width
 
