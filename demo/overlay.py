@@ -44,8 +44,8 @@ class GlyphAtlas:
             origin (its top-left at the pen position); empty for a space.
         advance: ``advance[size]`` is ``(96,)`` pen advance in pixels (PIL's ``getlength``).
         cell_size: ``cell_size[size]`` = (w, h) of every cell of that size.
-        glyph_quads: ``glyph_quads[size]`` is ``(96, 8)`` float32: ``ink`` then ``cells``, each character's quad
-            with its pen at 0; ``has_ink[size]`` ``(96,)`` bool: whether it draws anything.
+        glyph_quads: ``glyph_quads[size]`` is ``(96, 8)`` float32: ``ink`` then ``cells``, each character's
+            quad with its pen at 0; ``has_ink[size]`` ``(96,)`` bool: whether it draws anything.
         solid: (u0, v0, u1, v1) of an opaque patch.
     """
 
