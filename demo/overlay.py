@@ -160,8 +160,7 @@ class Canvas:
         self._lines += other._lines
 
     def rect(self, x, y, w, h, fill) -> None:
-        self._quads.append(np.array([[x, y, w, h, *self.atlas.solid, *(np.asarray(fill, np.float32) / 255.0)]],
-                                    np.float32))
+        self._quads.append(np.array([[x, y, w, h, *self.atlas.solid, *_rgba(tuple(fill))]], np.float32))
 
     def box(self, x, y, w, h, fill=None, outline=(80, 80, 90, 255)) -> None:
         """A box outline, filled with ``fill`` when given (quads draw in order, so what is drawn after it
@@ -180,7 +179,7 @@ class Canvas:
         seg = np.empty((thickness, len(p) - 1, 2, 6), np.float32)
         seg[:, :, 0, :2], seg[:, :, 1, :2] = p[:-1], p[1:]
         seg[:, :, :, 1] += np.arange(thickness, dtype=np.float32)[:, None, None]
-        seg[..., 2:] = np.asarray(colour, np.float32) / 255.0
+        seg[..., 2:] = _rgba(tuple(colour))
         self._lines.append(seg.reshape(-1, 6))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -358,22 +357,13 @@ def plot_axes(curves: dict[str, np.ndarray]) -> tuple[int, float, float] | None:
     return max_it, float(math.floor(lo - 0.5)), float(math.ceil(hi + 0.5))
 
 
-def draw_plot(canvas: Canvas, rect, curves: dict[str, list[tuple[int, float]]],
-              title: str = PLOT_TITLE) -> None:
-    """Line plot of ``curves`` (name -> [(iteration, value), ...]) inside ``rect`` = (x, y, w, h), log x: its
-    frame (:func:`plot_frame`) and its curves (:func:`draw_curves`)."""
-    arrays = CurveArrays()(curves)
-    axes = plot_axes(arrays)
-    canvas.extend(plot_frame(canvas.atlas, tuple(rect), title, axes))
-    draw_curves(canvas, rect, arrays, axes)
-
-
 def draw_curves(canvas: Canvas, rect, curves: dict[str, np.ndarray],
                 axes: tuple[int, float, float] | None) -> None:
-    """The curves of :func:`draw_plot` (:class:`CurveArrays`' output) on ``axes`` (:func:`plot_axes`), two
-    pixels thick, with their legend (a curve of one point is a dot). A curve keeps its last point in each
-    pixel column: on the log x axis late iterations share columns, and the segments drawn stay bounded by
-    the plot's width however long the run (on llvmpipe each segment costs its own setup)."""
+    """The PSNR plot's curves inside ``rect`` = (x, y, w, h), log x (the frame is :func:`plot_frame`'s):
+    ``curves`` is :class:`CurveArrays`' output, ``axes`` :func:`plot_axes`'; two pixels thick, with their
+    legend (a curve of one point is a dot). A curve keeps its last point in each pixel column: on the log x
+    axis late iterations share columns, and the segments drawn stay bounded by the plot's width however
+    long the run (on llvmpipe each segment costs its own setup)."""
     if axes is None:
         return
     x0, y0, w, h = rect

@@ -157,15 +157,23 @@ def test_overlay_has_plot_and_text(headless_run):
     assert (text.max(-1) > 200).sum() > 200  # light text on the dark box
 
 
+def _draw_curves(canvas, rect, curves):
+    """The plot's curves as the app draws them: the lists as arrays, on their axes."""
+    from demo.overlay import CurveArrays, draw_curves, plot_axes
+
+    arrays = CurveArrays()(curves)
+    draw_curves(canvas, rect, arrays, plot_axes(arrays))
+
+
 def test_plot_draws_finite_points_two_pixels_thick():
     """A curve's non-finite values are skipped; a curve is two rows of segments one pixel apart; a curve
     of one point is a dot."""
-    from demo.overlay import CURVE_COLOURS, Canvas, GlyphAtlas, _plot_mapping, draw_plot
+    from demo.overlay import CURVE_COLOURS, Canvas, GlyphAtlas, _plot_mapping
 
     rect = (4, 100, 356, 198)
     atlas = GlyphAtlas()
     canvas = Canvas(atlas)
-    draw_plot(canvas, rect, {"raw": [(1, 20.0), (2, float("nan")), (3, 22.0)], "ours": [(1, 25.0)]})
+    _draw_curves(canvas, rect, {"raw": [(1, 20.0), (2, float("nan")), (3, 22.0)], "ours": [(1, 25.0)]})
     quads, lines = canvas.arrays()
     raw = lines[np.all(np.isclose(lines[:, 2:5] * 255, CURVE_COLOURS["raw"]), 1)]
     to_px = _plot_mapping(rect, 4, 19.0, 26.0)  # axis to the next power of two; values padded to whole dB
@@ -179,12 +187,12 @@ def test_plot_draws_finite_points_two_pixels_thick():
 def test_long_curves_keep_one_point_per_pixel_column():
     """However many iterations, a curve draws at most one point per pixel column of the plot, and ends at its
     last value."""
-    from demo.overlay import Canvas, CurveArrays, GlyphAtlas, _plot_mapping, draw_plot, plot_axes
+    from demo.overlay import Canvas, CurveArrays, GlyphAtlas, _plot_mapping, plot_axes
 
     rect = (4, 100, 356, 198)
     curve = [(i, 20.0 + np.log(i)) for i in range(1, 5001)]
     canvas = Canvas(GlyphAtlas())
-    draw_plot(canvas, rect, {"ours": curve})
+    _draw_curves(canvas, rect, {"ours": curve})
     _, lines = canvas.arrays()
     ours = lines[np.all(np.isclose(lines[:, 2:5] * 255, (255, 150, 40)), 1)]
     ours = ours.reshape(2, -1, 2, 6)[0]  # the upper of the two pixel rows
