@@ -17,8 +17,9 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
         "-> Tensor");
   // denoise._footprint_average after its knee: x (T, 3, H, W) clamped at 0 (NaN kept), k (T,) the tone-mapping
   // knee of each frame (PyTorch computes it, so the frame means are its bits) -> (T, 3, H, W); a light's border
-  // between adjacent pixels drops the range weight as there.
-  m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma) -> Tensor");
+  // between adjacent pixels drops the range weight as there (unseen_border: beside a lone lit neighbour too).
+  m.def("_footprint_average(Tensor x, Tensor k, float sigma, float range_sigma, float unseen_border=0.) "
+        "-> Tensor");
   // denoise._log_radiance's 3x3 Kuwahara filter (replicate borders) of x (N, C, H, W) -> (N, C, H, W).
   m.def("_kuwahara3(Tensor x) -> Tensor");
   // The end of denoise._select_bandwidth at frame queries: the weighted squared residuals of the K

@@ -601,6 +601,90 @@ def test_light_border_through_a_pixel_row_shows_the_light():
     torch.testing.assert_close(beside.double(), plain, rtol=1e-4, atol=1e-6)
 
 
+def _footprint_average_borders(x: torch.Tensor, sigma: float, unseen_border: float) -> torch.Tensor:
+    """Brute force, pixel by pixel (float64): the footprint average whose range weight between two adjacent
+    pixels, one a light, gives way by the light share times the dimmer's lit neighbours beyond one, plus
+    ``unseen_border``."""
+    x = x[0].double().numpy()
+    lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
+    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
+    k = D._FOOTPRINT_KNEE * lum(x).mean()
+    y = x / (k + x)
+    ly = lum(y)
+    H, W = ly.shape
+    lit = lambda i, j: share(ly[i, j]) if 0 <= i < H and 0 <= j < W else 0.0  # noqa: E731
+    count = np.array([[lit(i - 1, j) + lit(i + 1, j) + lit(i, j - 1) + lit(i, j + 1) for j in range(W)]
+                      for i in range(H)])
+    r = int(math.ceil(3 * sigma))
+    out = np.empty_like(y)
+    for i in range(H):
+        for j in range(W):
+            num, den = np.zeros(3), 0.0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    a, b = min(max(i + dy, 0), H - 1), min(max(j + dx, 0), W - 1)
+                    w = math.exp(-(ly[a, b] - ly[i, j]) ** 2 / (2 * D._FOOTPRINT_RANGE ** 2))
+                    if abs(dx) + abs(dy) == 1:
+                        dimmer = count[a, b] if ly[a, b] < ly[i, j] else count[i, j]
+                        over = min(max(dimmer - 1 + unseen_border, 0.0), 1.0)
+                        w = w + (1 - w) * share(max(ly[a, b], ly[i, j])) * over
+                    w *= math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma))
+                    num += w * y[:, a, b]
+                    den += w
+            out[:, i, j] = num / den
+    return torch.from_numpy(k * out / (1 - out))[None]
+
+
+def _light_above_an_unseen_border(T=1, H=24, W=32):
+    """A light set in a ceiling whose upper border runs a third of the way into pixel row 9: the
+    box-filtered truth and a 1-spp frame sampled at each pixel's centre, where row 9 shows no light."""
+    truth = torch.full((T, 3, H, W), 0.07)
+    truth[:, :, 10:16, 8:24] = 15.0
+    truth[:, :, 9, 8:24] = 0.07 + (15.0 - 0.07) / 3
+    centres = truth.clone()
+    centres[:, :, 9, 8:24] = 0.07
+    return truth, centres
+
+
+def test_unseen_light_border_beside_one_sample_pixels():
+    """One sample per pixel at its centre cannot show a light's border a third of the way into a row, but
+    the box-filtered truth there is far above display white. The footprint average gives the light a
+    share of its lone dim neighbours (``_UNSEEN_BORDER``), so that row comes out brighter in display range
+    and closer to the truth; the light stays above white, rows further out keep their bits, and a
+    brute-force computation of the rule agrees (C++ kernel and PyTorch stage alike)."""
+    from torchmanifold.pipeline import _fast
+
+    truth, x = _light_above_an_unseen_border()
+    sigma = D.footprint_width(D.DenoiseSettings(), 1)
+    seen, unseen = D._footprint_average(x, sigma), D._footprint_average(x, sigma, D._UNSEEN_BORDER)
+    with _fast.reference():
+        torch.testing.assert_close(unseen, D._footprint_average(x, sigma, D._UNSEEN_BORDER))
+    torch.testing.assert_close(unseen.double(), _footprint_average_borders(x, sigma, D._UNSEEN_BORDER),
+                               rtol=1e-4, atol=1e-6)
+    shown = lambda img: M.linear_to_srgb(img[0, :, 9, 8:24].clamp(0, 1))  # noqa: E731
+    assert float(shown(unseen).mean()) > float(shown(seen).mean()) + 0.1
+    error = lambda img: float((shown(img) - shown(truth)).abs().mean())  # noqa: E731
+    assert error(unseen) < error(seen)
+    assert float(unseen[0, :, 10:16, 8:24].min()) > 1.0
+    torch.testing.assert_close(unseen[0, :, :8], seen[0, :, :8], rtol=0, atol=0)
+
+
+def test_unseen_light_border_only_where_each_pixel_holds_one_sample():
+    """``denoise_frames`` gives way at an unseen light border from a known single sample per pixel alone:
+    from 4 spp the samples show the border (and the output is the same with the rule off), and an
+    unknown count keeps the range weight."""
+    T, H, W = 1, 24, 32
+    f, names = _plane(T, H, W)
+    truth, x = _light_above_an_unseen_border(T, H, W)
+    out = {n: denoise_frames(x, f, names, samples_per_pixel=n) for n in (1, 4, None)}
+    row = lambda img: float(M.linear_to_srgb(img[0, :, 9, 8:24].clamp(0, 1)).mean())  # noqa: E731
+    assert row(out[1]) > row(out[None]) + 0.1
+    assert abs(row(out[1]) - row(truth)) < abs(row(out[None]) - row(truth))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(D, "_UNSEEN_BORDER", 0.0)
+        torch.testing.assert_close(denoise_frames(x, f, names, samples_per_pixel=4), out[4], rtol=0, atol=0)
+
+
 def test_zero_albedo_object_leaves_no_ring():
     """A glass or mirror object has albedo 0 (Mitsuba's delta BSDFs): no bright rim at its silhouette."""
     T, H, W = 1, 64, 64

@@ -80,10 +80,12 @@ def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tenso
 
 
 @parallel
-def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float) -> Tensor:
+def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float,
+                      unseen_border: float = 0.0) -> Tensor:
     """``denoise._footprint_average`` after its tone-mapping knee: x ``(T, 3, H, W)`` (clamped at 0), k
     ``(T, 1, 1, 1)`` -> ``(T, 3, H, W)``."""
-    return torch.ops.torchmanifold._footprint_average(x, k.reshape(-1), float(sigma), float(range_sigma))
+    return torch.ops.torchmanifold._footprint_average(x, k.reshape(-1), float(sigma), float(range_sigma),
+                                                      float(unseen_border))
 
 
 @parallel
@@ -177,7 +179,7 @@ def _register_fakes() -> None:
         return torch.empty_like(num, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_footprint_average")
-    def _(x, k, sigma, range_sigma):
+    def _(x, k, sigma, range_sigma, unseen_border=0.0):
         return torch.empty_like(x, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_kuwahara3")

@@ -1205,7 +1205,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
-                      1 + 2 * settings.albedo_radius)
+                      1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -1296,6 +1296,16 @@ _FOOTPRINT_KNEE = 3.0
 _FOOTPRINT_RANGE = 0.3
 
 
+#: where each pixel holds one sample, how far the range weight gives way between a light and a dim pixel
+#: beside it that has no other lit neighbour: the light's border may run through that pixel unseen (a
+#: renderer that samples the pixel's centre shows a border a third of the way in nowhere), and the
+#: reference, far above display white there, shows it lit. Frames 0-2 of the validation set from 1 spp,
+#: the `denoise` default, against 0: 0.25 / 0.5 / 0.75 / 1 gain +0.035 / +0.043 / +0.034 / +0.013 dB on the
+#: tuning part (its scenes at 128x128 and 256x256); from 4 spp 0.25 and 0.5 lose there (-0.01 / -0.06): the
+#: samples show the border (benchmarks/validation/findings.md)
+_UNSEEN_BORDER = 0.5
+
+
 def _light_share(ly: Tensor) -> Tensor:
     """How much of a light a pixel of tone-mapped luminance ``ly`` is: 0 up to the footprint's knee
     (``ly = 0.5``), 1 from three times the knee (``ly = 0.75``), continuous in between so that no rounding
@@ -1312,7 +1322,7 @@ def _light_neighbours(ly: Tensor) -> Tensor:
     return b[..., :-2, 1:-1] + b[..., 2:, 1:-1] + b[..., 1:-1, :-2] + b[..., 1:-1, 2:]
 
 
-def _footprint_average(x: Tensor, sigma: float) -> Tensor:
+def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> Tensor:
     """Each pixel of ``(T, 3, H, W)`` radiance averaged over a pixel-sized Gaussian footprint of ``sigma``.
 
     A box-filtered reference pixel is the mean over its area; a filtered 1-spp pixel is the radiance at
@@ -1335,6 +1345,9 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     +0.67 / +0.39). Without the neighbours, at a range sigma of 0.6: +0.08 / +0.04 and a 1-px halo where a
     border runs between rows; for every adjacent pair: ``bl_moving_metal``'s checkered floor -0.23 from
     1 spp (``benchmarks/validation/findings.md``).
+    ``unseen_border`` (0 to 1) is where the dimmer pixel has one lit neighbour alone: how far the range
+    weight gives way there all the same, for pixels of one sample each, whose border may run through the
+    dim pixel without its sample showing it (:data:`_UNSEEN_BORDER`).
     """
     if sigma <= 0:
         return x
@@ -1342,7 +1355,7 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
     lum = luminance(x)
     k = _FOOTPRINT_KNEE * _frame_mean(lum, torch.ones_like(lum)).clamp_min(1e-30)
     if _fast.enabled(x, k):
-        return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE)
+        return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE, unseen_border)
     y = x / (k + x)
     ly = luminance(y)
     count = _light_neighbours(ly)
@@ -1356,7 +1369,8 @@ def _footprint_average(x: Tensor, sigma: float) -> Tensor:
             w = torch.exp(-(nb[:, 3:4] - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
             if abs(dx) + abs(dy) == 1:  # a light's border through the dimmer one: no range weight
                 dimmer = torch.where(nb[:, 3:4] < ly, nb[:, 4:5], count)
-                border = _light_share(torch.maximum(nb[:, 3:4], ly)) * (dimmer - 1.0).clamp(0.0, 1.0)
+                over = (dimmer - 1.0 + unseen_border).clamp(0.0, 1.0)
+                border = _light_share(torch.maximum(nb[:, 3:4], ly)) * over
                 w = w + (1.0 - w) * border
             w = math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)) * w
             num += w * nb[:, :3]
@@ -1583,7 +1597,7 @@ def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor,
 
 
 def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None, sigma: float,
-                counts: Tensor | None = None, most: int = 1) -> Tensor:
+                counts: Tensor | None = None, most: int = 1, unseen_border: float = 0.0) -> Tensor:
     """The filtered irradiance ``(Q, 3, H, W)`` times the albedo, averaged over the pixel footprint.
 
     Across a silhouette, light and albedo change together within a pixel: the product is averaged
@@ -1595,9 +1609,10 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     Where the albedo already averages ``counts`` ``(Q, 1, H, W)`` samples of the pixel
     (:func:`_window_albedo`), its footprint is the width of that many times the samples
     (:func:`footprint_width`: its square is ``a + b / spp``): a blend of the footprints of one count and
-    of ``most``, whose variance is that square exactly for every count in between.
+    of ``most``, whose variance is that square exactly for every count in between. ``unseen_border``: as
+    :func:`_footprint_average` takes it.
     """
-    out = _footprint_average(irradiance * albedo, sigma)
+    out = _footprint_average(irradiance * albedo, sigma, unseen_border)
     if smooth is None or sigma <= 0:
         return out
     w = smooth * (~flat).to(smooth.dtype)
@@ -1607,7 +1622,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         narrow = math.sqrt(_FOOTPRINT_A + max(sigma * sigma - _FOOTPRINT_A, 0.0) / most)
         f = ((1.0 / counts - 1.0 / most) / (1.0 - 1.0 / most)).clamp(0.0, 1.0)
         texture = f * texture + (1 - f) * _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * narrow)
-    textured = _footprint_average(irradiance, sigma) * texture
+    textured = _footprint_average(irradiance, sigma, unseen_border) * texture
     return out + w * (textured - out)
 
 

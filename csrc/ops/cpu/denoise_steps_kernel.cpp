@@ -346,7 +346,8 @@ void accumulate_weighted(T* __restrict a0, T* __restrict a1, T* __restrict a2, T
   }
 }
 
-at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, double sigma, double range_sigma) {
+at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, double sigma, double range_sigma,
+                                 double unseen_border) {
   const char* op = "_footprint_average";
   check_float(x_, "x", op);
   check_shape(x_, "x", op, 4);
@@ -355,6 +356,8 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
                     ": k must be (T,) = (", x_.size(0), ",) of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
   const at::Tensor kt = k_.contiguous();
   TORCH_CHECK_VALUE(sigma > 0 && range_sigma > 0, op, ": sigma and range_sigma must be > 0");
+  TORCH_CHECK_VALUE(unseen_border >= 0 && unseen_border <= 1, op, ": unseen_border must be in [0, 1], got ",
+                    unseen_border);
   const at::Tensor x = x_.contiguous();
   const int64_t Tn = x.size(0), H = x.size(2), W = x.size(3), HW = H * W;
   at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
@@ -368,6 +371,7 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
         ws[(dy + r) * (2 * r + 1) + dx + r] =
             static_cast<T>(std::exp(-static_cast<double>(dx * dx + dy * dy) / (2 * sigma * sigma)));
     const T inv_den = static_cast<T>(2 * (range_sigma * range_sigma));
+    const T lone = static_cast<T>(unseen_border);
     const int64_t Hp = H + 2 * r, Wp = W + 2 * r;
     // y (3 planes), its luminance and how many adjacent pixels are above the knee; the same padded by r
     Scratch<T> yb, ypb;
@@ -432,7 +436,7 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
                   const T d = nl[xx] - ly[xx];
                   const T w = exp_lanes(-(d * d) / inv_den);
                   const T dimmer = nl[xx] < ly[xx] ? nc[xx] : oc[xx];
-                  const T over = dimmer - T(1);
+                  const T over = (dimmer - T(1)) + lone;
                   const T border = light_share(nan_max(nl[xx], ly[xx])) *
                                    (over < T(0) ? T(0) : (over > T(1) ? T(1) : over));
                   wt[xx] = wsp * (w + (T(1) - w) * border);
