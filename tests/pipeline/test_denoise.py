@@ -685,6 +685,38 @@ def test_unseen_light_border_only_where_each_pixel_holds_one_sample():
         torch.testing.assert_close(denoise_frames(x, f, names, samples_per_pixel=4), out[4], rtol=0, atol=0)
 
 
+def test_lone_dark_flat_samples_join_the_surface_around():
+    """A 1-spp path that ends inside glass leaves albedo 0 and colour 0 (Cycles' denoising albedo looks
+    through glass): scattered over a surface, such pixels are samples of it, not delta surfaces. They are
+    filtered with the surface (the output there matches its neighbours); a lone bright flat pixel (a light
+    a pixel wide) and a connected flat patch (a mirror) stay flat."""
+    T, H, W = 1, 48, 48
+    f, names = _plane(T, H, W, albedo=0.5)
+    truth = torch.full((T, 3, H, W), 0.5 * 0.6)
+    color = _noisy(truth, 5)
+    g = torch.Generator().manual_seed(6)
+    dead = (torch.rand(H, W, generator=g) < 0.03)
+    dead[::2, :] = False  # none adjacent to another
+    dead[:, ::2] = False
+    dead[20:27, 20:27] = False
+    f[:, 0:3, dead] = 0.0
+    color[:, :, dead] = 0.0
+    lamp = (5, 41)
+    dead[lamp] = False
+    f[:, 0:3, lamp[0], lamp[1]] = 0.0
+    color[:, :, lamp[0], lamp[1]] = 40.0
+    f[:, 0:3, 21:24, 21:24] = 0.0  # a mirror patch
+    out = denoise_frames(color, f, names, samples_per_pixel=1)
+    lone = D._lone_flat_samples(color, (f[:, 0:1] == 0))
+    assert int(lone.sum()) == int(dead.sum()) > 10
+    around = out[..., ~dead].mean()
+    assert abs(float(out[..., dead].mean()) / float(around) - 1) < 0.05
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(D, "_lone_flat_samples", lambda c, flat: torch.zeros_like(flat))
+        before = denoise_frames(color, f, names, samples_per_pixel=1)
+    assert float(before[..., dead].mean()) < 0.7 * float(around)  # the dark dots the rule removes
+
+
 def test_zero_albedo_object_leaves_no_ring():
     """A glass or mirror object has albedo 0 (Mitsuba's delta BSDFs): no bright rim at its silhouette."""
     T, H, W = 1, 64, 64
