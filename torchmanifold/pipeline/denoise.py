@@ -1261,9 +1261,9 @@ def _lone_flat_samples(c: Tensor, flat: Tensor) -> Tensor:
     A delta surface or a black one covers connected pixels. A flat pixel alone among demodulated ones,
     and dark, is a path that left neither albedo nor light: Cycles' denoising albedo looks through glass,
     and a 1-spp path that ends inside it writes albedo 0 and colour 0, so a glass ball showed black dots
-    where the reference is the wall behind it (`bl_glass_caustic`: 214 such pixels a frame at 256x256
-    from 1 spp, 6 from 4). A lone flat pixel brighter than its surroundings keeps its own sample (a light
-    one or two pixels wide has no albedo in Mitsuba's AOVs)."""
+    where the reference is the wall behind it. A lone flat pixel brighter than its surroundings stays flat
+    (a light one or two pixels wide has no albedo in Mitsuba's AOVs); one with a flat neighbour may be the
+    edge of a delta surface (``benchmarks/validation/findings.md``)."""
     if not bool(flat.any()):
         return flat
     alone = flat & (_four_neighbours(flat.to(c.dtype)) == 0)
