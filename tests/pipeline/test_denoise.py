@@ -552,14 +552,21 @@ def test_light_flush_with_ceiling_leaves_no_halo():
     torch.testing.assert_close(out[light], truth[light], rtol=0.05, atol=0)
 
 
-def _footprint_average_plain(x: torch.Tensor, sigma: float, range_sigma: float, knee: float) -> torch.Tensor:
-    """Brute force, pixel by pixel: the footprint average with its range weight everywhere (float64)."""
+def _footprint_average_brute(x: torch.Tensor, sigma: float,
+                             unseen_border: float | None = None) -> torch.Tensor:
+    """Brute force, pixel by pixel (float64): the footprint average with its range weight everywhere
+    (``unseen_border`` None), or with the weight between two adjacent pixels, one a light, giving way by the
+    light share times the dimmer's lit neighbours beyond one, plus ``unseen_border``."""
     x = x[0].double().numpy()
     lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
-    k = knee * lum(x).mean()
+    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
+    k = D._FOOTPRINT_KNEE * lum(x).mean()
     y = x / (k + x)
     ly = lum(y)
     H, W = ly.shape
+    lit = lambda i, j: share(ly[i, j]) if 0 <= i < H and 0 <= j < W else 0.0  # noqa: E731
+    count = np.array([[lit(i - 1, j) + lit(i + 1, j) + lit(i, j - 1) + lit(i, j + 1) for j in range(W)]
+                      for i in range(H)])
     r = int(math.ceil(3 * sigma))
     out = np.empty_like(y)
     for i in range(H):
@@ -568,8 +575,12 @@ def _footprint_average_plain(x: torch.Tensor, sigma: float, range_sigma: float, 
             for dy in range(-r, r + 1):
                 for dx in range(-r, r + 1):
                     a, b = min(max(i + dy, 0), H - 1), min(max(j + dx, 0), W - 1)
-                    w = math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)
-                                 - (ly[a, b] - ly[i, j]) ** 2 / (2 * range_sigma ** 2))
+                    w = math.exp(-(ly[a, b] - ly[i, j]) ** 2 / (2 * D._FOOTPRINT_RANGE ** 2))
+                    if unseen_border is not None and abs(dx) + abs(dy) == 1:
+                        dimmer = count[a, b] if ly[a, b] < ly[i, j] else count[i, j]
+                        over = min(max(dimmer - 1 + unseen_border, 0.0), 1.0)
+                        w = w + (1 - w) * share(max(ly[a, b], ly[i, j])) * over
+                    w *= math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma))
                     num += w * y[:, a, b]
                     den += w
             out[:, i, j] = num / den
@@ -597,42 +608,8 @@ def test_light_border_through_a_pixel_row_shows_the_light():
         torch.testing.assert_close(beside, D._footprint_average(aligned, sigma))
     shown = float(out[0, :, 9, 8:24].clamp(0, 1).mean())
     assert shown > 0.9, shown  # the samples show 0.71; with the range weight alone 0.78
-    plain = _footprint_average_plain(aligned, sigma, D._FOOTPRINT_RANGE, D._FOOTPRINT_KNEE)
+    plain = _footprint_average_brute(aligned, sigma)
     torch.testing.assert_close(beside.double(), plain, rtol=1e-4, atol=1e-6)
-
-
-def _footprint_average_borders(x: torch.Tensor, sigma: float, unseen_border: float) -> torch.Tensor:
-    """Brute force, pixel by pixel (float64): the footprint average whose range weight between two adjacent
-    pixels, one a light, gives way by the light share times the dimmer's lit neighbours beyond one, plus
-    ``unseen_border``."""
-    x = x[0].double().numpy()
-    lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
-    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
-    k = D._FOOTPRINT_KNEE * lum(x).mean()
-    y = x / (k + x)
-    ly = lum(y)
-    H, W = ly.shape
-    lit = lambda i, j: share(ly[i, j]) if 0 <= i < H and 0 <= j < W else 0.0  # noqa: E731
-    count = np.array([[lit(i - 1, j) + lit(i + 1, j) + lit(i, j - 1) + lit(i, j + 1) for j in range(W)]
-                      for i in range(H)])
-    r = int(math.ceil(3 * sigma))
-    out = np.empty_like(y)
-    for i in range(H):
-        for j in range(W):
-            num, den = np.zeros(3), 0.0
-            for dy in range(-r, r + 1):
-                for dx in range(-r, r + 1):
-                    a, b = min(max(i + dy, 0), H - 1), min(max(j + dx, 0), W - 1)
-                    w = math.exp(-(ly[a, b] - ly[i, j]) ** 2 / (2 * D._FOOTPRINT_RANGE ** 2))
-                    if abs(dx) + abs(dy) == 1:
-                        dimmer = count[a, b] if ly[a, b] < ly[i, j] else count[i, j]
-                        over = min(max(dimmer - 1 + unseen_border, 0.0), 1.0)
-                        w = w + (1 - w) * share(max(ly[a, b], ly[i, j])) * over
-                    w *= math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma))
-                    num += w * y[:, a, b]
-                    den += w
-            out[:, i, j] = num / den
-    return torch.from_numpy(k * out / (1 - out))[None]
 
 
 def _light_above_an_unseen_border(T=1, H=24, W=32):
@@ -659,7 +636,7 @@ def test_unseen_light_border_beside_one_sample_pixels():
     seen, unseen = D._footprint_average(x, sigma), D._footprint_average(x, sigma, D._UNSEEN_BORDER)
     with _fast.reference():
         torch.testing.assert_close(unseen, D._footprint_average(x, sigma, D._UNSEEN_BORDER))
-    torch.testing.assert_close(unseen.double(), _footprint_average_borders(x, sigma, D._UNSEEN_BORDER),
+    torch.testing.assert_close(unseen.double(), _footprint_average_brute(x, sigma, D._UNSEEN_BORDER),
                                rtol=1e-4, atol=1e-6)
     shown = lambda img: M.linear_to_srgb(img[0, :, 9, 8:24].clamp(0, 1))  # noqa: E731
     assert float(shown(unseen).mean()) > float(shown(seen).mean()) + 0.1
