@@ -1380,6 +1380,7 @@ def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> T
     +0.67 / +0.39). Without the neighbours, at a range sigma of 0.6: +0.08 / +0.04 and a 1-px halo where a
     border runs between rows; for every adjacent pair: ``bl_moving_metal``'s checkered floor -0.23 from
     1 spp (``benchmarks/validation/findings.md``).
+
     ``unseen_border`` (0 to 1) is where the dimmer pixel has one lit neighbour alone: how far the range
     weight gives way there all the same, for pixels of one sample each, whose border may run through the
     dim pixel without its sample showing it (:data:`_UNSEEN_BORDER`).
