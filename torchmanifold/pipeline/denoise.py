@@ -1353,8 +1353,7 @@ def _light_share(ly: Tensor) -> Tensor:
 def _light_neighbours(ly: Tensor) -> Tensor:
     """The light shares (:func:`_light_share`) of each pixel's four adjacent pixels summed (``ly``
     ``(T, 1, H, W)`` the tone-mapped luminance; none beyond the border)."""
-    b = torch.nn.functional.pad(_light_share(ly), (1, 1, 1, 1))
-    return b[..., :-2, 1:-1] + b[..., 2:, 1:-1] + b[..., 1:-1, :-2] + b[..., 1:-1, 2:]
+    return _four_neighbours(_light_share(ly))
 
 
 def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> Tensor:
