@@ -229,7 +229,7 @@ def prepare(method: Method, ds: Dataset, clip: Clip, alb: Optional[torch.Tensor]
         alb = None
 
     def one(q):
-        if method.temporal:
+        if method.temporal and not method.streams:
             sub, qq = clip.window(q, window)
             return method(sub, qq, sigma_s, sigma_r)
         return method(clip, q, sigma_s, sigma_r)

@@ -7,6 +7,7 @@ import torch
 
 import baselines
 import charts
+from torchmanifold.pipeline import DenoiseSettings
 from cases import CASES, Problem, judge
 
 
@@ -78,6 +79,27 @@ def test_clip_window():
     assert sub.times.tolist() == [3.0, 4.0] and q == 1
     with pytest.raises(ValueError, match="times"):
         baselines.Clip(torch.zeros(2, 1, 1, 1), torch.zeros(2, 1, 1, 1), torch.zeros(3))
+
+
+def test_streamed_pipeline_gives_each_window_bytes():
+    """The command's default in the benchmarks prepares each frame once across the queries: the same bytes as
+    the pipeline on each query's window, queried in order, again from the start, and after a clip change."""
+    g = torch.Generator().manual_seed(3)
+    t, h, w = 6, 12, 10
+    names = ("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z")
+    feats = torch.rand(t, len(names), h, w, generator=g)
+    clip = baselines.Clip(torch.rand(t, 3, h, w, generator=g) ** 4, torch.zeros(t, 1, h, w), torch.arange(t * 1.0),
+                          features=feats, feature_names=names, samples_per_pixel=1)
+    other = baselines.Clip(clip.values.flip(0).contiguous(), clip.guide, clip.times, features=feats.flip(0),
+                           feature_names=names, samples_per_pixel=1)
+    method = next(m for m in baselines.benchmark_methods() if m.name == "ours-pipeline-spacetime")
+    assert method.streams and method.temporal
+    radius = DenoiseSettings(**method.params).window_radius  # the albedo's window is wider than the filter's
+    for c, queries in ((clip, [0, 0, 1, 2, 3, 4, 5]), (clip, [2, 3]), (other, [0, 5])):
+        for q in queries:
+            sub, k = c.window(q, radius)
+            want = baselines._pipeline(sub, k, 8.0, 0.3, **method.params)
+            assert torch.equal(method(c, q), want), (q, queries)
 
 
 def test_pareto_front_matches_brute_force():
