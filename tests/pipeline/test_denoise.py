@@ -1103,6 +1103,67 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     assert averaged > own + 0.5, (averaged, own)
 
 
+def _striped_samples(H, W, slide=0.0, seed=0, S=8, period=6.0):
+    """Albedo ``(3, H, W)`` float64 of one jittered sample per pixel of diagonal stripes (``period`` pixels,
+    ``S`` sub-pixel steps) slid by ``slide`` pixels along x, and the pixels' true (box) averages."""
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
+    stripes = 0.2 + 0.6 * (((((xx + yy).double() / S - slide) % period)) < period / 2).double()
+    tex = torch.stack([stripes, 0.8 * stripes, 0.5 * stripes])
+    iy = torch.arange(H)[:, None] * S + torch.randint(0, S, (H, W), generator=g)
+    ix = torch.arange(W)[None, :] * S + torch.randint(0, S, (H, W), generator=g)
+    return tex[:, iy, ix], tex.view(3, H, S, W, S).mean((2, 4))
+
+
+@pytest.mark.parametrize("slide,period,expect", [(0.0, 6.0, True),     # a still texture, other jitters
+                                                 (2.5, 6.0, False),    # slid by two and a half pixels
+                                                 (5.0, 24.0, False),   # a coarse texture slid by five
+                                                 (0.0, 0.5, True),     # finer than a pixel, still
+                                                 (2.0, 0.5, True),     # finer than a pixel: nothing to see
+                                                 (3.0, None, True)])   # a plain surface
+def test_texture_held_tells_a_sliding_texture_from_a_still_one(slide, period, expect):
+    """World positions cannot see a surface slide within itself; the albedo samples can: another frame's
+    samples of a still texture differ from the pixel's own by no more than neighbouring pixels' do, those
+    of a texture slid further than its detail by more. Where nothing shows at the pixel scale (texture
+    finer than a pixel, a plain surface) the texture counts as held (averaging it costs nothing)."""
+    H, W = 30, 36
+    if period is None:
+        a, b = torch.full((3, H, W), 0.4, dtype=torch.float64), torch.full((3, H, W), 0.4, dtype=torch.float64)
+    else:
+        a, _ = _striped_samples(H, W, 0.0, seed=0, period=period)
+        b, _ = _striped_samples(H, W, slide, seed=1, period=period)
+    own = torch.ones(1, H, W, dtype=torch.bool)
+    held = D._texture_held(a, own, [b], [own])[0][0, 3:-3, 3:-3].double().mean()
+    assert held > 0.9 if expect else held < 0.25, float(held)
+
+
+def test_a_texture_sliding_in_place_is_not_averaged_over_frames(monkeypatch):
+    """A still camera over a striped plane that slides within itself (a box sliding on the floor; its
+    points keep their world positions): the window's other frames show the stripes elsewhere, so each
+    pixel keeps its own albedo sample. Averaged by positions alone, the stripes smeared (`mi_still_textures`
+    at 256x256 from 4 spp: its sliding box 5 dB under each frame alone)."""
+    H, W = 40, 48
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    normal = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W)]).double()
+    frames, truth = [], None
+    for t, slide in enumerate((-3.0, 0.0, 3.0)):
+        a, box = _striped_samples(H, W, slide, seed=t)
+        p = _plane_positions(H, W, seed=10 + t)
+        frames.append(torch.cat([a, normal, p]))
+        truth = box if t == 1 else truth
+    f = torch.stack(frames).float()
+    c = f[:, :3].clone()  # white light: the colour is the albedo sample
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
+
+    def error(x):
+        return float(((x[0].double() - truth) ** 2).mean())
+
+    kept = error(denoise_frames(c, f, names, **kw))
+    monkeypatch.setattr(D, "_texture_held", lambda a, own, others, valid: [torch.ones_like(own) for _ in others])
+    smeared = error(denoise_frames(c, f, names, **kw))
+    assert kept < 0.5 * smeared, (kept, smeared)
+
+
 def test_the_albedo_window_reaches_beyond_the_filters():
     """The albedo's samples come from +-2 frames while the filter joins +-1: a still view over fine
     textures (`mi_still_textures`, held out) gets closer to its reference, and a query reads the wider
