@@ -1489,7 +1489,9 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
         others = [j for j in window(ft, q, radius) if j != k]
         valid = [(s.mask[j] > 0) & ~s.flat[j] for j in others]
         sames = _same_pixel(s.position[k], [s.position[j] for j in others])
-        held = _texture_held(s.albedo[k], own, [s.albedo[j] for j in others], valid)
+        # (a moving view's pixels find no still sample: nothing to test)
+        held = _texture_held(s.albedo[k], own, [s.albedo[j] for j in others], valid) \
+            if any(bool(m.any()) for m in sames) else sames
         in_squares = s.point_samples and s.smooth is not None and bool(others)  # a moving view's samples
         if in_squares:  # searched where no still view's sample of the pixel was found
             search = own & (s.smooth[k] >= math.exp(-1.0))
