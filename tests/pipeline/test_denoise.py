@@ -1164,6 +1164,44 @@ def test_a_texture_sliding_in_place_is_not_averaged_over_frames(monkeypatch):
     assert kept < 0.5 * smeared, (kept, smeared)
 
 
+def test_a_texture_sliding_under_a_panning_view_is_not_averaged_over_frames(monkeypatch):
+    """A panning camera over a striped plane that also slides within itself: the other frames' samples that
+    fall in a pixel's square (found from world positions) show the stripes elsewhere, so they are left
+    out; where the plane holds still under the same pan they still count."""
+    H, W, S = 40, 48, 8
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    normal = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W)]).double()
+
+    def stripes(p, slide):  # world units are 10 pixels; 6-pixel diagonal stripes, slid along x
+        on = (((p[0] + p[1]) * 10 - slide) % 6.0) < 3.0
+        return torch.stack([0.2 + 0.6 * on.double(), 0.16 + 0.48 * on.double(), 0.1 + 0.3 * on.double()])
+
+    def clip(speed):
+        frames = []
+        for t in range(3):
+            p = _plane_positions(H, W, (0.0, 2.0 * t), seed=20 + t)  # the view pans 2 pixels a frame
+            frames.append(torch.cat([stripes(p, speed * t), normal, p]))
+        yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
+        fine = torch.stack([(xx.double() + 0.5) / S + 2.0, (yy.double() + 0.5) / S]) / 10  # frame 1's view
+        truth = stripes(fine, speed).view(3, H, S, W, S).mean((2, 4))
+        f = torch.stack(frames).float()
+        return f[:, :3].clone(), f, truth
+
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
+    errors = {}
+    for speed in (0.0, 3.0):
+        c, f, truth = clip(speed)
+        errors[speed] = float(((denoise_frames(c, f, names, **kw)[0].double() - truth) ** 2).mean())
+    with monkeypatch.context() as m:
+        m.setattr(D, "_texture_held", lambda a, own, others, valid: [torch.ones_like(own) for _ in others])
+        smeared = {}
+        for speed in (0.0, 3.0):
+            c, f, truth = clip(speed)
+            smeared[speed] = float(((denoise_frames(c, f, names, **kw)[0].double() - truth) ** 2).mean())
+    assert errors[3.0] < 0.5 * smeared[3.0], (errors, smeared)
+    assert errors[0.0] < 1.05 * smeared[0.0], (errors, smeared)  # a still texture keeps its average
+
+
 def test_the_albedo_window_reaches_beyond_the_filters():
     """The albedo's samples come from +-2 frames while the filter joins +-1: a still view over fine
     textures (`mi_still_textures`, held out) gets closer to its reference, and a query reads the wider

@@ -1474,8 +1474,10 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
     frames' samples that fall in the pixel's footprint are points of the same area too
     (:func:`_footprint_samples`), on smooth surfaces (:func:`_smooth_surface` at least 1/e), where the
     footprint's position is known. An n-spp pixel's albedo already averages its own footprint, and another
-    frame's pixel averages another one. Only at queries that are frames; flat pixels (not demodulated) and
-    pixels without a valid sample keep their own."""
+    frame's pixel averages another one. Either way a surface that slides within itself keeps its positions
+    while its texture moves: another frame's samples count only where its texture held
+    (:func:`_texture_held`). Only at queries that are frames; flat pixels (not demodulated) and pixels
+    without a valid sample keep their own."""
     out, counted = [], []
     for qi, q in enumerate(qt):
         k = frame_at(ft, q)
@@ -1500,9 +1502,11 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
                                               torch.stack(valid)[:, 0].to(a.dtype),
                                               torch.stack([search & ~(ok_j & same) for ok_j, same in
                                                            zip(valid, sames)])[:, 0])
+            # the samples found in a pixel's square hold its texture too, unless it slid within its surface
+            found_held = _texture_held(s.albedo[k], own, list(sums / counts.clamp_min(1.0)), list(counts > 0))
         for n, (j, same, ok_j, still) in enumerate(zip(others, sames, valid, held)):
             ok = own & ok_j & same & still  # the still view's sample of the pixel, else those in its square
-            found, found_n = (sums[n], counts[n]) if in_squares else (0.0, 0.0)
+            found, found_n = (sums[n] * found_held[n], counts[n] * found_held[n]) if in_squares else (0.0, 0.0)
             total += torch.where(ok, s.albedo[j], found)
             count += torch.where(ok, 1.0, found_n)
         out.append(total / count)
