@@ -10,9 +10,9 @@ A method denoises one query frame of a :class:`Clip`::
   that ``sigma_r`` applies to every channel (the convention of ``torchmanifold.adaptive_manifold_filter``),
   ``clip.times`` (T,) frame times, optional raw ``clip.albedo`` / ``clip.normal`` (T, 3, H, W) for OIDN.
 * Spatial methods use only frame ``query``; temporal ones (``Method.temporal``) use every frame of the clip, so the
-  caller slices the time window it wants around the query. A method that ``streams`` gets the whole clip and its
-  queries in frame order, and keeps what it derived from each frame for the windows after (as the ``denoise``
-  command does), so its time per frame is the command's, not a window's worth of per-frame work.
+  caller slices the time window it wants around the query. A method that ``streams`` gets the whole clip
+  and its queries in frame order, and keeps what it derived from each frame for the windows after (as the
+  ``denoise`` command does), so its time per frame is the command's, not a window's worth of per-frame work.
 * ``Method.params`` overrides the call's arguments: ``gaussian-s2`` always blurs with sigma 2, whatever
   ``sigma_s`` says. The stability registry leaves them empty so a case's sigmas reach every method.
 
@@ -258,8 +258,8 @@ class _PipelineStream:
         r = st.window_radius
         ids = list(range(max(0, query - r), min(clip.values.shape[0], query + r + 1)))
         times = [float(clip.times[k]) for k in ids]
-        out = denoise_prepared(FrameState.cat(self._frames.prepared(ids)), st, times, [float(clip.times[query])])
-        return out[0].to(clip.values.dtype)
+        states = FrameState.cat(self._frames.prepared(ids))
+        return denoise_prepared(states, st, times, [float(clip.times[query])])[0].to(clip.values.dtype)
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,

@@ -1128,13 +1128,18 @@ def test_texture_held_tells_a_sliding_texture_from_a_still_one(slide, period, ex
     finer than a pixel, a plain surface) the texture counts as held (averaging it costs nothing)."""
     H, W = 30, 36
     if period is None:
-        a, b = torch.full((3, H, W), 0.4, dtype=torch.float64), torch.full((3, H, W), 0.4, dtype=torch.float64)
+        a = b = torch.full((3, H, W), 0.4, dtype=torch.float64)
     else:
         a, _ = _striped_samples(H, W, 0.0, seed=0, period=period)
         b, _ = _striped_samples(H, W, slide, seed=1, period=period)
     own = torch.ones(1, H, W, dtype=torch.bool)
     held = D._texture_held(a, own, [b], [own])[0][0, 3:-3, 3:-3].double().mean()
     assert held > 0.9 if expect else held < 0.25, float(held)
+
+
+def _every_texture_held(a, own, others, valid):
+    """``_texture_held`` as before the texture test: every other frame's samples count."""
+    return [torch.ones_like(own) for _ in others]
 
 
 def test_a_texture_sliding_in_place_is_not_averaged_over_frames(monkeypatch):
@@ -1159,7 +1164,7 @@ def test_a_texture_sliding_in_place_is_not_averaged_over_frames(monkeypatch):
         return float(((x[0].double() - truth) ** 2).mean())
 
     kept = error(denoise_frames(c, f, names, **kw))
-    monkeypatch.setattr(D, "_texture_held", lambda a, own, others, valid: [torch.ones_like(own) for _ in others])
+    monkeypatch.setattr(D, "_texture_held", _every_texture_held)
     smeared = error(denoise_frames(c, f, names, **kw))
     assert kept < 0.5 * smeared, (kept, smeared)
 
@@ -1193,7 +1198,7 @@ def test_a_texture_sliding_under_a_panning_view_is_not_averaged_over_frames(monk
         c, f, truth = clip(speed)
         errors[speed] = float(((denoise_frames(c, f, names, **kw)[0].double() - truth) ** 2).mean())
     with monkeypatch.context() as m:
-        m.setattr(D, "_texture_held", lambda a, own, others, valid: [torch.ones_like(own) for _ in others])
+        m.setattr(D, "_texture_held", _every_texture_held)
         smeared = {}
         for speed in (0.0, 3.0):
             c, f, truth = clip(speed)

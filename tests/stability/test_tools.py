@@ -88,8 +88,8 @@ def test_streamed_pipeline_gives_each_window_bytes():
     t, h, w = 6, 12, 10
     names = ("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z")
     feats = torch.rand(t, len(names), h, w, generator=g)
-    clip = baselines.Clip(torch.rand(t, 3, h, w, generator=g) ** 4, torch.zeros(t, 1, h, w), torch.arange(t * 1.0),
-                          features=feats, feature_names=names, samples_per_pixel=1)
+    clip = baselines.Clip(torch.rand(t, 3, h, w, generator=g) ** 4, torch.zeros(t, 1, h, w),
+                          torch.arange(t * 1.0), features=feats, feature_names=names, samples_per_pixel=1)
     other = baselines.Clip(clip.values.flip(0).contiguous(), clip.guide, clip.times, features=feats.flip(0),
                            feature_names=names, samples_per_pixel=1)
     method = next(m for m in baselines.benchmark_methods() if m.name == "ours-pipeline-spacetime")

@@ -1503,10 +1503,12 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
                                               torch.stack([search & ~(ok_j & same) for ok_j, same in
                                                            zip(valid, sames)])[:, 0])
             # the samples found in a pixel's square hold its texture too, unless it slid within its surface
-            found_held = _texture_held(s.albedo[k], own, list(sums / counts.clamp_min(1.0)), list(counts > 0))
+            found_held = _texture_held(s.albedo[k], own, list(sums / counts.clamp_min(1.0)),
+                                       list(counts > 0))
         for n, (j, same, ok_j, still) in enumerate(zip(others, sames, valid, held)):
             ok = own & ok_j & same & still  # the still view's sample of the pixel, else those in its square
-            found, found_n = (sums[n] * found_held[n], counts[n] * found_held[n]) if in_squares else (0.0, 0.0)
+            found, found_n = ((sums[n] * found_held[n], counts[n] * found_held[n]) if in_squares
+                              else (0.0, 0.0))
             total += torch.where(ok, s.albedo[j], found)
             count += torch.where(ok, 1.0, found_n)
         out.append(total / count)
@@ -1522,7 +1524,8 @@ def _window_albedo(albedo: Tensor, s: "FrameState", ft: list[float], qt: list[fl
 #: their bits): c = 1 / 1.5 / 2, `mi_ceiling_light` (tuning part, a box moving under a still camera) at
 #: 256x256 -0.06 / +0.11, +0.01 / +0.07, 0.00 / +0.04 dB; its 128x128 frames and `mi_indirect_dof`
 #: -0.07 to -0.05, -0.02 to 0.00, 0.00; held out, `mi_still_textures` (a box sliding under a still camera)
-#: at 256x256 +0.24 / +1.17, +0.37 / +1.15, +0.16 / +0.93, at 64x64 -0.20 / +0.01, -0.01 / +0.06, +0.01 / +0.06
+#: at 256x256 +0.24 / +1.17, +0.37 / +1.15, +0.16 / +0.93, at 64x64 -0.20 / +0.01, -0.01 / +0.06,
+#: +0.01 / +0.06
 _TEXTURE_HELD = 1.5
 
 
