@@ -284,11 +284,42 @@ def validation_section(rel: str) -> list:
     lines += [f"| **mean** | | {mean(m1['raw'])} | {mean(m1['classic'])} | {mean(m1['oidn'])} | **{mean(m1['ours'])}** | "
               f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
               f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
+    lines += temporal_section(res)
     lines += tradeoff_section(rel)
     lines += fewer_features_section()
     if FINDINGS.exists():
         lines += [FINDINGS.read_text().strip(), ""]
     return lines
+
+
+def temporal_section(res: dict) -> list:
+    """The validation scenes' temporal PSNR (``metrics.temporal_psnr``) per family, from 1 / 4 spp."""
+    keys = ("raw", "classic", "oidn", "ours", "ours-spacetime")
+    rows, sums = [], {k: {"1": [], "4": []} for k in keys}
+    for name, sc in res["scenes"].items():
+        cells = []
+        for k in keys:
+            vals = []
+            for spp in ("1", "4"):
+                s = sc.get(spp)
+                fams = CLASSIC if k == "classic" else (k,)
+                got = [s["methods"][s["best_of_family"][f]].get("tpsnr") for f in fams
+                       if s and f in s["best_of_family"]]
+                got = [v for v in got if v is not None]
+                if got:
+                    sums[k][spp].append(max(got))
+                vals.append(_f(max(got)) if got else "-")
+            cells.append(" / ".join(vals))
+        rows.append(f"| {name} | " + " | ".join(cells) + " |")
+    if not any(sums[k]["1"] for k in keys):
+        return []
+    mean = " | ".join(" / ".join(_f(float(np.mean(sums[k][spp]))) if sums[k][spp] else "-" for spp in ("1", "4"))
+                      for k in keys)
+    return ["Temporal stability: the PSNR (dB) of each frame-to-frame change against the reference's "
+            "(`torchmanifold.metrics.temporal_psnr`: flicker costs, an error that stays put does not), from 1 / 4 "
+            "spp; best classic: the best of the classic filters on this measure.", "",
+            "| scene | raw | best classic | OIDN | ours | ours +-1 |", "|---" * 6 + "|", *rows,
+            f"| **mean** | {mean} |", ""]
 
 
 def tradeoff_section(rel: str) -> list:

@@ -1,4 +1,5 @@
-"""Image error metrics against a reference: PSNR (clamped sRGB and linear), relMSE, SSIM, FLIP.
+"""Image error metrics against a reference: PSNR (clamped sRGB and linear), relMSE, SSIM, FLIP, and the
+temporal PSNR of a clip's frame-to-frame changes.
 
 All functions take ``(B, 3, H, W)`` or ``(3, H, W)`` linear-radiance tensors and return the mean over
 the batch as a Python float (``reduction="none"`` gives one value per image). The clamped-sRGB PSNR is
@@ -11,7 +12,8 @@ import torch
 
 from torchmanifold._checks import check_choice, check_tensor
 
-__all__ = ["linear_to_srgb", "psnr", "psnr_linear", "relmse", "ssim", "flip", "flip_available", "evaluate"]
+__all__ = ["linear_to_srgb", "psnr", "psnr_linear", "relmse", "ssim", "flip", "flip_available", "temporal_psnr",
+           "evaluate"]
 
 
 def _as_batch(x: torch.Tensor, name: str) -> torch.Tensor:
@@ -71,6 +73,29 @@ def psnr(img, ref, mask=None, reduction: str = "mean"):
     img, ref, mask = _pair(img, ref, mask)
     mse = _masked_mean((linear_to_srgb(img) - linear_to_srgb(ref)) ** 2, mask)
     return _reduce(_psnr_from_mse(mse, 1.0), reduction)
+
+
+def temporal_psnr(frames, ref, reduction: str = "mean"):
+    """PSNR in dB (clamped sRGB, peak 1) of a clip's frame-to-frame changes against the reference's: each
+    change ``x_t - x_(t-1)`` minus the reference's ``r_t - r_(t-1)``. Flicker (a change the reference does
+    not have: noise or a bandwidth that jumps between frames) and lag (a change missing) count; an error
+    that stays put from frame to frame does not. Noise in the reference adds the same to every method's
+    error.
+
+    Args:
+        frames: ``(T, 3, H, W)`` linear radiance of consecutive frames, ``T >= 2``.
+        ref: the reference frames, same shape.
+        reduction: ``"mean"`` of the squared errors over the ``T - 1`` changes, then PSNR (float), or
+            ``"none"``: the PSNR of each change (``(T - 1,)`` tensor).
+    """
+    x, r, _ = _pair(frames, ref)
+    if x.shape[0] < 2:
+        raise ValueError(f"frames must hold at least 2 frames (T, 3, H, W), got {tuple(frames.shape)}")
+    sx, sr = linear_to_srgb(x), linear_to_srgb(r)
+    mse = (((sx[1:] - sx[:-1]) - (sr[1:] - sr[:-1])) ** 2).flatten(1).mean(1)
+    if check_choice("reduction", reduction, ("mean", "none")) == "mean":
+        return float(_psnr_from_mse(mse.mean(), 1.0))
+    return _psnr_from_mse(mse, 1.0)
 
 
 def psnr_linear(img, ref, mask=None, peak: float | None = None, reduction: str = "mean"):

@@ -165,6 +165,8 @@ def score(out: torch.Tensor, ds: harness.Dataset, extra: dict) -> dict:
     from torchmanifold import metrics
 
     res = harness.scores(out, ds.reference)
+    if out.shape[0] >= 2:  # flicker: the frame-to-frame changes against the reference's
+        res["tpsnr"] = metrics.temporal_psnr(out, ds.reference)
     res.update(energy_ratios(out, ds, extra["regions"]))
     if "mask" in extra:
         m = extra["mask"]
@@ -300,6 +302,16 @@ def markdown(results: dict, split: dict) -> str:
         row = family_row(s)
         lines.append(f"| {name} | {s['size'][1]}x{s['size'][0]} | "
                      + " | ".join(f"{row[f]['ms_median']:.1f}" if f in row else "-" for f in FAMILIES[1:]) + " |")
+    lines += ["", "## Temporal stability (PSNR of the frame-to-frame changes against the reference's, from 1 / 4 "
+              "spp)", "", "Flicker costs here, an error that stays put from frame to frame does not "
+              "(`torchmanifold.metrics.temporal_psnr`).", "",
+              "| scene | " + " | ".join(FAMILIES) + " |", "|---" * (len(FAMILIES) + 1) + "|"]
+    for name, sc in results["scenes"].items():
+        rows = {spp: family_row(sc[spp]) for spp in ("1", "4") if spp in sc}
+        if not rows or not all("tpsnr" in r["raw"] for r in rows.values()):
+            continue
+        lines.append(f"| {name} | " + " | ".join(" / ".join(
+            f"{rows[spp][f]['tpsnr']:.2f}" if f in rows[spp] else "-" for spp in rows) for f in FAMILIES) + " |")
     lines += ["", "## Moving objects (PSNR inside / outside the mask of moving objects, from 1 spp)", "",
               "| scene | " + " | ".join(FAMILIES) + " |", "|---" * (len(FAMILIES) + 1) + "|"]
     for name, sc in results["scenes"].items():

@@ -25,6 +25,26 @@ def test_psnr_matches_numpy_formula():
     assert M.relmse(img, ref) == pytest.approx(rel, rel=1e-5)
 
 
+def test_temporal_psnr_matches_numpy_formula_and_sees_flicker():
+    """The PSNR of the frame-to-frame changes against a numpy loop; a fixed error from frame to frame costs
+    nothing, the same error's size flickering in sign costs as much as its doubled change."""
+    g = torch.Generator().manual_seed(1)
+    ref = torch.rand(4, 3, 12, 10, generator=g)
+    out = ref + 0.05 * torch.randn(4, 3, 12, 10, generator=g)
+    s, r = _srgb_np(out.numpy()), _srgb_np(ref.numpy())
+    per = [np.mean(((s[t] - s[t - 1]) - (r[t] - r[t - 1])) ** 2) for t in range(1, 4)]
+    assert M.temporal_psnr(out, ref) == pytest.approx(10 * math.log10(1 / np.mean(per)), abs=1e-4)
+    assert M.temporal_psnr(out, ref, reduction="none").tolist() == pytest.approx(
+        [10 * math.log10(1 / p) for p in per], abs=1e-4)
+    base = torch.full((3, 3, 8, 8), 0.25)
+    steady = base + 0.1  # the same error in every frame
+    flicker = base + 0.1 * torch.tensor([1.0, -1.0, 1.0]).view(3, 1, 1, 1)
+    assert M.temporal_psnr(steady, base) > 150
+    assert M.temporal_psnr(flicker, base) < M.psnr(flicker, base) - 3
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        M.temporal_psnr(base[:1], base[:1])
+
+
 def test_identical_and_masked():
     ref = torch.rand(1, 3, 24, 24)
     assert M.ssim(ref, ref) == pytest.approx(1.0, abs=1e-5)
