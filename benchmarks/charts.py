@@ -284,7 +284,7 @@ def validation_section(rel: str) -> list:
     lines += [f"| **mean** | | {mean(m1['raw'])} | {mean(m1['classic'])} | {mean(m1['oidn'])} | **{mean(m1['ours'])}** | "
               f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
               f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
-    lines += temporal_section(res)
+    lines += temporal_section(res, rel)
     lines += tradeoff_section(rel)
     lines += fewer_features_section()
     if FINDINGS.exists():
@@ -292,7 +292,7 @@ def validation_section(rel: str) -> list:
     return lines
 
 
-def temporal_section(res: dict) -> list:
+def temporal_section(res: dict, rel: str) -> list:
     """The validation scenes' temporal PSNR (``metrics.temporal_psnr``) per family, from 1 / 4 spp."""
     keys = ("raw", "classic", "oidn", "ours", "ours-spacetime")
     rows, sums = [], {k: {"1": [], "4": []} for k in keys}
@@ -318,6 +318,7 @@ def temporal_section(res: dict) -> list:
     return ["Temporal stability: the PSNR (dB) of each frame-to-frame change against the reference's "
             "(`torchmanifold.metrics.temporal_psnr`: flicker costs, an error that stays put does not), from 1 / 4 "
             "spp; best classic: the best of the classic filters on this measure.", "",
+            f"![validation temporal PSNR]({rel}/validation/tpsnr.png)", "",
             "| scene | raw | best classic | OIDN | ours | ours +-1 |", "|---" * 6 + "|", *rows,
             f"| **mean** | {mean} |", ""]
 

@@ -12,7 +12,7 @@ PSNR (clamped sRGB, mean over frames), relMSE (linear, ``mean((x-r)^2/(r^2+0.01)
 ms/frame (median, this machine, this run). Where a clip has a mask of moving objects, PSNR inside and outside it;
 where it has a second reference, the PSNR of one reference against the other (a ceiling for every method).
 
-Writes ``benchmarks/results/validation/scores.json``, ``scores.md`` and ``psnr.png``.
+Writes ``benchmarks/results/validation/scores.json``, ``scores.md``, ``psnr.png`` and ``tpsnr.png``.
 """
 from __future__ import annotations
 
@@ -348,7 +348,15 @@ def markdown(results: dict, split: dict) -> str:
     return "\n".join(lines)
 
 
-def chart(results: dict, path: Path) -> None:
+#: the charts score.py draws: file, the scores' key, the axis label, the title, the axis' floor (dB)
+CHARTS = (("psnr.png", "psnr", "PSNR dB", "PSNR per scene (clamped sRGB, mean over frames)", 15),
+          ("tpsnr.png", "tpsnr", "temporal PSNR dB",
+           "temporal PSNR per scene (frame-to-frame changes against the reference's; flicker costs)", 5))
+
+
+def chart(results: dict, path: Path, key: str = "psnr", label: str = "PSNR dB",
+          title: str = "PSNR per scene (clamped sRGB, mean over frames)", bottom: float = 15) -> None:
+    """Bars of ``key`` per scene and method family, from 1 spp above and 4 spp below, into ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -361,16 +369,16 @@ def chart(results: dict, path: Path) -> None:
     for ax, spp in zip(axes, ("1", "4")):
         w = 0.8 / len(FAMILIES)
         for k, f in enumerate(FAMILIES):
-            vals = [family_row(results["scenes"][s][spp]).get(f, {}).get("psnr", np.nan)
+            vals = [family_row(results["scenes"][s][spp]).get(f, {}).get(key, np.nan)
                     if spp in results["scenes"][s] else np.nan for s in scenes]
             ax.bar(np.arange(len(scenes)) + (k - (len(FAMILIES) - 1) / 2) * w, vals, w, label=f, color=colours[f])
-        ax.set_ylabel(f"PSNR dB (from {spp} spp)")
-        ax.set_ylim(bottom=15)
+        ax.set_ylabel(f"{label} (from {spp} spp)")
+        ax.set_ylim(bottom=bottom)
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(ncol=len(FAMILIES), fontsize=8, loc="upper left")
     axes[1].set_xticks(np.arange(len(scenes)))
     axes[1].set_xticklabels([f"{s}\n({results['scenes'][s]['split']})" for s in scenes], fontsize=8)
-    fig.suptitle("Validation set: PSNR per scene (clamped sRGB, mean over frames)")
+    fig.suptitle(f"Validation set: {title}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -432,7 +440,8 @@ def _write(results: dict, split: dict, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "scores.json").write_text(json.dumps(results, indent=1))
     (out / "scores.md").write_text(markdown(results, split))
-    chart(results, out / "psnr.png")
+    for name, *how in CHARTS:
+        chart(results, out / name, *how)
     print((out / "scores.md").read_text())
 
 
