@@ -131,6 +131,32 @@ def test_selection_pools_wider_where_the_pilot_is_noisy(clip, monkeypatch):
     assert wider > fixed + 0.15, (wider, fixed)
 
 
+def test_the_time_window_widens_where_the_pilot_is_noisy(monkeypatch):
+    """The held-out room lit by bounce light alone: where its pilot is too noisy to trust, the space-time
+    window joins every frame the albedo's window holds (+-2, not +-1), which scores better there; a query
+    of each kind in one call gives each the bytes it gets alone."""
+    c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2, 3, 4])
+    settings = DenoiseSettings(temporal_radius=1)
+    kw = dict(settings=settings, query_times=[2.0], samples_per_pixel=1)
+    wide = denoise_frames(c, f, names, **kw)
+    two = DenoiseSettings(temporal_radius=2)
+    assert torch.equal(wide, denoise_frames(c, f, names, **{**kw, "settings": two}))
+    with monkeypatch.context() as m:
+        m.setattr(D, "_noisy_window", lambda state, settings, ft, qt: [False] * len(qt))
+        narrow = denoise_frames(c, f, names, **kw)
+    assert M.psnr(wide, ref[2:3]) > M.psnr(narrow, ref[2:3]) + 0.05
+    # one noisy query and one quiet one (its pilot trusted: pooling 1) in one call
+    state = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1)
+    state.pooling[3] = 1.0
+    both = D.denoise_prepared(state, settings, [0, 1, 2, 3, 4], [2.0, 3.0])
+    assert torch.equal(both[0], D.denoise_prepared(state, settings, [0, 1, 2, 3, 4], [2.0])[0])
+    quiet = D.denoise_prepared(state, settings, [0, 1, 2, 3, 4], [3.0])[0]
+    assert torch.equal(both[1], quiet)
+    with monkeypatch.context() as m:
+        m.setattr(D, "_noisy_window", lambda state, settings, ft, qt: [False] * len(qt))
+        assert torch.equal(quiet, D.denoise_prepared(state, settings, [0, 1, 2, 3, 4], [3.0])[0])
+
+
 def _splat(x: torch.Tensor) -> torch.Tensor:
     """Mitsuba's default reconstruction filter on pixel values ``(T, C, H, W)``: each pixel the normalised
     gaussian (0.5 px stddev, 2 px radius) of the pixels around, as a render with it holds where a box-

@@ -1182,8 +1182,14 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                      query_times: Sequence[float], sigma_s: float | None = None,
                      range_scale: float = 1.0) -> Tensor:
     """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
-    :func:`denoise_frames`)."""
+    :func:`denoise_frames`). At a query whose frame's pilot is too noisy to trust, the time window joins
+    every frame the albedo's window holds (:func:`_noisy_window`)."""
     ft, qt = list(frame_times), list(query_times)
+    wide = _noisy_window(state, settings, ft, qt)
+    if any(wide):
+        if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
+            return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale) for q in qt])
+        settings = replace(settings, temporal_radius=settings.window_radius)
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     s = state
 
@@ -1213,6 +1219,20 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
+
+
+def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
+                  qt: list[float]) -> list[bool]:
+    """Per query, whether its time window widens to every frame the albedo's window holds
+    (``settings.window_radius``): where the query is a frame whose firefly pilot is too noisy to trust
+    (``state.pooling`` above 1, :func:`_selection_pooling`), as the selection's pooling widens there. Only
+    the two rooms lit by bounce light alone are that noisy: frames 0-5 from 1 / 4 spp, ``mi_indirect_dof``
+    (tuning part) +0.15 / +0.11 dB and ``bl_indirect_dof`` (held out) +0.11 / +0.14 with +-2 frames against
+    +-1 (for 5/3 of the op's time there); every other scene keeps its bits."""
+    if settings.temporal_radius == 0 or settings.window_radius <= settings.temporal_radius:
+        return [False] * len(qt)
+    at = [frame_at(ft, q) for q in qt]
+    return [k is not None and float(state.pooling[k]) > 1.0 for k in at]
 
 
 def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
