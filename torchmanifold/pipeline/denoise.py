@@ -299,7 +299,8 @@ class DenoiseSettings:
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`); turn it
             off for a scene in a medium (global fog), where a ray that scatters before any surface also
             reads depth 0 and its colour is noisy in-scattered light.
-        temporal_radius: neighbour frames on each side that join the filter (0 = per frame).
+        temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where a
+            frame's pilot is too noisy to trust, every frame of ``window_radius`` (:func:`_noisy_window`).
         albedo_radius: with a time window (``temporal_radius`` > 0) and world positions from the
             renderer, the frames on each side whose samples of each pixel's albedo join it
             (:func:`_window_albedo`); it may reach beyond the filter's window, as texture holds still
