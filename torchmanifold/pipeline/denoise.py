@@ -1118,11 +1118,13 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     alb, flat = _demodulation_albedo(f, names, settings)
-    lone = _lone_flat_samples(c, flat & ~_escaped(f, names))
+    sky = _escaped(f, names)
+    lone = _lone_flat_samples(c, flat & ~sky)
     if bool(lone.any()):
         f = _from_neighbours(f, lone, ~flat)
         alb, flat = _demodulation_albedo(f, names, settings)
-    escaped = _escaped(f, names) & (mask > 0) & settings.keep_sky
+        sky = _escaped(f, names)  # a repaired pixel may take depth 0 from sky beside it
+    escaped = sky & (mask > 0) & settings.keep_sky
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
