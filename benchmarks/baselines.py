@@ -70,7 +70,10 @@ class Clip:
 
     def window(self, query: int, radius: int) -> tuple["Clip", int]:
         """The frames within ``radius`` of ``query`` as a new clip, and the query's index inside it."""
-        lo, hi = max(0, query - radius), min(self.values.shape[0], query + radius + 1)
+        from torchmanifold.timewindow import index_window
+
+        span = index_window(self.values.shape[0], query, radius)
+        lo, hi = span.start, span.stop
         pick = (lambda x: None if x is None else x[lo:hi])
         return Clip(self.values[lo:hi], self.guide[lo:hi], self.times[lo:hi], self.guide_names, pick(self.albedo),
                     pick(self.normal), pick(self.features), self.feature_names, pick(self.emission),
@@ -240,6 +243,7 @@ class _PipelineStream:
         from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features,
                                                     denoise_prepared, prepare_frames)
         from torchmanifold.pipeline.sliding import SlidingFrames
+        from torchmanifold.timewindow import index_window
 
         if clip.features is None:
             raise ValueError("the pipeline needs the clip's raw features (Clip.features)")
@@ -256,7 +260,7 @@ class _PipelineStream:
             self._clip, self._settings, self._frames = clip, st, SlidingFrames(lambda k: k, prepare)
         self._last = query
         r = st.window_radius
-        ids = list(range(max(0, query - r), min(clip.values.shape[0], query + r + 1)))
+        ids = list(index_window(clip.values.shape[0], query, r))
         times = [float(clip.times[k]) for k in ids]
         states = FrameState.cat(self._frames.prepared(ids))
         return denoise_prepared(states, st, times, [float(clip.times[query])])[0].to(clip.values.dtype)

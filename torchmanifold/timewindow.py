@@ -8,6 +8,7 @@ time (the temporal filter op, the denoiser, the progressive engine, the demo) as
 - :func:`bracket`: the two frames that bracket ``t`` and the linear weight between them.
 - :func:`interpolate`: per-frame data at ``t``, linear between the bracketing frames.
 - :func:`window`: the frames within a radius of ``t``, plus the bracketing pair.
+- :func:`index_window`: the same for a clip's frame ``k`` when frames stand one time unit apart.
 - :func:`time_weights`: Gaussian weights of frames around query times.
 
 Ties: among frames with the same time the lowest index wins. Ends: a time before the first frame (or
@@ -20,7 +21,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["TIME_TOL", "frame_at", "bracket", "interpolate", "window", "time_weights"]
+__all__ = ["TIME_TOL", "frame_at", "bracket", "interpolate", "window", "index_window", "time_weights"]
 
 #: Two times closer than this (in frame units) are the same time. Times are built by sums such as
 #: ``t + k / (n + 1)`` (the render job's in-between frames) or ``round(4 t) / 4`` (the demo's scrub);
@@ -111,6 +112,21 @@ def window(frame_times: Sequence[float] | Tensor, t: float, radius: float) -> li
         raise ValueError(f"radius: expected a number >= 0, got {radius!r}")
     i0, i1, _ = bracket(ft, t)
     return sorted({k for k in range(len(ft)) if abs(ft[k] - t) <= radius + TIME_TOL} | {i0, i1})
+
+
+def index_window(count: int, k: int, radius: int) -> range:
+    """The frames ``k - radius .. k + radius`` of a clip of ``count`` frames numbered ``0 .. count - 1``,
+    cut to the clip: :func:`window` ``(range(count), k, radius)`` without its scan over every frame (a
+    streamed clip's frame times are its indices).
+
+    Example:
+        >>> list(index_window(5, 0, 2)), list(index_window(5, 3, 1))
+        ([0, 1, 2], [2, 3, 4])
+    """
+    if not 0 <= k < count or radius < 0:
+        raise ValueError(f"index_window: expected 0 <= k < count and radius >= 0, got k={k}, count={count}, "
+                         f"radius={radius}")
+    return range(max(0, k - radius), min(count, k + radius + 1))
 
 
 def time_weights(frame_times: Tensor, query_times: Tensor, sigma_t: float) -> Tensor:

@@ -7,7 +7,7 @@ import random
 import pytest
 import torch
 
-from torchmanifold.timewindow import TIME_TOL, bracket, frame_at, interpolate, time_weights, window
+from torchmanifold.timewindow import TIME_TOL, bracket, frame_at, index_window, interpolate, time_weights, window
 
 
 def brute_bracket(ft: list[float], t: float) -> tuple[int, int, float]:
@@ -110,6 +110,15 @@ def test_window_examples_and_errors():
         window([0.0], 0.0, -1)
     with pytest.raises(ValueError, match="frame_times"):
         bracket([], 0.0)
+
+
+@pytest.mark.parametrize("count", [1, 2, 5, 9])
+def test_index_window_is_the_window_of_a_clip_numbered_by_frame(count):
+    for k, radius in itertools.product(range(count), [0, 1, 2, 7]):
+        assert list(index_window(count, k, radius)) == window(range(count), k, radius), (k, radius)
+    for bad in ((count, count, 1), (count, -1, 1), (count, 0, -1)):
+        with pytest.raises(ValueError, match="index_window"):
+            index_window(*bad)
 
 
 def test_time_weights_are_gaussian_up_to_a_row_factor():

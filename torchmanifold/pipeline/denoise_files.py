@@ -19,6 +19,7 @@ from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
                                             footprint_width, prepare_frames, spatial_sigma)
 from torchmanifold.pipeline.sliding import SlidingFrames
+from torchmanifold.timewindow import index_window
 
 __all__ = ["denoise_files", "denoised_frames", "denoise_window", "prepared_window", "filter_window",
            "ClipWindow", "OUTPUT_LAYOUTS"]
@@ -161,7 +162,7 @@ def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tupl
     ``t``'s window, its frames prepared or being prepared, as the arguments of :func:`filter_window`, and
     the frame as read."""
     r = settings.window_radius
-    ids = list(range(max(0, t - r), min(len(clip), t + r + 1)))
+    ids = list(index_window(len(clip), t, r))
     return (clip.prepared(ids, settings), settings, ids, t), clip.frames(ids)[ids.index(t)]
 
 

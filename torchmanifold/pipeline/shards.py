@@ -44,7 +44,7 @@ import torch
 
 from torchmanifold.pipeline.denoise import (DenoiseSettings, adapt_to_features, denoise_frames,
                                              footprint_width, spatial_sigma)
-from torchmanifold.timewindow import frame_at, window
+from torchmanifold.timewindow import frame_at, index_window, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
            "shard_denoise", "shard_render", "MANIFEST", "RAY_VERSION"]
@@ -111,7 +111,7 @@ def plan_chunks(todo: Sequence[int], chunk: int, reads) -> list[Chunk]:
 
 def denoise_halo(n: int, r: int):
     """``reads`` of :func:`plan_chunks` for ``denoise``: owned frames ``a..b`` read ``a-r .. b+r``."""
-    return lambda owned: (max(0, owned[0] - r), min(n - 1, owned[-1] + r))
+    return lambda owned: (index_window(n, owned[0], r)[0], index_window(n, owned[-1], r)[-1])
 
 
 def render_cone(times: Sequence[float], query: Sequence[float], owned: Sequence[int], radius: int,
