@@ -7,7 +7,8 @@ import random
 import pytest
 import torch
 
-from torchmanifold.timewindow import TIME_TOL, bracket, frame_at, index_window, interpolate, time_weights, window
+from torchmanifold.timewindow import (TIME_TOL, bracket, frame_at, index_window, interpolate, time_weights,
+                                      window)
 
 
 def brute_bracket(ft: list[float], t: float) -> tuple[int, int, float]:
