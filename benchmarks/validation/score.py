@@ -230,6 +230,12 @@ def worst_frame_strip(outputs: dict, png: Path) -> int:
     return q
 
 
+def _entries(split: dict) -> dict:
+    """The set's scenes, then its probes: clips rendered on demand, not committed, scored only when named
+    (``--scenes``) with the ``--data-root`` they were rendered into."""
+    return {**split["scenes"], **split.get("probes", {})}
+
+
 def resolve(entry: dict, data_root: Path | None) -> Path:
     if entry.get("shared"):
         return harness.DATA if harness.DATA.is_dir() else Path("/work/shared/data") / entry["shared"]
@@ -404,7 +410,7 @@ def main(argv=None):
         for r in runs:  # a scene's spp levels may come from different runs
             for k, v in r["scenes"].items():
                 scenes[k] = {**scenes.get(k, {}), **v}
-        order = list(split["scenes"])
+        order = list(_entries(split))
         results = {**runs[0], "scenes": {k: scenes[k] for k in sorted(scenes, key=order.index)},
                    "meta_runs": [r["meta"] for r in runs]}
         return _write(results, split, args.out)
@@ -421,7 +427,7 @@ def main(argv=None):
     from tqdm import tqdm
 
     for name in tqdm(names, desc="scenes"):
-        entry = split["scenes"][name]
+        entry = _entries(split)[name]
         path = resolve(entry, args.data_root)
         sc = {**results["scenes"].get(name, {}), "split": entry["split"], "renderer": entry["renderer"],
               "path": str(path)}
@@ -431,7 +437,7 @@ def main(argv=None):
             tqdm.write(f"{name} {spp} spp: {time.perf_counter() - t0:.0f} s; " + ", ".join(
                 f"{f} {r['psnr']:.2f}" for f, r in family_row(sc[str(spp)]).items()))
         results["scenes"][name] = sc
-    order = list(split["scenes"])
+    order = list(_entries(split))
     results["scenes"] = {k: results["scenes"][k] for k in sorted(results["scenes"], key=order.index)}
     _write(results, split, args.out)
 
