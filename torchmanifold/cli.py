@@ -59,8 +59,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     g.add_argument("--firefly-k", type=float, default=d.firefly_k, help="clamp at k x the pilot (%(default)s)")
     g.add_argument("--no-demodulate", action="store_true", help="filter colour, not colour / albedo")
     g.add_argument("--filter-sky", action="store_true",
-                   help="filter pixels whose camera ray left the scene too (a scene in fog: by default they "
-                        "keep their samples)")
+                   help="filter pixels whose camera ray left the scene too (by default they keep their "
+                        "samples unless their colour is noise, as in fog)")
     g.add_argument("--temporal-radius", type=int, default=temporal_radius,
                    help="neighbour frames on each side (%(default)s)")
     g.add_argument("--albedo-radius", type=int, default=d.albedo_radius,

@@ -846,6 +846,85 @@ def test_sky_from_the_normals_where_no_depth_is_given():
     assert not torch.equal(out[:, :, 16], color[:, :, 16])
 
 
+def _fog(T, H, W, seed):
+    """A plane under a band of sky (rows 0-15, every feature 0 as Mitsuba writes a ray that met no surface):
+    features, the noise-free colour and 1-spp-like samples of it. The sky is the smooth glow of a medium
+    the camera sits in, and its samples are as noisy as the ground's."""
+    f, names = _plane(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.7 * 0.5)
+    sky = (slice(None), slice(None), slice(0, 16))
+    f[sky] = 0.0
+    glow = 0.3 + 0.2 * torch.linspace(0.0, 1.0, W).view(1, 1, 1, W) + \
+        0.1 * torch.linspace(0.0, 1.0, 16).view(1, 1, 16, 1)
+    truth[sky] = glow.expand(T, 3, 16, W) * torch.tensor([0.8, 0.9, 1.0]).view(1, 3, 1, 1)
+    return f, names, truth, _noisy(truth, seed), sky
+
+
+def test_noisy_sky_is_filtered():
+    """A ray that meets no surface in a scene in fog reads depth 0 like a clear sky's, but its colour is
+    in-scattered light, as noisy as the ground's: it is filtered like the rest, not kept, and the frames
+    are counted. A clear sky of the same glow keeps its samples."""
+    T, H, W = 2, 48, 48
+    f, names, truth, color, sky = _fog(T, H, W, 11)
+    out, st = denoise_frames(color, f, names, return_stats=True)
+    noise = (color - truth)[sky].abs().mean()
+    assert (out - truth)[sky].abs().mean() < 0.3 * noise, ((out - truth)[sky].abs().mean(), noise)
+    assert st["noisy_sky_frames"] == T
+    clear = color.clone()
+    clear[sky] = truth[sky]
+    out, st = denoise_frames(clear, f, names, settings=DenoiseSettings(footprint_sigma=0.0),
+                             return_stats=True)
+    torch.testing.assert_close(out[sky], truth[sky])
+    assert st["noisy_sky_frames"] == 0
+
+
+def _sky_samples(kind: str, H: int = 32, W: int = 32) -> torch.Tensor:
+    g = torch.Generator().manual_seed(3)
+    x = torch.linspace(0.0, 1.0, W).view(1, 1, 1, W)
+    smooth = (0.5 + 0.4 * x).expand(1, 3, H, W)
+    return {"noise": 0.5 * torch.empty(1, 3, H, W).exponential_(generator=g),
+            "smooth": smooth,
+            "smooth and slightly noisy": smooth * (1 + 0.01 * torch.randn(1, 3, H, W, generator=g)),
+            "edges": smooth * (1 + ((torch.arange(W) // 4 + torch.arange(H).view(-1, 1) // 4) % 2)),
+            "stripes": (0.2 + 0.6 * (torch.arange(W) % 2).float()).expand(1, 3, H, W),
+            "sun": smooth + 500.0 * ((x - 0.5).abs() < 0.02) * (torch.arange(H).view(-1, 1) == 9),
+            "black": torch.zeros(1, 3, H, W)}[kind]
+
+
+@pytest.mark.parametrize("kind,expect", [("noise", True), ("smooth", False),
+                                         ("smooth and slightly noisy", False), ("edges", False),
+                                         ("stripes", False), ("sun", False), ("black", False)])
+def test_noisy_sky_tells_noise_from_the_environment(kind, expect):
+    """Only independent noise makes a sky noise (R = 1 within a factor sqrt(2)): a gradient, edges, stripes a
+    pixel wide, a one-pixel sun 1000x brighter than the sky and a black sky do not; frames are judged apart,
+    and a sky too small to judge (under 500 rows of three pixels) is not noise."""
+    c = _sky_samples(kind)
+    sky = torch.ones(1, 1, *c.shape[2:], dtype=torch.bool)
+    assert bool(D._noisy_sky(c, sky)) == expect
+    both = torch.cat([c, _sky_samples("smooth")])
+    assert D._noisy_sky(both, sky.expand(2, -1, -1, -1)).flatten().tolist() == [expect, False]
+    small = torch.zeros_like(sky)
+    small[..., :12, :12] = True  # 2 * 12 * 10 = 240 rows of three
+    assert not bool(D._noisy_sky(c, small))
+
+
+def test_noisy_sky_in_files_is_counted(tmp_path):
+    """The denoise command filters a noisy sky and counts its frames in the summary."""
+    from torchmanifold.io import read_exr, write_exr
+    from torchmanifold.pipeline.denoise_files import denoise_files
+
+    T, H, W = 3, 48, 48
+    f, names, truth, color, sky = _fog(T, H, W, 12)
+    paths = [write_exr(tmp_path / f"f{t}.exr", {**{ch: color[t, k].numpy() for k, ch in enumerate("RGB")},
+                                                 **{n: f[t, k].numpy() for k, n in enumerate(names)}})
+             for t in range(T)]
+    res = denoise_files(paths, tmp_path / "out", progress=False)
+    assert res["noisy_sky_frames"] == T
+    out = torch.stack([torch.from_numpy(np.stack([read_exr(tmp_path / "out" / p.name)[ch] for ch in "RGB"]))
+                       for p in paths])
+    assert (out - truth)[sky].abs().mean() < 0.3 * (color - truth)[sky].abs().mean()
+
+
 def test_black_object_beside_dark_albedo_stays_black():
     """A black (zero-albedo) object is not demodulated: its radiance must not mix with the irradiance of
     a dark-albedo neighbour, which no guide channel tells apart (albedo 0 vs 0.07)."""

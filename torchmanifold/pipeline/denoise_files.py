@@ -27,6 +27,8 @@ __all__ = ["denoise_files", "denoised_frames", "denoise_window", "prepared_windo
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
 OUTPUT_LAYOUTS = ("input", "plain")
+#: what each frame's record counts, summed over the clip in the summary
+FRAME_STATS = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed", "noisy_sky_frames")
 
 
 def _check_inputs(inputs: Sequence, out, output_layout: str) -> tuple[list[Path], Path]:
@@ -173,8 +175,7 @@ def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list
     states = [s.result() for s in states]
     y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)[0].numpy()
     stats = states[ids.index(t)].stats()
-    keys = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed")
-    return y, {k: stats[k] for k in keys}
+    return y, {k: stats[k] for k in FRAME_STATS}
 
 
 def denoised_frames(clip: ClipWindow, settings: DenoiseSettings,
@@ -228,7 +229,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     Returns:
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
         [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
-        "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "samples_per_pixel":
+        "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "noisy_sky_frames": n
+        (frames whose pixels of depth 0 were filtered as noise, a scene in fog), "samples_per_pixel":
         n or None (the first frame's header), "sigma_s": s (the spatial sigma used), "footprint_sigma": s (the
         footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader
         changed or found missing (deduplicated).
@@ -248,7 +250,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     outp = prepare_out(outp, overwrite)
 
-    stats_sum = {"nonfinite_color": 0, "nonfinite_features": 0, "firefly_energy_removed": 0.0}
+    stats_sum = dict.fromkeys(FRAME_STATS, 0)
     t0 = time.perf_counter()
     writes: deque[Future] = deque()
     with staged_dir(outp) as stage, ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
@@ -274,6 +276,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             "nonfinite_color": stats_sum["nonfinite_color"],
             "nonfinite_features": stats_sum["nonfinite_features"],
             "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
+            "noisy_sky_frames": stats_sum["noisy_sky_frames"],
             "samples_per_pixel": clip.samples_per_pixel,
             "sigma_s": spatial_sigma(settings, clip.samples_per_pixel),
             "footprint_sigma": footprint_width(settings, clip.samples_per_pixel),

@@ -528,7 +528,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
 
     Returns:
         The keys of :func:`~torchmanifold.pipeline.denoise_files.denoise_files` (``frames``, ``size``,
-        ``feature_channels``, non-finite counts, ``firefly_energy_removed``, ``seconds_per_frame``,
+        ``feature_channels``, non-finite counts, ``firefly_energy_removed``, ``noisy_sky_frames`` (0 for
+        frames a manifest of an earlier version lists), ``seconds_per_frame``,
         ``outputs``) over all frames of the clip, and ``"shards"``: ``chunks``, ``written`` (this run),
         ``reports`` (frame writes reported, retries included), ``skipped`` (finished before),
         ``seconds``, ``frames_per_second``, ``retries``, ``frames_read``
@@ -580,7 +581,8 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ff += x["firefly_energy_removed"]
     return {"frames": n, "size": list(first.size), "feature_channels": first.feature_names,
             "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
-            "firefly_energy_removed": ff / n, "samples_per_pixel": spp,
+            "firefly_energy_removed": ff / n,
+            "noisy_sky_frames": sum(x.get("noisy_sky_frames", 0) for x in recs), "samples_per_pixel": spp,
             "sigma_s": spatial_sigma(settings, spp), "footprint_sigma": footprint_width(settings, spp),
             "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
