@@ -457,6 +457,26 @@ def _wood_floor() -> bpy.types.Material:
     return m
 
 
+def clip_fog(scene, n: int):
+    """The open scene of ``clip_env_thin`` in fog: a 12-unit cube around it holds a homogeneous scattering medium
+    (a world volume would put the sun and the sky at an infinite optical depth). Where a path scatters in the
+    medium before any surface, Cycles writes depth 0 and the medium's colour as the denoising albedo."""
+    animate, desc, moving = clip_env_thin(scene, n)
+    mat = bpy.data.materials.new("fog")
+    mat.use_nodes = True
+    nt = mat.node_tree
+    for node in list(nt.nodes):
+        nt.nodes.remove(node)
+    vol = nt.nodes.new("ShaderNodeVolumeScatter")
+    vol.inputs["Density"].default_value = 0.15
+    vol.inputs["Color"].default_value = (0.9, 0.9, 0.9, 1.0)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    nt.links.new(vol.outputs["Volume"], out.inputs["Volume"])
+    add("cube", mat, (0, 0, 2.0), size=12)
+    return animate, desc + (" A 12-unit cube around the scene and the camera holds fog (volume scatter, density 0.15 "
+                            "per unit, colour 0.9)."), moving
+
+
 CLIPS = {
     # name: (builder, clip id for seeds, hazards, reference spp, frame of the second reference). 256 spp at 128x128
     # keeps a clip near 3 min of rendering on the 2 shared cores here (glass clip: 21 s per 128-spp frame under load).
@@ -477,6 +497,9 @@ CLIPS = {
     # of wall time, nice 10, load 2-3). Its mask (object index, one sample) is dithered along the streaks.
     "bl_motion_blur": (clip_motion_blur, 15, ["motion_blur", "moving_object", "contact_shadow", "camera_pan",
                                               "area_light_in_ceiling"], 1024, 4),
+    # The sky rule's hazard rendered by Cycles (render_mitsuba.py's mi_fog): rendered on demand, not committed.
+    "bl_fog": (clip_fog, 16, ["medium", "noisy_depth_zero_pixels", "environment_lit_open_scene", "thin_geometry",
+                              "moving_object", "camera_pan"], 256, None),
 }
 
 
