@@ -1128,10 +1128,11 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     noisy_sky = _noisy_sky(c, sky & (mask > 0))
     counts["noisy_sky_frames"] = int(noisy_sky.sum())
     kept = sky & ~noisy_sky & settings.keep_sky
-    # a sky that is filtered is light, not a surface: where the renderer gives it no albedo (Mitsuba: 0) it is
-    # divided by 1 and filtered with the rest (its features, all 0, keep it apart), not averaged apart as flat
-    lit = sky & ~kept & flat
-    alb, flat = torch.where(lit, 1.0, alb), flat & ~lit
+    # a sky that is filtered is light, not a surface: it has no albedo to divide by (Mitsuba writes 0, Cycles in
+    # fog the medium's colour, noisy) nor surface features; it is divided by 1, its features are 0 (Mitsuba's
+    # convention), which keep it apart from the surfaces, and it is filtered with them, not averaged apart as flat
+    lit = sky & ~kept
+    alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
     escaped = kept & (mask > 0)
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
@@ -1334,14 +1335,14 @@ def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
 
 
 #: A sky pixel keeps its samples because the environment seen directly has no noise. In a medium (fog) a ray
-#: that meets no surface reads depth 0 as well, and its colour is in-scattered light, as noisy as any: kept, a
-#: Mitsuba clip in fog (the validation set's probe ``mi_fog``) scored 19.2 / 20.2 dB from 1 / 4 spp where OIDN
-#: scored 33.4 / 35.6.
+#: that meets no surface reads depth 0 as well, and its colour is in-scattered light, as noisy as any: kept, the
+#: validation set's probes in fog scored 19.2 / 20.2 dB from 1 / 4 spp (Mitsuba, ``mi_fog``; OIDN 33.4 / 35.6)
+#: and 21.6 / 30.5 (Cycles, ``bl_fog``; OIDN 31.8 / 34.3, a Gaussian blur 22.4 / 32.0).
 #: Noise is told from the environment's own detail by R, the mean square of the sky's differences between
 #: adjacent pixels over that of pixels two apart (rows and columns of three sky pixels, on the luminance
 #: tone-mapped by the sky's mean): independent noise gives 1, a smooth gradient 1/4, an edge 1/2, stripes a
 #: pixel wide more than 1. Per frame, from 1 and 4 spp: the validation set's skies (Mitsuba's and Cycles',
-#: 128x128 and 256x256) 0.24-0.31, the fog clip 0.98-1.01. The sky is noise within a factor sqrt(2) of 1
+#: 128x128 and 256x256) 0.24-0.31, the two fog clips 0.97-1.03. The sky is noise within a factor sqrt(2) of 1
 #: (``benchmarks/validation/findings.md``).
 _NOISY_SKY = (2.0 ** -0.5, 2.0 ** 0.5)
 #: the largest differences left out of both means: a small sun's rim or a few stars are points, which a
