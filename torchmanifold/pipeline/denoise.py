@@ -50,6 +50,7 @@ import math
 from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -1355,32 +1356,29 @@ _MIN_SKY_TRIPLETS = 500
 def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
     """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of the sky pixels ``sky`` (bool ``(T, 1, H, W)``,
     :func:`_escaped`) is noise: ``(T, 1, 1, 1)`` bool, by the ratio of :data:`_NOISY_SKY` (a frame with fewer
-    than :data:`_MIN_SKY_TRIPLETS` rows of three sky pixels, or a black sky, is not)."""
+    than :data:`_MIN_SKY_TRIPLETS` rows of three sky pixels, or a black sky, is not). In NumPy float64, whose
+    sums do not depend on the thread count."""
     out = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)
     with torch.no_grad():
-        lum = luminance(c.detach()).double().clamp_min(0.0)[:, 0]
-        for t in range(c.shape[0]):
-            s = sky[t, 0]
-            if int(s.sum()) < _MIN_SKY_TRIPLETS:
-                continue
-            y = lum[t] / (lum[t] + lum[t][s].mean()).clamp_min(1e-300)
-            near, far = [], []
-            for dim in (-1, -2):
-                n = y.shape[dim] - 2
-                if n <= 0:
-                    continue
-                a, b, d = (y.narrow(dim, k, n) for k in range(3))
-                inside = s.narrow(dim, 0, n) & s.narrow(dim, 1, n) & s.narrow(dim, 2, n)
-                near.append((a - b)[inside] ** 2)
-                far.append((a - d)[inside] ** 2)
-            near, far = torch.cat(near), torch.cat(far)
-            if near.numel() < _MIN_SKY_TRIPLETS:
-                continue
-            top = int(_SKY_OUTLIERS * near.numel())
-            near_sum = near.sum() - torch.topk(near, top).values.sum()
-            far_sum = far.sum() - torch.topk(far, top).values.sum()
-            lo, hi = _NOISY_SKY
-            out[t] = bool(near_sum > lo * far_sum) and bool(near_sum < hi * far_sum)
+        lum = luminance(c.detach()).double().clamp_min(0.0)[:, 0].cpu().numpy()
+        masks = sky[:, 0].cpu().numpy()
+    lo, hi = _NOISY_SKY
+    for t, (x, s) in enumerate(zip(lum, masks)):
+        if int(s.sum()) < _MIN_SKY_TRIPLETS:
+            continue
+        y = x / np.maximum(x + x[s].mean(), 1e-300)
+        near, far = [], []
+        for a, b, d, m in ((y[:, :-2], y[:, 1:-1], y[:, 2:], s[:, :-2] & s[:, 1:-1] & s[:, 2:]),
+                           (y[:-2], y[1:-1], y[2:], s[:-2] & s[1:-1] & s[2:])):
+            near.append((a - b)[m] ** 2)
+            far.append((a - d)[m] ** 2)
+        near, far = np.concatenate(near), np.concatenate(far)
+        if near.size < _MIN_SKY_TRIPLETS:
+            continue
+        keep = near.size - int(_SKY_OUTLIERS * near.size)  # the largest 1% left out of each
+        near_sum = np.partition(near, keep - 1)[:keep].sum()
+        far_sum = np.partition(far, keep - 1)[:keep].sum()
+        out[t] = bool(lo * far_sum < near_sum < hi * far_sum)
     return out
 
 
