@@ -129,7 +129,7 @@ def energy_regions(ds: harness.Dataset, open_caustics: bool = True) -> dict:
     """Per-frame masks ``(F, 1, H, W)`` of the rings around lights and of caustics, from the reference
     (frames with fewer than ``MIN_REGION_PX`` pixels in a region have it empty). ``open_caustics``
     keeps blobs only (against a noisy reference's sparkles); a clean reference's thin caustic needs it off."""
-    from torchmanifold.pipeline.denoise import footprint_blur, luminance
+    from torchmanifold.pipeline.image import footprint_blur, luminance
 
     L = luminance(ds.reference.clamp_min(0))
     mean = L.mean((1, 2, 3), keepdim=True)
@@ -151,7 +151,7 @@ def energy_regions(ds: harness.Dataset, open_caustics: bool = True) -> dict:
 
 def energy_ratios(out: torch.Tensor, ds: harness.Dataset, regions: dict) -> dict:
     """Energy of ``out`` over the reference's in each region (1 = kept), over the frames that have it."""
-    from torchmanifold.pipeline.denoise import luminance
+    from torchmanifold.pipeline.image import luminance
 
     res = {}
     for k, m in regions.items():

@@ -10,6 +10,7 @@ from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
 from torchmanifold.features import feature
 from torchmanifold.pipeline import denoise as D
+from torchmanifold.pipeline import footprint as FP
 from torchmanifold.pipeline.denoise import default_guide_sigmas
 from torchmanifold.pipeline.progressive import gaussian_baseline
 
@@ -586,7 +587,7 @@ def _footprint_average_brute(x: torch.Tensor, sigma: float,
     x = x[0].double().numpy()
     lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
     share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
-    k = D._FOOTPRINT_KNEE * lum(x).mean()
+    k = FP._FOOTPRINT_KNEE * lum(x).mean()
     y = x / (k + x)
     ly = lum(y)
     H, W = ly.shape
@@ -601,7 +602,7 @@ def _footprint_average_brute(x: torch.Tensor, sigma: float,
             for dy in range(-r, r + 1):
                 for dx in range(-r, r + 1):
                     a, b = min(max(i + dy, 0), H - 1), min(max(j + dx, 0), W - 1)
-                    w = math.exp(-(ly[a, b] - ly[i, j]) ** 2 / (2 * D._FOOTPRINT_RANGE ** 2))
+                    w = math.exp(-(ly[a, b] - ly[i, j]) ** 2 / (2 * FP._FOOTPRINT_RANGE ** 2))
                     if unseen_border is not None and abs(dx) + abs(dy) == 1:
                         dimmer = count[a, b] if ly[a, b] < ly[i, j] else count[i, j]
                         over = min(max(dimmer - 1 + unseen_border, 0.0), 1.0)
@@ -628,10 +629,10 @@ def test_light_border_through_a_pixel_row_shows_the_light():
     hit = torch.rand(16, generator=torch.Generator().manual_seed(0)) < 0.5  # each pixel's one sample
     x[0, :, 9, 8:24] = torch.where(hit, 15.0, 0.07)
     sigma = D.footprint_width(D.DenoiseSettings(), 1)
-    out, beside = D._footprint_average(x, sigma), D._footprint_average(aligned, sigma)
+    out, beside = FP._footprint_average(x, sigma), FP._footprint_average(aligned, sigma)
     with _fast.reference():
-        torch.testing.assert_close(out, D._footprint_average(x, sigma))
-        torch.testing.assert_close(beside, D._footprint_average(aligned, sigma))
+        torch.testing.assert_close(out, FP._footprint_average(x, sigma))
+        torch.testing.assert_close(beside, FP._footprint_average(aligned, sigma))
     shown = float(out[0, :, 9, 8:24].clamp(0, 1).mean())
     assert shown > 0.9, shown  # the samples show 0.71; with the range weight alone 0.78
     plain = _footprint_average_brute(aligned, sigma)
@@ -659,10 +660,10 @@ def test_unseen_light_border_beside_one_sample_pixels():
 
     truth, x = _light_above_an_unseen_border()
     sigma = D.footprint_width(D.DenoiseSettings(), 1)
-    seen, unseen = D._footprint_average(x, sigma), D._footprint_average(x, sigma, D._UNSEEN_BORDER)
+    seen, unseen = FP._footprint_average(x, sigma), FP._footprint_average(x, sigma, FP._UNSEEN_BORDER)
     with _fast.reference():
-        torch.testing.assert_close(unseen, D._footprint_average(x, sigma, D._UNSEEN_BORDER))
-    torch.testing.assert_close(unseen.double(), _footprint_average_brute(x, sigma, D._UNSEEN_BORDER),
+        torch.testing.assert_close(unseen, FP._footprint_average(x, sigma, FP._UNSEEN_BORDER))
+    torch.testing.assert_close(unseen.double(), _footprint_average_brute(x, sigma, FP._UNSEEN_BORDER),
                                rtol=1e-4, atol=1e-6)
     shown = lambda img: M.linear_to_srgb(img[0, :, 9, 8:24].clamp(0, 1))  # noqa: E731
     assert float(shown(unseen).mean()) > float(shown(seen).mean()) + 0.1
@@ -1163,11 +1164,11 @@ def test_texture_on_a_flat_surface_keeps_its_detail(monkeypatch):
     def error(x):
         return float(((x[0].double() - truth) ** 2).mean())
 
-    assert bool((D._smooth_surface(f[:, 3:], torch.ones(1, 4, dtype=torch.float64)) > 0.99).all())
+    assert bool((FP._smooth_surface(f[:, 3:], torch.ones(1, 4, dtype=torch.float64)) > 0.99).all())
     # a crease (normals turning by 90 degrees along a column) is not flat
     crease = plane.clone()
     crease[0, :, W // 2:], crease[2, :, W // 2:] = 1.0, 0.0
-    s = D._smooth_surface(crease[None], torch.full((1, 4), 0.5, dtype=torch.float64))[0, 0]
+    s = FP._smooth_surface(crease[None], torch.full((1, 4), 0.5, dtype=torch.float64))[0, 0]
     assert float(s[:, W // 2 - 1:W // 2 + 1].max()) < 1e-3 and float(s[:, :W // 2 - 2].min()) > 0.99
 
     new = denoise_frames(c, f, names, samples_per_pixel=1)
@@ -1199,7 +1200,7 @@ def test_same_pixel_finds_the_samples_of_a_still_pixel(shift, lift, expect):
     H, W = 24, 30
     p = _plane_positions(H, W)
     other = _plane_positions(H, W, shift, seed=1, lift=lift)
-    found = float(D._same_pixel(p, [other])[0][0, 3:-3, 3:-3].double().mean())
+    found = float(FP._same_pixel(p, [other])[0][0, 3:-3, 3:-3].double().mean())
     # a still pixel's two jitters may differ by nearly a pixel, and its axes come from jittered samples too
     assert found > 0.95 if expect else found == 0.0, found
 
@@ -1246,7 +1247,7 @@ def test_texture_held_tells_a_sliding_texture_from_a_still_one(slide, period, ex
         a, _ = _striped_samples(H, W, 0.0, seed=0, period=period)
         b, _ = _striped_samples(H, W, slide, seed=1, period=period)
     own = torch.ones(1, H, W, dtype=torch.bool)
-    held = D._texture_held(a, own, [b], [own])[0][0, 3:-3, 3:-3].double().mean()
+    held = FP._texture_held(a, own, [b], [own])[0][0, 3:-3, 3:-3].double().mean()
     assert held > 0.9 if expect else held < 0.25, float(held)
 
 
@@ -1277,7 +1278,7 @@ def test_a_texture_sliding_in_place_is_not_averaged_over_frames(monkeypatch):
         return float(((x[0].double() - truth) ** 2).mean())
 
     kept = error(denoise_frames(c, f, names, **kw))
-    monkeypatch.setattr(D, "_texture_held", _every_texture_held)
+    monkeypatch.setattr(FP, "_texture_held", _every_texture_held)
     smeared = error(denoise_frames(c, f, names, **kw))
     assert kept < 0.5 * smeared, (kept, smeared)
 
@@ -1311,7 +1312,7 @@ def test_a_texture_sliding_under_a_panning_view_is_not_averaged_over_frames(monk
         c, f, truth = clip(speed)
         errors[speed] = float(((denoise_frames(c, f, names, **kw)[0].double() - truth) ** 2).mean())
     with monkeypatch.context() as m:
-        m.setattr(D, "_texture_held", _every_texture_held)
+        m.setattr(FP, "_texture_held", _every_texture_held)
         smeared = {}
         for speed in (0.0, 3.0):
             c, f, truth = clip(speed)
@@ -1344,17 +1345,17 @@ def test_an_averaged_albedo_gets_a_narrower_footprint(monkeypatch):
     kw = dict(settings=DenoiseSettings(temporal_radius=1), frame_times=[0, 1, 2, 3, 4], query_times=[2.0],
               samples_per_pixel=1)
     narrowed = M.psnr(denoise_frames(c, f, names, **kw), ref[2:3])
-    remodulate = D._remodulate
+    remodulate = FP._remodulate
     monkeypatch.setattr(D, "_remodulate", lambda *args: remodulate(*args[:5]))  # one sample's footprint
     one = M.psnr(denoise_frames(c, f, names, **kw), ref[2:3])
     assert narrowed > one + 0.1, (narrowed, one)
     # the blend's variance is the footprint width's square for every count between 1 and the most
     sigma, most = D.footprint_width(DenoiseSettings(), 1), 5
-    wide, narrow = D._TEXTURE_FOOTPRINT * sigma, D._TEXTURE_FOOTPRINT * math.sqrt(
-        D._FOOTPRINT_A + (sigma ** 2 - D._FOOTPRINT_A) / most)
+    wide, narrow = FP._TEXTURE_FOOTPRINT * sigma, FP._TEXTURE_FOOTPRINT * math.sqrt(
+        FP._FOOTPRINT_A + (sigma ** 2 - FP._FOOTPRINT_A) / most)
     for n in (1, 2, 3, 5):
         fr = (1 / n - 1 / most) / (1 - 1 / most)
-        want = D._TEXTURE_FOOTPRINT ** 2 * (D._FOOTPRINT_A + (sigma ** 2 - D._FOOTPRINT_A) / n)
+        want = FP._TEXTURE_FOOTPRINT ** 2 * (FP._FOOTPRINT_A + (sigma ** 2 - FP._FOOTPRINT_A) / n)
         assert fr * wide ** 2 + (1 - fr) * narrow ** 2 == pytest.approx(want)
 
 
@@ -1374,7 +1375,7 @@ def test_footprint_samples_are_the_other_views_samples_in_the_pixel(shift):
     truth.index_put_((torch.floor(y).long() + 10, torch.floor(x).long() + 10), ones, accumulate=True)
     truth = truth[10:10 + H, 10:10 + W]
     albedo = torch.stack([x, y, torch.ones_like(x)])[None]  # the sums of one sample: where it lies
-    sums, counts = D._footprint_samples(p, other[None], albedo, ones[None])
+    sums, counts = FP._footprint_samples(p, other[None], albedo, ones[None])
     inner = (slice(4, -4), slice(4, -4))
     n, held = counts[0, 0][inner], truth[inner]
     assert abs(float(n.mean() - held.mean())) < 0.1 and float((n == held).double().mean()) > 0.6
@@ -1385,7 +1386,7 @@ def test_footprint_samples_are_the_other_views_samples_in_the_pixel(shift):
     for at, lo in ((sums[0, 0][inner], px), (sums[0, 1][inner], py)):
         assert bool(((at[one] > lo[one] - 0.35) & (at[one] < lo[one] + 1.35)).all())
     behind = _plane_positions(H, W, shift, seed=1, lift=0.3)
-    assert not bool(D._footprint_samples(p, behind[None], albedo, ones[None])[1].any())
+    assert not bool(FP._footprint_samples(p, behind[None], albedo, ones[None])[1].any())
 
 
 def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
@@ -1396,10 +1397,10 @@ def test_a_panned_view_averages_texture_over_its_frames(monkeypatch):
     c, f, names, ref = _validation_clip("mi_glass_mirror", [0, 1, 2])
     kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
     state = D.prepare_frames(c, f, names, None, DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
-    still = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
+    still = FP._same_pixel(state.position[1], [state.position[0], state.position[2]])
     assert float(sum(m.double().mean() for m in still)) < 0.01  # a pan: the still test finds nothing
     averaged = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
-    monkeypatch.setattr(D, "_footprint_samples",
+    monkeypatch.setattr(FP, "_footprint_samples",
                         lambda p, o, a, v, search: (torch.zeros_like(o), torch.zeros_like(o[:, :1])))
     own = M.psnr(denoise_frames(c, f, names, **kw), ref[1:2])
     assert averaged > own + 0.05, (averaged, own)
@@ -1429,10 +1430,10 @@ def test_window_albedo_survives_degenerate_positions(positions):
     assert bool(torch.isfinite(out).all())
     if positions != "nonfinite":  # (the finite columns there are random positions)
         state = D.prepare_frames(c, f, names, None, DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
-        same = D._same_pixel(state.position[1], [state.position[0], state.position[2]])
+        same = FP._same_pixel(state.position[1], [state.position[0], state.position[2]])
         assert not any(bool(m.any()) for m in same)
         others = torch.stack([state.position[0], state.position[2]])
-        _, counts = D._footprint_samples(state.position[1], others, others, torch.ones(2, H, W))
+        _, counts = FP._footprint_samples(state.position[1], others, others, torch.ones(2, H, W))
         assert not bool(counts.any())
 
 

@@ -10,6 +10,7 @@ from _pipeline_data import FEATURES, load_clip
 from torchmanifold.pipeline import DenoiseSettings, denoise_frames
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline import denoise as D
+from torchmanifold.pipeline import footprint as FP
 
 pytestmark = pytest.mark.skipif(not _fast.enabled(torch.zeros(1)), reason="fused kernels not built")
 
@@ -98,9 +99,9 @@ def test_kuwahara_log_radiance_equals_reference_bitwise(frame):
 def test_footprint_average_equals_reference(frame):
     for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
         for sigma in (0.5, 1.2):
-            out, ref = _both(D._footprint_average, e * m, sigma)
+            out, ref = _both(FP._footprint_average, e * m, sigma)
             torch.testing.assert_close(out, ref, rtol=2e-5, atol=1e-7, equal_nan=True, msg=name)
-    out, ref = _both(D._footprint_average, frame["e"].double(), 0.5)
+    out, ref = _both(FP._footprint_average, frame["e"].double(), 0.5)
     torch.testing.assert_close(out, ref, rtol=1e-12, atol=0)
 
 
@@ -159,7 +160,7 @@ def test_footprint_albedo_equals_reference(frame):
     flat[..., :9, :9] = True  # a flat block at the border: its neighbours average without it
     for a, fl in ((alb, flat), (alb, torch.ones_like(flat)), (alb[..., :3, :2], flat[..., :3, :2])):
         for sigma in (0.5, 1.5):
-            out, ref = _both(D._footprint_albedo, a, fl, sigma)
+            out, ref = _both(FP._footprint_albedo, a, fl, sigma)
             torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-7)
 
 
@@ -175,7 +176,7 @@ def test_normalised_blur_equals_reference(frame):
     w_bad[:, :, 5:7, 5:7] = 0.0
     for x, wt, sigma in ((e, w, 2.0), (e, w * 0, 1.0), (bad, w_bad, 4.0), (e[:, :1], w + 0.5, 0.7),
                          (e.double(), w.double(), 2.0)):
-        out, ref = _both(D._normalised_blur, x, wt, sigma)
+        out, ref = _both(FP._normalised_blur, x, wt, sigma)
         torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6, equal_nan=True)
         assert bool(torch.isfinite(out[wt.expand_as(out) > 0]).all())
     x, wt, sigma = e[:1, :, :12, :10].double(), w[:1, :, :12, :10].double() + 0.1, 1.5
@@ -189,7 +190,7 @@ def test_normalised_blur_equals_reference(frame):
             kk = k[:, None] * k[None, :]
             wv = wt[0, 0][ys][:, xs] * kk
             brute[0, :, i, j] = (x[0][:, ys][:, :, xs] * wv).sum((1, 2)) / wv.sum()
-    torch.testing.assert_close(D._normalised_blur(x, wt, sigma), brute)
+    torch.testing.assert_close(FP._normalised_blur(x, wt, sigma), brute)
 
 
 def test_quantiles_equal_torch_bitwise():
@@ -244,11 +245,11 @@ def test_same_pixel_equals_reference_bitwise(mitsuba_dir):
              (torch.zeros(3, 8, 9), [torch.zeros(3, 8, 9)]), (plane, [holes]),
              (torch.ones(3, 1, 5) * torch.arange(5.0), [plane[:, :1, :5]])]
     for p, others in cases:
-        out, ref = _both(D._same_pixel, p, others)
+        out, ref = _both(FP._same_pixel, p, others)
         assert len(out) == len(ref) == len(others)
         for a, b in zip(out, ref):
             assert a.dtype == b.dtype == torch.bool and torch.equal(a, b)
-    assert bool(_both(D._same_pixel, plane, [still])[0][0].any())  # a still view is found at all
+    assert bool(_both(FP._same_pixel, plane, [still])[0][0].any())  # a still view is found at all
 
 
 def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
@@ -275,18 +276,18 @@ def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
         if albedo is None:
             albedo = torch.rand(others.shape, generator=g, dtype=others.dtype)
         valid = (torch.rand(others[:, 0].shape, generator=g) > 0.2).to(p.dtype)
-        (sums, counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo, valid)
+        (sums, counts), (ref_sums, ref_counts) = _both(FP._footprint_samples, p, others, albedo, valid)
         assert sums.shape == others.shape and counts.shape == (others.shape[0], 1, *others.shape[2:])
         _same(sums, ref_sums)
         _same(counts, ref_counts)
         search = torch.rand(valid.shape, generator=g) > 0.5
-        (some_sums, some_counts), (ref_sums, ref_counts) = _both(D._footprint_samples, p, others, albedo,
+        (some_sums, some_counts), (ref_sums, ref_counts) = _both(FP._footprint_samples, p, others, albedo,
                                                                  valid, search)
         _same(some_sums, ref_sums)
         _same(some_counts, ref_counts)
         _same(some_sums, torch.where(search[:, None], sums, 0.0))
         _same(some_counts, torch.where(search[:, None], counts, 0.0))
-    assert float(_both(D._footprint_samples, plane, panned.float(), panned.float(),
+    assert float(_both(FP._footprint_samples, plane, panned.float(), panned.float(),
                        torch.ones(2, 24, 30))[0][1].mean()) > 0.5  # the moved views' samples are found
 
 

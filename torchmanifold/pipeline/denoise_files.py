@@ -17,7 +17,8 @@ from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
-                                            footprint_width, prepare_frames, spatial_sigma)
+                                            prepare_frames, spatial_sigma)
+from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
 

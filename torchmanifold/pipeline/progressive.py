@@ -35,8 +35,8 @@ import torch
 from torch import Tensor
 
 from torchmanifold._threads import InOrder, caller_threads, serial
-from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, denoise_prepared, footprint_width,
-                                             prepare_frames)
+from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
+from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import frame_at, interpolate, window

@@ -42,8 +42,8 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold.pipeline.denoise import (DenoiseSettings, adapt_to_features, denoise_frames,
-                                             footprint_width, spatial_sigma)
+from torchmanifold.pipeline.denoise import DenoiseSettings, adapt_to_features, denoise_frames, spatial_sigma
+from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.timewindow import frame_at, index_window, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",

@@ -1,0 +1,463 @@
+"""What a pixel's footprint holds, the last stage of the frame step (:mod:`torchmanifold.pipeline.denoise`).
+
+A pixel of the reference averages its whole area; a pixel of n samples shows n points of it. The filtered
+irradiance is multiplied back by the albedo and averaged over a footprint whose width follows the samples per
+pixel (:func:`footprint_width`), in a tone-mapped domain and among pixels of similar brightness, so that a
+light's border does not bleed into the dark beside it (:func:`_footprint_average`). On a smooth surface the
+albedo, whose detail is texture, gets a narrower footprint than the light (:func:`_remodulate`), and where the
+renderer gives world positions the window's other frames add their samples of each pixel's albedo: a still
+view's of the same pixel, a moving view's that fall in the pixel's square (:func:`_window_albedo`).
+"""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Sequence
+
+import torch
+from torch import Tensor
+
+from torchmanifold import features as feature_table
+from torchmanifold.pipeline import _fast
+from torchmanifold.pipeline.image import _four_neighbours, _frame_mean, footprint_blur, luminance
+from torchmanifold.timewindow import frame_at, window
+
+if TYPE_CHECKING:
+    from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState
+
+
+#: the footprint width's square is ``a + b / spp``: the part of a pixel's area its samples leave
+#: unseen shrinks as 1/spp. Fitted to the validation set's best widths, the same on every scene's
+#: frames 0-2 but two (findings.md): 0.7 px from 1 spp (+0.41 dB over 0.5), 0.5 from 4 spp (0.6: -0.35)
+_FOOTPRINT_A, _FOOTPRINT_B = 0.17, 0.32
+#: the width when the sample count is unknown: the 4-spp best, the safe side (0.7 from 4 spp: -1 dB)
+_FOOTPRINT_UNKNOWN = 0.5
+
+
+def _known_count(samples_per_pixel: float | None) -> bool:
+    """Whether the caller knows how many samples each pixel averages (a missing, 0 or NaN count is none)."""
+    return samples_per_pixel is not None and samples_per_pixel > 0
+
+
+def footprint_width(settings: DenoiseSettings, samples_per_pixel: float | None) -> float:
+    """The footprint average's sigma (pixels): ``settings.footprint_sigma`` when set, else from the
+    samples per pixel, ``sqrt(0.17 + 0.32 / spp)`` (0.7 from 1 spp, 0.5 from 4, 0.41 in the limit),
+    else 0.5."""
+    if settings.footprint_sigma is not None:
+        return float(settings.footprint_sigma)
+    if not _known_count(samples_per_pixel):
+        return _FOOTPRINT_UNKNOWN
+    return math.sqrt(_FOOTPRINT_A + _FOOTPRINT_B / float(samples_per_pixel))
+
+
+def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
+    """The albedo to multiply back: its average over the pixel footprint, from demodulated pixels only
+    (a normalised blur), and 1 where the colour was not demodulated."""
+    if sigma <= 0:
+        return alb
+    return torch.where(flat, 1.0, _normalised_blur(alb, (~flat).to(alb.dtype), sigma))
+
+
+def _normalised_blur(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
+    """``blur(x w) / blur(w)`` for ``x`` ``(T, C, H, W)`` and weights ``w`` ``(T, 1, H, W)``: a Gaussian of
+    ``sigma`` pixels (:func:`footprint_blur`) over the weighted pixels alone; ``x`` itself where no weight
+    lies under the kernel. A pixel of weight 0 takes nothing of its value, NaN or inf included."""
+    if _fast.enabled(x, weight) and weight.shape == (x.shape[0], 1, *x.shape[2:]) and sigma > 0:
+        return _fast.normalised_blur(x, weight, sigma)
+    y = footprint_blur(torch.cat([torch.where(weight != 0, x * weight, 0.0), weight], 1), sigma)
+    den = y[:, -1:]
+    return torch.where(den > 1e-8, y[:, :-1] / den.clamp_min(1e-8), x)
+
+
+#: the footprint average's tone-mapping knee, in frame-mean luminances (validation set's tuning part: 3
+#: beats 1 by 0.15 dB and 10 by 0.05 dB)
+_FOOTPRINT_KNEE = 3.0
+#: the footprint average's range sigma on tone-mapped luminance: an 8-pixel ring around a light set in
+#: a ceiling keeps its energy within 2.5% (0.4: 5%, no range term: 29% too bright; see the tests), while
+#: pixels within a factor of about 2 of each other still average (0.3 dB below no range term on the
+#: validation set's tuning part)
+_FOOTPRINT_RANGE = 0.3
+
+
+#: where each pixel holds one sample, how far the range weight gives way between a light and a dim pixel
+#: beside it that has no other lit neighbour: the light's border may run through that pixel unseen (a
+#: renderer that samples the pixel's centre shows a border a third of the way in nowhere), and the
+#: reference, far above display white there, shows it lit. Frames 0-2 of the validation set from 1 spp,
+#: the `denoise` default, against 0: 0.25 / 0.5 / 0.75 / 1 gain +0.035 / +0.043 / +0.034 / +0.013 dB on the
+#: tuning part (its scenes at 128x128 and 256x256); from 4 spp 0.25 and 0.5 lose there (-0.01 / -0.06): the
+#: samples show the border (benchmarks/validation/findings.md)
+_UNSEEN_BORDER = 0.5
+
+
+def _light_share(ly: Tensor) -> Tensor:
+    """How much of a light a pixel of tone-mapped luminance ``ly`` is: 0 up to the footprint's knee
+    (``ly = 0.5``), 1 from three times the knee (``ly = 0.75``), continuous in between so that no rounding
+    flips it. Frames 0-2 of the validation set against a step at the knee: -0.005 / -0.007 dB; rising to
+    ``ly = 1`` instead: -0.011 / -0.021, and the test's border row shows 0.83 in display range (0.99 here,
+    1.00 with the step)."""
+    return (4.0 * ly - 2.0).clamp(0.0, 1.0)
+
+
+def _light_neighbours(ly: Tensor) -> Tensor:
+    """The light shares (:func:`_light_share`) of each pixel's four adjacent pixels summed (``ly``
+    ``(T, 1, H, W)`` the tone-mapped luminance; none beyond the border)."""
+    return _four_neighbours(_light_share(ly))
+
+
+def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> Tensor:
+    """Each pixel of ``(T, 3, H, W)`` radiance averaged over a pixel-sized Gaussian footprint of ``sigma``.
+
+    A box-filtered reference pixel is the mean over its area; a filtered 1-spp pixel is the radiance at
+    its one sample's point, so a post a third of a pixel wide is either all there or not at all, and
+    texture is speckled. The average runs on ``y = x / (k + x)`` (``k`` a few times the frame's mean
+    luminance) and maps back, with a range weight on the difference of ``y``'s luminance: radiance of
+    the same order averages almost linearly, while a light (``y`` near 1) and the dark beside it
+    (``y`` near 0) do not mix, so lights neither bleed a halo nor lose their edges.
+
+    A pixel through which a light's border runs holds part of the light, many times brighter than the
+    wall, and its one sample shows all of it or none: such a border looks jagged, and in a display-range
+    image every pixel of it should show the light. Two adjacent pixels, one of them a light (far above
+    the knee ``y = 0.5``), therefore average without the range weight where the dimmer of them has two
+    adjacent lights: the border runs through its row or column. Beside a border that runs between two
+    rows of pixels the dim pixels have one such neighbour and keep the range weight (no halo). How much of
+    a light each pixel is rises continuously above the knee (:func:`_light_share`), and the range weight
+    gives way by the pair's share times the dimmer's lit neighbours beyond one, so rounding never flips it.
+    Frames 0-2 of the validation set, the ``denoise`` default, from 1 / 4 spp: +0.06 / +0.07 dB, no scene
+    below -0.01 (``mi_dark_glossy`` +0.29 / +0.18, ``mi_ceiling_light`` +0.25 / +0.25; rendered at 256x256
+    +0.67 / +0.39). Without the neighbours, at a range sigma of 0.6: +0.08 / +0.04 and a 1-px halo where a
+    border runs between rows; for every adjacent pair: ``bl_moving_metal``'s checkered floor -0.23 from
+    1 spp (``benchmarks/validation/findings.md``).
+
+    ``unseen_border`` (0 to 1) is where the dimmer pixel has one lit neighbour alone: how far the range
+    weight gives way there all the same, for pixels of one sample each, whose border may run through the
+    dim pixel without its sample showing it (:data:`_UNSEEN_BORDER`).
+    """
+    if sigma <= 0:
+        return x
+    x = x.clamp_min(0.0)
+    lum = luminance(x)
+    k = _FOOTPRINT_KNEE * _frame_mean(lum, torch.ones_like(lum)).clamp_min(1e-30)
+    if _fast.enabled(x, k):
+        return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE, unseen_border)
+    y = x / (k + x)
+    ly = luminance(y)
+    count = _light_neighbours(ly)
+    r = max(1, int(math.ceil(3 * sigma)))
+    H, W = x.shape[-2:]
+    yp = torch.nn.functional.pad(torch.cat([y, ly, count], 1), (r, r, r, r), mode="replicate")
+    num, den = torch.zeros_like(y), torch.zeros_like(ly)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            nb = yp[:, :, r + dy:r + dy + H, r + dx:r + dx + W]
+            w = torch.exp(-(nb[:, 3:4] - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
+            if abs(dx) + abs(dy) == 1:  # a light's border through the dimmer one: no range weight
+                dimmer = torch.where(nb[:, 3:4] < ly, nb[:, 4:5], count)
+                over = (dimmer - 1.0 + unseen_border).clamp(0.0, 1.0)
+                border = _light_share(torch.maximum(nb[:, 3:4], ly)) * over
+                w = w + (1.0 - w) * border
+            w = math.exp(-(dx * dx + dy * dy) / (2 * sigma * sigma)) * w
+            num += w * nb[:, :3]
+            den += w
+    y = num / den
+    return k * y / (1.0 - y).clamp_min(1e-6)
+
+
+#: where the surface is smooth, the albedo's footprint is this fraction of the radiance's: texture
+#: is sharper than lighting. Frames 0-2 of the validation set, +-1 default, from 1 / 4 spp: +0.09 / +0.04 dB
+#: (tuning part +0.15 / +0.05; `cbox_glossy_tex`'s striped wall +0.47 / +0.14; no scene below -0.02); 0.7:
+#: -0.02 / -0.06 against 0.8 (each frame alone); 1, 0.8 or 0.7 for every pixel: -0.7 to -1.0 dB. Only where
+#: the sample count is known: on 1-spp frames whose count is not, 0.8 of the safe 0.5 px lost 0.56 dB
+_TEXTURE_FOOTPRINT = 0.8
+#: the 3x3 variance of the geometry channels (in units of their range sigmas, squared) at which a surface
+#: counts as smooth with weight 1/e: 0.1 to 0.3 measured alike (within 0.01 dB from 1 spp, 0.03 from 4)
+_SMOOTH_VARIANCE = 0.1
+
+
+def _smooth_surface(geometry: Tensor, sigmas: Tensor) -> Tensor:
+    """How smooth the surface is around each pixel, ``(T, 1, H, W)`` in (0, 1]: ``exp(-v / 0.1)``
+    (:data:`_SMOOTH_VARIANCE`), ``v`` the variance over the pixel's 3x3 neighbourhood of the geometry guide
+    channels (normals, position or depth: ``(T, G, H, W)`` with range sigmas ``(T, G)``), summed over
+    channels in units of the sigmas. 1 on a plane or a gently curved surface, near 0 across a silhouette
+    or a crease."""
+    g = geometry / sigmas.to(geometry.dtype)[:, :, None, None]
+    m1, m2 = _box_mean(torch.cat([g, g * g], 1), 1).chunk(2, 1)
+    v = (m2 - m1 * m1).clamp_min(0.0).sum(1, keepdim=True)
+    return torch.exp(-v / _SMOOTH_VARIANCE)
+
+
+def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
+    """The world position channels ``P.X/Y/Z`` of features ``f`` ``(T, D, H, W)`` named ``names``, in that
+    order: ``(T, 3, H, W)``, or ``None`` where they are not all there."""
+    canon = [feature_table.canonical_name(n) for n in names]
+    want = feature_table.feature("P").channels
+    if not all(c in canon for c in want):
+        return None
+    return torch.stack([f[:, canon.index(c)] for c in want], 1)
+
+
+#: how far (pixels, along each image axis) a sample of another frame may lie from a pixel's own sample to
+#: count as a sample of that pixel: two samples of one pixel of a still view differ by the difference of
+#: their jitters, under a pixel (frames 0-2, the ``denoise`` default, from 1 / 4 spp, the gains of the two
+#: still views summed: 0.75 +0.78 / +1.43, 1 +0.90 / +1.46, 1.5 +0.92 / +1.51 dB; every other scene within
+#: 0.001 dB)
+_SAME_PIXEL = 1.0
+#: the largest mean offset (pixels) of a neighbourhood's samples from the other frame's that still counts
+#: as a still view, and the neighbourhood's radius (frames 0-2, the ``denoise`` default, from 1 / 4 spp:
+#: without it ``mi_env_thin``, whose camera dollies, lost 0.11 / 0.12 dB and ``cbox_glossy_tex``, a pan,
+#: 0.04 / 0.09; with it every scene but the still views within 0.001 dB; 0.15 / 0.35: the two still views
+#: +0.76 / +1.43 and +0.91 / +1.51 dB summed, against +0.90 / +1.46 at 0.25, the middle)
+_STILL, _STILL_RADIUS = 0.25, 2
+
+
+def _window_albedo(albedo: Tensor, s: FrameState, ft: list[float], qt: list[float],
+                   radius: int) -> tuple[Tensor, Tensor]:
+    """The albedo ``(Q, 3, H, W)`` at the queries averaged with the samples of the window's other frames
+    that land in the pixel, on the same surface, each of equal weight, and how many samples each pixel's
+    average holds, ``(Q, 1, H, W)`` (1: its own alone).
+
+    A 1-spp pixel's albedo is one point of its area, and the reference is the pixel's average: texture
+    under the footprint is the error left where the light is clean. Where the view is still, each frame
+    samples the pixel at another point, so the window holds a few samples of every pixel's albedo
+    (:func:`_same_pixel`). Where it moves and each pixel holds one sample (``s.point_samples``), the other
+    frames' samples that fall in the pixel's footprint are points of the same area too
+    (:func:`_footprint_samples`), on smooth surfaces (:func:`_smooth_surface` at least 1/e), where the
+    footprint's position is known. An n-spp pixel's albedo already averages its own footprint, and another
+    frame's pixel averages another one. Either way a surface that slides within itself keeps its positions
+    while its texture moves: another frame's samples count only where its texture held
+    (:func:`_texture_held`). Only at queries that are frames; flat pixels (not demodulated) and pixels
+    without a valid sample keep their own."""
+    out, counted = [], []
+    for qi, q in enumerate(qt):
+        k = frame_at(ft, q)
+        a = albedo[qi]
+        if k is None:
+            out.append(a)
+            counted.append(torch.ones_like(a[:1]))
+            continue
+        own = (s.mask[k] > 0) & ~s.flat[k]
+        total, count = a.clone(), torch.ones_like(a[:1])
+        others = [j for j in window(ft, q, radius) if j != k]
+        valid = [(s.mask[j] > 0) & ~s.flat[j] for j in others]
+        sames = _same_pixel(s.position[k], [s.position[j] for j in others])
+        # (a moving view's pixels find no still sample: nothing to test)
+        held = _texture_held(s.albedo[k], own, [s.albedo[j] for j in others], valid) \
+            if any(bool(m.any()) for m in sames) else sames
+        in_squares = s.point_samples and s.smooth is not None and bool(others)  # a moving view's samples
+        if in_squares:  # searched where no still view's sample of the pixel was found
+            search = own & (s.smooth[k] >= math.exp(-1.0))
+            sums, counts = _footprint_samples(s.position[k], torch.stack([s.position[j] for j in others]),
+                                              torch.stack([s.albedo[j] for j in others]),
+                                              torch.stack(valid)[:, 0].to(a.dtype),
+                                              torch.stack([search & ~(ok_j & same) for ok_j, same in
+                                                           zip(valid, sames)])[:, 0])
+            # the samples found in a pixel's square hold its texture too, unless it slid within its surface
+            found_held = _texture_held(s.albedo[k], own, list(sums / counts.clamp_min(1.0)),
+                                       list(counts > 0))
+        for n, (j, same, ok_j, still) in enumerate(zip(others, sames, valid, held)):
+            ok = own & ok_j & same & still  # the still view's sample of the pixel, else those in its square
+            found, found_n = ((sums[n] * found_held[n], counts[n] * found_held[n]) if in_squares
+                              else (0.0, 0.0))
+            total += torch.where(ok, s.albedo[j], found)
+            count += torch.where(ok, 1.0, found_n)
+        out.append(total / count)
+        counted.append(count)
+    return torch.stack(out), torch.stack(counted)
+
+
+#: a texture holds still where the other frame's albedo samples of the pixels around differ from the own ones
+#: by at most this many times what neighbouring pixels' samples differ by (:func:`_texture_held`). A still
+#: texture's ratio is about 0.5 with detail at the pixel scale and 1 where it is finer (both samples are
+#: draws of the pixel's mix); the margin keeps 97% of such pixels over the 5x5 pool. Frames 0-5, the
+#: ``denoise`` default, from 1 / 4 spp, the scenes with a still view and world positions (the others keep
+#: their bits): c = 1 / 1.5 / 2, `mi_ceiling_light` (tuning part, a box moving under a still camera) at
+#: 256x256 -0.06 / +0.11, +0.01 / +0.07, 0.00 / +0.04 dB; its 128x128 frames and `mi_indirect_dof`
+#: -0.07 to -0.05, -0.02 to 0.00, 0.00; held out, `mi_still_textures` (a box sliding under a still camera)
+#: at 256x256 +0.24 / +1.17, +0.37 / +1.15, +0.16 / +0.93, at 64x64 -0.20 / +0.01, -0.01 / +0.06,
+#: +0.01 / +0.06
+_TEXTURE_HELD = 1.5
+
+
+def _texture_held(a: Tensor, own: Tensor, others: Sequence[Tensor], valid: Sequence[Tensor]) -> list[Tensor]:
+    """Where the texture under each pixel holds still in each other frame: one ``(1, H, W)`` bool per frame.
+
+    World positions cannot see a surface slide within itself (a box sliding on the floor, a ball spinning
+    in place): its points keep their positions, its texture moves. Two samples of one pixel of a still
+    texture lie within the pixel, nearer each other than samples of neighbouring pixels, so their albedos
+    differ by less, or by as much where the texture is finer than a pixel; a texture that slid further
+    than its detail differs by more. Over the pixels around (:data:`_STILL_RADIUS`), the mean squared
+    difference of the other frame's albedo from the own must stay at most :data:`_TEXTURE_HELD` times the
+    mean squared difference between 4-neighbours' own samples (where both are 0, on a plain surface, it
+    holds). A slide of about a pixel passes: it smears little."""
+    if not others:
+        return []
+    w = own.to(a.dtype)
+    H, W = a.shape[-2:]
+    near, pairs = torch.zeros_like(a[:1]), torch.zeros_like(a[:1])
+    for dy, dx in ((0, 1), (1, 0)):
+        d = ((a[:, dy:, dx:] - a[:, :H - dy, :W - dx]) ** 2).sum(0, keepdim=True)
+        both = w[:, dy:, dx:] * w[:, :H - dy, :W - dx]
+        near[:, dy:, dx:] += d * both
+        near[:, :H - dy, :W - dx] += d * both
+        pairs[:, dy:, dx:] += both
+        pairs[:, :H - dy, :W - dx] += both
+    spread = _box_mean(torch.stack([near, pairs]), _STILL_RADIUS)
+    out = []
+    for b, ok in zip(others, valid):
+        m = w * ok.to(a.dtype)
+        moved = _box_mean(torch.stack([((b - a) ** 2).sum(0, keepdim=True) * m, m]), _STILL_RADIUS)
+        # mean over the box of each: moved[0] / moved[1] <= c spread[0] / spread[1]
+        out.append(moved[0] * spread[1] <= _TEXTURE_HELD * spread[0] * moved[1])
+    return out
+
+
+def _box_mean(x: Tensor, r: int) -> Tensor:
+    """Mean of ``(..., H, W)`` over the (2r+1)^2 box around each pixel, the border replicated: sums of
+    shifted views along x, then along y (about 10x faster than ``avg_pool2d`` for these small boxes),
+    divided once, in the order the C++ kernel of :func:`_same_pixel` sums them."""
+    for dim in (-1, -2):
+        n = x.shape[dim]
+        xp = torch.cat([x.narrow(dim, 0, 1)] * r + [x] + [x.narrow(dim, n - 1, 1)] * r, dim)
+        total = xp.narrow(dim, 0, n)
+        for k in range(1, 2 * r + 1):
+            total = total + xp.narrow(dim, k, n)
+        x = total
+    return x / float((2 * r + 1) ** 2)
+
+
+def _same_pixel(p: Tensor, others: Sequence[Tensor]) -> list[Tensor]:
+    """Where each world position of ``others`` (``(3, H, W)``, samples of other frames) lies within
+    :data:`_SAME_PIXEL` pixels of ``p`` along each image axis, on its surface, where the view is still:
+    one ``(1, H, W)`` bool per other frame.
+
+    The image axes in world units are the position's derivatives along x and y (central differences,
+    averaged over 3x3 against the samples' jitter); an offset is taken into those axes by least squares,
+    and what is left of it, off the surface, must stay under half a pixel. Across a moving surface or a
+    moving view, the samples of one pixel lie on another part of the surface; their offsets, averaged
+    over the pixels around (:data:`_STILL_RADIUS`), where the jitters cancel, show it: that mean must stay
+    under :data:`_STILL` pixels. On CPU a C++ kernel takes the same steps, bit for bit."""
+    if others and _fast.enabled(p, *others):
+        stacked = torch.stack(list(others))
+        return list(_fast.same_pixel(p, stacked, _SAME_PIXEL, _STILL, _STILL_RADIUS).unbind(0))
+    axes = _image_axes(p)
+    out = []
+    for other in others:
+        u, v, on_surface = _in_image_axes(other - p, axes)
+        mean = _mean_offset(u, v, on_surface.to(u.dtype))
+        n = mean[0].clamp_min(1e-6)
+        still = (mean[1].abs() < _STILL * n) & (mean[2].abs() < _STILL * n)
+        out.append((on_surface & still & (u.abs() < _SAME_PIXEL) & (v.abs() < _SAME_PIXEL))[None])
+    return out
+
+
+def _mean_offset(u: Tensor, v: Tensor, w: Tensor) -> Tensor:
+    """The means of ``w``, ``u w`` and ``v w`` ``(H, W)`` over the pixels around (:data:`_STILL_RADIUS`):
+    ``(3, H, W)``, the mean offset being the last two over the first."""
+    return _box_mean(torch.stack([w, u * w, v * w]), _STILL_RADIUS)
+
+
+def _dot3(a: Tensor, b: Tensor) -> Tensor:
+    """``a . b`` over the 3 coordinates of ``(3, H, W)`` vectors."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _image_axes(p: Tensor) -> tuple:
+    """The image axes of world positions ``p`` ``(3, H, W)`` in world units: their derivatives along x and
+    y (central differences, 0 on the border columns / rows, averaged over 3x3 against the samples'
+    jitter), with what :func:`_in_image_axes` solves by: ``(gx, gy, a11, a12, a22, det, solvable)``."""
+    gx, gy = torch.zeros_like(p), torch.zeros_like(p)
+    gx[:, :, 1:-1] = (p[:, :, 2:] - p[:, :, :-2]) / 2
+    gy[:, 1:-1, :] = (p[:, 2:, :] - p[:, :-2, :]) / 2
+    gx, gy = _box_mean(gx, 1), _box_mean(gy, 1)
+    a11, a12, a22 = _dot3(gx, gx), _dot3(gx, gy), _dot3(gy, gy)
+    det = a11 * a22 - a12 * a12
+    solvable = det > 1e-12 * (a11 + a22) ** 2
+    return gx, gy, a11, a12, a22, torch.where(solvable, det, 1.0), solvable
+
+
+def _in_image_axes(d: Tensor, axes: tuple) -> tuple[Tensor, Tensor, Tensor]:
+    """World offsets ``d`` ``(3, H, W)`` along the image axes (:func:`_image_axes`), by least squares:
+    ``u, v`` in pixels, and whether what is left, off the surface, stays under half a pixel."""
+    gx, gy, a11, a12, a22, det, solvable = axes
+    b1, b2 = _dot3(gx, d), _dot3(gy, d)
+    u, v = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+    rest = d - u * gx - v * gy
+    return u, v, solvable & (_dot3(rest, rest) < 0.125 * (a11 + a22))
+
+
+def _footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor,
+                       search: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The samples of other frames that fall in each pixel's footprint: the sum of their ``albedo`` and
+    their count, ``(K, 3, H, W)`` and ``(K, 1, H, W)``, for world positions ``p`` ``(3, H, W)`` of one
+    sample per pixel and ``others`` ``(K, 3, H, W)`` of the other frames' samples, ``valid`` ``(K, H, W)``
+    (1: usable), at the pixels ``search`` (bool ``(K, H, W)``; ``None``: every pixel) and 0 elsewhere.
+
+    The footprint is the pixel's square, half a pixel each way along the image axes (:func:`_image_axes`)
+    about the pixel's centre, the mean of the 3x3 samples around it (their jitters cancel). Where the
+    footprint went between the frames is the mean offset of the other frame's samples at the same pixels
+    over the pixels around (:data:`_STILL_RADIUS`), as in the still test of :func:`_same_pixel`, rounded to
+    a pixel; the samples of the 3x3 pixels there are tested. A sample counts when it lies in the square and
+    on the surface. On CPU a C++ kernel takes the same steps, bit for bit."""
+    if search is None:
+        search = torch.ones(valid.shape, dtype=torch.bool, device=valid.device)
+    if _fast.enabled(p, others, albedo, valid):
+        return _fast.footprint_samples(p, others, albedo, valid, search, _STILL_RADIUS)
+    H, W = p.shape[-2:]
+    axes = _image_axes(p)
+    centre = _box_mean(p, 1)
+    yy = torch.arange(H, device=p.device).view(H, 1).expand(H, W)
+    xx = torch.arange(W, device=p.device).view(1, W).expand(H, W)
+    sums, counts = [], []
+    for other, alb, ok, where in zip(others, albedo, valid, search):
+        u, v, on = _in_image_axes(other - centre, axes)
+        mean = _mean_offset(u, v, torch.where(on, ok, 0.0))
+        n = mean[0].clamp_min(1e-6)
+        # the other frame's samples at the same pixels lie at -flow from the footprint (none where the
+        # positions overflow; beyond the image nothing is inside)
+        fx = torch.where(mean[0] > 0, torch.round(mean[1] / n), 0.0)
+        fy = torch.where(mean[0] > 0, torch.round(mean[2] / n), 0.0)
+        qx = xx - torch.where(torch.isfinite(fx), fx, 0.0).clamp(-W - 1, W + 1).long()
+        qy = yy - torch.where(torch.isfinite(fy), fy, 0.0).clamp(-H - 1, H + 1).long()
+        total, count = torch.zeros_like(alb), torch.zeros_like(ok)[None]
+        flat_p, flat_a, flat_ok = other.reshape(3, -1), alb.reshape(3, -1), ok.reshape(-1)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                sx, sy = qx + dx, qy + dy
+                inside = (sx >= 0) & (sx < W) & (sy >= 0) & (sy < H)
+                idx = (sy.clamp(0, H - 1) * W + sx.clamp(0, W - 1)).reshape(-1)
+                u, v, on = _in_image_axes(flat_p[:, idx].view(3, H, W) - centre, axes)
+                hit = inside & on & (flat_ok[idx].view(H, W) > 0) & (u.abs() < 0.5) & (v.abs() < 0.5)
+                hit = hit & where
+                total += torch.where(hit, flat_a[:, idx].view(3, H, W), 0.0)
+                count += hit.to(count.dtype)
+        sums.append(total)
+        counts.append(count)
+    return torch.stack(sums), torch.stack(counts)
+
+
+def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor | None, sigma: float,
+                counts: Tensor | None = None, most: int = 1, unseen_border: float = 0.0) -> Tensor:
+    """The filtered irradiance ``(Q, 3, H, W)`` times the albedo, averaged over the pixel footprint.
+
+    Across a silhouette, light and albedo change together within a pixel: the product is averaged
+    (:func:`_footprint_average`). On a smooth surface (``smooth`` near 1) only the albedo has detail below
+    the footprint, texture: the irradiance is averaged alone and the albedo over a narrower footprint
+    (:data:`_TEXTURE_FOOTPRINT`), which keeps a texture's stripes that the full footprint washes out.
+    The two blend by ``smooth``; flat-shaded pixels (``flat``, not demodulated) take the product.
+
+    Where the albedo already averages ``counts`` ``(Q, 1, H, W)`` samples of the pixel
+    (:func:`_window_albedo`), its footprint is the width of that many times the samples
+    (:func:`footprint_width`: its square is ``a + b / spp``): a blend of the footprints of one count and
+    of ``most``, whose variance is that square exactly for every count in between. ``unseen_border``: as
+    :func:`_footprint_average` takes it.
+    """
+    out = _footprint_average(irradiance * albedo, sigma, unseen_border)
+    if smooth is None or sigma <= 0:
+        return out
+    w = smooth * (~flat).to(smooth.dtype)
+    texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
+    if counts is not None and most > 1 and bool((counts > 1).any()):
+        # sigma^2 = a + b / spp, so with n times the samples: a + (sigma^2 - a) / n
+        narrow = math.sqrt(_FOOTPRINT_A + max(sigma * sigma - _FOOTPRINT_A, 0.0) / most)
+        f = ((1.0 / counts - 1.0 / most) / (1.0 - 1.0 / most)).clamp(0.0, 1.0)
+        texture = f * texture + (1 - f) * _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * narrow)
+    textured = _footprint_average(irradiance, sigma, unseen_border) * texture
+    return out + w * (textured - out)
