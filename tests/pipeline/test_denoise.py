@@ -10,6 +10,7 @@ from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
 from torchmanifold.features import feature
 from torchmanifold.pipeline import denoise as D
+from torchmanifold.pipeline import selection as SEL
 from torchmanifold.pipeline import footprint as FP
 from torchmanifold.pipeline.denoise import default_guide_sigmas
 from torchmanifold.pipeline.progressive import gaussian_baseline
@@ -179,7 +180,7 @@ def test_noise_correlation_test():
     settings = DenoiseSettings()
     cell = lambda c, f: D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).cv_cell
     assert torch.equal(cell(c, f), torch.ones(T, dtype=torch.int64))
-    assert torch.equal(cell(_splat(c), f), torch.full((T,), D._CORRELATED_CELL))
+    assert torch.equal(cell(_splat(c), f), torch.full((T,), SEL._CORRELATED_CELL))
     assert torch.equal(cell(_splat(c)[..., :16, :16], f[..., :16, :16]), torch.ones(T, dtype=torch.int64))
 
 
@@ -194,9 +195,9 @@ def test_splatted_frames_cross_validate_on_squares(clip, monkeypatch):
     assert torch.equal(as_rendered, torch.ones_like(as_rendered))
     c, f, ref = _splat(c), _splat(f), _splat(ref)
     assert bool((D.prepare_frames(c, f, FEATURES, None, settings, samples_per_pixel=1).cv_cell ==
-                 D._CORRELATED_CELL).all())
+                 SEL._CORRELATED_CELL).all())
     squares = M.psnr(denoise_frames(c, f, FEATURES, settings=settings, samples_per_pixel=1), ref)
-    monkeypatch.setattr(D, "_CORRELATED_CELL", 1)
+    monkeypatch.setattr(SEL, "_CORRELATED_CELL", 1)
     pixels = M.psnr(denoise_frames(c, f, FEATURES, settings=settings, samples_per_pixel=1), ref)
     assert squares > pixels + 0.3, (squares, pixels)
 
@@ -212,15 +213,15 @@ def test_splatted_colour_alone_found_from_its_residuals(clip, monkeypatch):
     cell = lambda c, f, names: D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).cv_cell
     assert bool((cell(c, none, []) == 1).all())
     c, ref = _splat(c), _splat(ref)
-    assert bool((cell(c, none, []) == D._CORRELATED_CELL_NO_ALBEDO).all())
+    assert bool((cell(c, none, []) == SEL._CORRELATED_CELL_NO_ALBEDO).all())
     normals = [FEATURES.index(n) for n in ("N.X", "N.Y", "N.Z")]
-    assert bool((cell(c, _splat(f)[:, normals], ["N.X", "N.Y", "N.Z"]) == D._CORRELATED_CELL_NO_ALBEDO).all())
+    assert bool((cell(c, _splat(f)[:, normals], ["N.X", "N.Y", "N.Z"]) == SEL._CORRELATED_CELL_NO_ALBEDO).all())
     # a dim wall lit by bounce light, splatted: per-pixel halves trust the narrow candidates' shared noise
     T, H, W = 2, 64, 64
     truth = (0.2 + 0.1 * torch.linspace(0, 1, W)).view(1, 1, 1, W).expand(T, 3, H, W)
     wall = _splat(_noisy(truth, seed=4) * (torch.rand(T, 1, H, W, generator=torch.Generator().manual_seed(5)) < 0.2) * 5)
     squares = M.psnr(denoise_frames(wall, settings=settings, samples_per_pixel=1), truth)
-    monkeypatch.setattr(D, "_CORRELATED_CELL_NO_ALBEDO", 1)
+    monkeypatch.setattr(SEL, "_CORRELATED_CELL_NO_ALBEDO", 1)
     pixels = M.psnr(denoise_frames(wall, settings=settings, samples_per_pixel=1), truth)
     assert squares > pixels + 1.0, (squares, pixels)
 
@@ -1068,7 +1069,7 @@ def test_excess_error_z_against_explicit_sums():
     mask = (torch.rand(1, 1, H, W, generator=g) > 0.2).double()
     sq = sq * mask
     allowed = torch.ones(K, 1, 1, H, W, dtype=torch.bool)
-    z2 = D._excess_error_z2(sq, mask, blur, allowed)
+    z2 = SEL._excess_error_z2(sq, mask, blur, allowed)
     # brute force at the centre, with footprint_blur's replicate-padded separable taps
     r = math.ceil(3 * blur)
     t = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64) ** 2 / (2 * blur * blur))
@@ -1087,17 +1088,17 @@ def test_excess_error_z_against_explicit_sums():
         Dx = err[b] - err[a]
         var = sum(w * w * mask[0, 0, y, x] * (d[y, x] - Dx) ** 2 for (y, x), w in k.items()) / P ** 2
         want = max(float(Dx), 0.0) ** 2 / float(var)
-        if err[b] > D._SELECTION_ERROR_CUT * err[a]:
-            want = D._LEFT_OUT
+        if err[b] > SEL._SELECTION_ERROR_CUT * err[a]:
+            want = SEL._LEFT_OUT
         # k^2 is a blur at sigma / sqrt(2) there, with its own 3-sigma truncation
         assert float(z2[b, 0, 0, y0, x0]) == pytest.approx(want, rel=1e-4), b
     assert float(z2[1, 0, 0, y0, x0]) > 9 and float(z2[2, 0, 0, y0, x0]) < 9  # worse for sure; about the same
     allowed[a, 0, 0, y0, x0] = False  # the best had no support there: it is out, another is best
-    z2 = D._excess_error_z2(sq, mask, blur, allowed)
-    assert float(z2[a, 0, 0, y0, x0]) == D._LEFT_OUT and float(z2[:, 0, 0, y0, x0].min()) == 0.0
+    z2 = SEL._excess_error_z2(sq, mask, blur, allowed)
+    assert float(z2[a, 0, 0, y0, x0]) == SEL._LEFT_OUT and float(z2[:, 0, 0, y0, x0].min()) == 0.0
     sq[2, 0, 0, y0, x0] = 1e6  # one catastrophic residual: far over the cut, out whatever its spread
     allowed[:] = True
-    assert float(D._excess_error_z2(sq, mask, blur, allowed)[2, 0, 0, y0, x0]) == D._LEFT_OUT
+    assert float(SEL._excess_error_z2(sq, mask, blur, allowed)[2, 0, 0, y0, x0]) == SEL._LEFT_OUT
 
 
 def test_footprint_width_from_the_sample_count():

@@ -10,6 +10,8 @@ from _pipeline_data import FEATURES, load_clip
 from torchmanifold.pipeline import DenoiseSettings, denoise_frames
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline import denoise as D
+from torchmanifold.pipeline import selection as SEL
+from torchmanifold.pipeline import filter as FL
 from torchmanifold.pipeline import footprint as FP
 
 pytestmark = pytest.mark.skipif(not _fast.enabled(torch.zeros(1)), reason="fused kernels not built")
@@ -122,20 +124,20 @@ def test_bandwidth_selection_blend_equals_reference(frame, with_level):
 def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
     e, m = frame["e"], frame["mask"].clone()
     m[..., :20, :20] = 0.0
-    half = D._halves(e.shape, e.device).to(e.dtype)
+    half = FL._halves(e.shape, e.device).to(e.dtype)
     _same(_fast.cv_halves(e, m), torch.cat([p for h in (half, 1 - half) for p in (e * (m * h), m * h)], 1))
     T, H, W = e.shape[0], *e.shape[2:]
     y = torch.rand(T, 8, H, W, generator=torch.Generator().manual_seed(3)) * (torch.rand(T, 8, H, W) > 0.1)
     y[:, 3, 0, :4] = y[:, 7, 0, 4:8] = torch.tensor([2e-5, 1e-6, 1e-9, 0.0])  # around float32's least support
     pred, num, den = _fast.cv_split(y)
     with _fast.reference():
-        ref = D._split_halves(y)
+        ref = FL._split_halves(y)
     for a, b in zip((pred, num, den), ref):
         _same(a, b)
     y = y.view(T, 2, 4, H, W)
     n, d = y[:, :, :3], y[:, :, 3:]
     on, od = torch.where(half > 0, n[:, 1], n[:, 0]), torch.where(half > 0, d[:, 1], d[:, 0])
-    ok = od > D._min_support(torch.float32)
+    ok = od > FL._min_support(torch.float32)
     _same(pred, torch.where(ok, on / torch.where(ok, od, 1.0), float("nan")))  # NaN: no support
     assert bool(pred[:, :, 0, :4].isnan().any()) and not bool(pred.isnan().all())
     _same(num, n.sum(1))
@@ -181,7 +183,7 @@ def test_normalised_blur_equals_reference(frame):
         assert bool(torch.isfinite(out[wt.expand_as(out) > 0]).all())
     x, wt, sigma = e[:1, :, :12, :10].double(), w[:1, :, :12, :10].double() + 0.1, 1.5
     H, W = x.shape[-2:]
-    k = D._gaussian_taps(sigma, torch.float64)
+    k = SEL._gaussian_taps(sigma, torch.float64)
     r = (k.numel() - 1) // 2
     brute = torch.zeros_like(x)
     for i in range(H):

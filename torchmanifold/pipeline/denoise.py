@@ -21,13 +21,13 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
    channel and the albedo stop steering (:func:`_noise_widening`). Colour alone adds the pilot's
    chromaticity (:func:`_with_chromaticity`).
-6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends
-   them by their error, estimated by cross-validation between two interleaved halves of the samples
-   (see :func:`_select_bandwidth`): wide where the light is smooth and the samples noisy, narrow at
-   detail the features do not show and where more samples make the input better. Where neighbouring
-   pixels share samples (a renderer's reconstruction filter splats them), the halves are squares of
-   pixels (:func:`_cv_cell`). Where no albedo guides, two narrower bandwidths join
-   (:func:`adapt_to_features`): nothing else tells texture from noise.
+6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends them by
+   their error, estimated by cross-validation between two interleaved halves of the samples (see
+   :func:`~torchmanifold.pipeline.selection._select_bandwidth`): wide where the light is smooth and the
+   samples noisy, narrow at detail the features do not show and where more samples make the input better.
+   Where neighbouring pixels share samples (a renderer's reconstruction filter splats them), the halves are
+   squares of pixels (:func:`~torchmanifold.pipeline.selection._cv_cell`). Where no albedo guides, two
+   narrower bandwidths join (:func:`adapt_to_features`): nothing else tells texture from noise.
 7. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; with
    colour alone each frame is filtered alone (nothing tells a moving view's frames apart).
@@ -55,16 +55,18 @@ import torch
 from torch import Tensor, nn
 
 from torchmanifold import features as feature_table
-from torchmanifold._checks import (MAX_TREE_HEIGHT, check_choice, check_int, check_nonnegative,
-                                   check_positive, check_tree_height)
+from torchmanifold._checks import (check_choice, check_int, check_nonnegative, check_positive,
+                                   check_tree_height)
 from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo, _known_count,
                                               _normalised_blur, _position, _remodulate, _smooth_surface,
                                               _window_albedo, footprint_width)
-from torchmanifold.pipeline.image import (_channel_means, _four_neighbours, _frame_mean, _gaussian_taps,
-                                          footprint_blur, luminance)
-from torchmanifold.timewindow import bracket, frame_at, interpolate, window
+from torchmanifold.pipeline.filter import _Filter, tree_height_at
+from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
+                                          luminance)
+from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth
+from torchmanifold.timewindow import frame_at
 
 __all__ = [
     "DenoiseSettings",
@@ -119,37 +121,14 @@ def _extent(x: Tensor, valid: Tensor) -> Tensor:
     return torch.tensor(out, dtype=torch.float64)
 
 
-#: the float32 guard's box, in spatial sigmas: the samples a pixel mixes lie almost all within it
-#: (a Gaussian keeps 86% of its weight inside 2 sigma in 2-D), and a wider box bounds nothing
-_GUARD_RADIUS = 2
 #: ways of handling fireflies (see :class:`DenoiseSettings`)
 FIREFLY_MODES = ("clamp", "log", "none")
 #: guide-sigma key of the log-radiance channel the denoiser adds to the renderer's features
 RADIANCE_GUIDE = "log_radiance"
-#: the log-radiance guide's offset as a fraction of the frame's mean luminance (validation set: 0.1
-#: separates shadows and lights as well as 0 does in bright scenes, without resolving noise in dark ones)
-_LOG_RADIANCE_OFFSET = 0.1
 #: the log-radiance guide's sigma from single samples (3x3 Kuwahara) relative to the pilot's
 #: (validation set's tuning part: the pilot's at 0.5 with the samples' at 1.0 beat both at 1.0 by 0.14 dB
 #: from 1 spp, and 0.22 dB over the whole set from 4 spp; the pilot's at 1.0 or 0.25 lost)
 _SAMPLE_RADIANCE_WIDENING = 2.0
-#: a bandwidth whose pooled cross-validated error is over this many times the least one's is left out,
-#: whatever the evidence: one catastrophic residual widens its own standard error, so z alone would keep
-#: it (frames 0-2 of the validation set: -0.01 / 0.00 dB from 1 / 4 spp, and it removed 20-700x bright
-#: pixels from mi_glass_mirror, while the op centred values at their range's middle; since they are
-#: centred nearest 0, without it 0.000 / -0.008, `bl_moving_metal` -0.07 from 4 spp)
-_SELECTION_ERROR_CUT = 2.0
-#: z^2 of a bandwidth left out (weight exp(-z^2 / 2) = 0)
-_LEFT_OUT = 1e30
-
-
-def _min_support(dtype: torch.dtype) -> float:
-    """The least normalising weight ``den`` (1 at a fully supported pixel) whose ``num / den`` is taken;
-    below it a pixel takes its fallback. The op's recursive sums round ``den`` to about eps (its peak is
-    1), so ``100 eps`` keeps two digits (float32: 1.2e-5; not below 1e-8, float64's). Frames 0-2 of the
-    validation set from 1 / 4 spp, PyTorch stages: 1e-8 / 1.2e-5 / 1.2e-4 all within 0.002 dB of each other,
-    1.2e-5 within 0.002 of the best on every scene. The C++ kernels' ``min_support`` is the same."""
-    return max(1e-8, 1e2 * torch.finfo(dtype).eps)
 
 
 #: firefly clamp floor as a fraction of the frame's mean pilot luminance
@@ -205,22 +184,22 @@ class DenoiseSettings:
         sigma_s: spatial sigma in pixels from 1 spp (the reference bandwidth: the pilot's, and the unit of
             ``bandwidths``); where the sample count n is known it is ``sigma_s * n ** -0.25``
             (:func:`spatial_sigma`), unless the caller passes a sigma itself.
-        bandwidths: spatial sigmas tried at every pixel, as multiples of ``sigma_s``; each pixel blends
-            them by their cross-validated error (see :func:`_select_bandwidth`). One value filters at that
-            bandwidth alone. Factor-2 steps from 0.5 to 4 (2 to 16 px) measured best on the validation
-            set's tuning part from 1 and 4 spp (``benchmarks/validation``): a 1-spp wall wants 16 px, a
-            4-spp leaf edge 2.
+        bandwidths: spatial sigmas tried at every pixel, as multiples of ``sigma_s``; each pixel blends them
+            by their cross-validated error (see :func:`~torchmanifold.pipeline.selection._select_bandwidth`).
+            One value filters at that bandwidth alone. Factor-2 steps from 0.5 to 4 (2 to 16 px) measured best
+            on the validation set's tuning part from 1 and 4 spp (``benchmarks/validation``): a 1-spp wall
+            wants 16 px, a 4-spp leaf edge 2.
         selection_blur: sigma (pixels) over which a pixel's cross-validated errors are pooled: one
             held-out sample is too noisy an error estimate (2 to 8 measured alike; 4 is the middle). It
             widens where the firefly pilot is noisy (:func:`_selection_pooling`).
         selection_softness: how sure the evidence must be before a bandwidth is left out: weights are
             ``exp(-z^2 / (2 softness^2))``, ``z`` a bandwidth's pooled error in excess of the least one's in
-            standard errors of that excess (see :func:`_excess_error_z2`); 0 picks the least-error
-            bandwidth alone. 1 is the plain likelihood that the excess is noise; against the earlier
-            ``softmax(-err / (0.5 min err))``, which blended the bandwidths almost evenly because every
-            error holds the sample's own variance, it measured -0.02 / +0.09 dB from 1 / 4 spp on the
-            tuning part, +0.12 / +0.23 over the whole set and +0.40 dB in the progressive loop (96x96,
-            4 frames, 10 iterations). Picking one alone flickers between progressive iterations.
+            standard errors of that excess (see :func:`~torchmanifold.pipeline.selection._excess_error_z2`); 0
+            picks the least-error bandwidth alone. 1 is the plain likelihood that the excess is noise; against
+            the earlier ``softmax(-err / (0.5 min err))``, which blended the bandwidths almost evenly because
+            every error holds the sample's own variance, it measured -0.02 / +0.09 dB from 1 / 4 spp on the
+            tuning part, +0.12 / +0.23 over the whole set and +0.40 dB in the progressive loop (96x96, 4
+            frames, 10 iterations). Picking one alone flickers between progressive iterations.
         guide: feature channels that steer the filter (EXR or tracer names); ``None`` = albedo, normals
             and world position ``P`` (or depth ``Z`` without ``P``): the sampled directions ``D``/``S`` are
             one random draw per sample and only add noise to the range weights (measured).
@@ -229,12 +208,13 @@ class DenoiseSettings:
             the same; over the whole set from 1 / 4 spp, 3 beats 2 by 0.27 / 0.40 dB, at about twice the op's
             time).
         levels_per_doubling: levels the tree gains per doubling of a bandwidth beyond ``sigma_s``
-            (:func:`tree_height_at`). A wider kernel mixes more of the pixels that lie far from every
-            manifold, whose values it takes from the nearest manifolds': with one height for all, the
-            widest candidate bled a cube's top face into its side (``findings.md``). 1 against 0, frames
-            0-2 from 1 / 4 spp: the validation set +0.08 / +0.08 dB (``bl_moving_metal`` -0.11 / -0.07, no
-            other scene below -0.02), five of its clips rendered at 256x256 +0.18 / +0.13; the frame step
-            with +-1 frames takes 1.3 times as long on one thread, 1.13-1.18 times on two (``findings.md``).
+            (:func:`~torchmanifold.pipeline.filter.tree_height_at`). A wider kernel mixes more of the pixels
+            that lie far from every manifold, whose values it takes from the nearest manifolds': with one
+            height for all, the widest candidate bled a cube's top face into its side (``findings.md``). 1
+            against 0, frames 0-2 from 1 / 4 spp: the validation set +0.08 / +0.08 dB (``bl_moving_metal``
+            -0.11 / -0.07, no other scene below -0.02), five of its clips rendered at 256x256 +0.18 / +0.13;
+            the frame step with +-1 frames takes 1.3 times as long on one thread, 1.13-1.18 times on two
+            (``findings.md``).
         firefly: ``"clamp"`` (log-domain pilot, clamp, linear filter), ``"log"`` (the pilot alone,
             biased dark), or ``"none"``.
         firefly_k: clamp threshold as a multiple of the pilot's luminance (+ a floor). 5 since the blend
@@ -247,7 +227,7 @@ class DenoiseSettings:
         footprint_sigma: sigma (pixels) of the pixel-footprint average of the result (see
             :mod:`~torchmanifold.pipeline.footprint`); 0 keeps each pixel's own sample position; ``None``
             (default) takes it from the samples per pixel when the caller knows them
-            (:func:`footprint_width`).
+            (:func:`~torchmanifold.pipeline.footprint.footprint_width`).
         albedo_eps: albedo luminance below which a pixel is not demodulated (delta BSDFs and black
             surfaces, whose first-hit albedo says nothing about the light there).
         radiance_sigma: range sigma of the log-radiance guide channel, which keeps lights, shadows
@@ -402,423 +382,6 @@ def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
     return idx
 
 
-def _box_max(x: Tensor, r: int) -> Tensor:
-    """Max over a (2r+1)^2 box around every pixel of ``(N, C, H, W)``, separably; O(log r) per pixel
-    (a sparse table: maxima over doubling spans, the box read as two overlapping spans)."""
-    return _window_max(_window_max(x, r, 3), r, 2)
-
-
-def _window_max(x: Tensor, r: int, dim: int) -> Tensor:
-    n, width = x.shape[dim], 2 * r + 1
-    pad = [0, 0] * (x.dim() - 1 - dim) + [r, r]
-    m = torch.nn.functional.pad(x, pad, value=-math.inf)
-    span = 1  # m[i] holds the max over [i, i + span) of the padded row
-    while 2 * span <= width:
-        m = torch.maximum(m.narrow(dim, 0, m.shape[dim] - span), m.narrow(dim, span, m.shape[dim] - span))
-        span *= 2
-    return torch.maximum(m.narrow(dim, 0, n), m.narrow(dim, width - span, n))
-
-
-#: Largest output of the bandwidths filtered in one call, in elements (256 MB of float32: four 16-channel
-#: bandwidths of a 1 MP frame); a larger frame filters one bandwidth at a time.
-_BANDWIDTHS_AT_ONCE = 1 << 26
-#: the doublings that add tree levels (:func:`tree_height_at`): up to the default's widest candidate, 4
-#: times ``sigma_s``; wider ones were not measured, and every level doubles the op's time
-_MAX_DOUBLINGS = 2
-
-
-def tree_height_at(settings: DenoiseSettings, bandwidth: float) -> int:
-    """The manifold tree's height for a spatial sigma of ``bandwidth`` times ``sigma_s``:
-    ``settings.tree_height``, plus ``settings.levels_per_doubling`` for each whole doubling beyond 1
-    (a half step rounds down), for at most :data:`_MAX_DOUBLINGS` doublings."""
-    doublings = min(_MAX_DOUBLINGS, max(0, math.floor(math.log2(float(bandwidth)) + 1e-9)))
-    return min(MAX_TREE_HEIGHT, settings.tree_height + settings.levels_per_doubling * doublings)
-
-
-class _Filter:
-    """The weighted (sample-mask) adaptive-manifold filter over a clip, at query times.
-
-    A query at a frame time with no temporal radius is a plain spatial filter (batched); otherwise the
-    frames within ``temporal_radius`` (time units) of the query join through the temporal op.
-    """
-
-    def __init__(self, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
-                 frame_times: list[float], query_times: list[float],
-                 sigma_s: float | None = None, range_scale: float = 1.0, tree_height: int | None = None):
-        self.g, self.gs, self.st = guide, sigmas * range_scale, settings
-        self.sigma_s = settings.sigma_s if sigma_s is None else sigma_s
-        self.tree_height = settings.tree_height if tree_height is None else tree_height
-        self.ft, self.qt = frame_times, query_times
-
-    def _window(self, q: float) -> list[int]:
-        return window(self.ft, q, self.st.temporal_radius)
-
-    def _sigmas_at(self, q: float) -> Tensor:
-        """Range sigmas of the frame nearest ``q``: one scale for every frame joined at that query."""
-        i0, i1, w = bracket(self.ft, q)
-        return self.gs[i1 if w > 0.5 else i0]
-
-    def apply(self, x: Tensor) -> Tensor:
-        """The op on the channel stack ``x`` ``(T, C, H, W)`` at every query: ``(Q, C, H, W)``, unnormalised."""
-        return _Filter.apply_each([self], x)[0]
-
-    @staticmethod
-    def apply_each(filters: "list[_Filter]", x: Tensor) -> list[Tensor]:
-        """:meth:`apply` of filters that differ in ``sigma_s`` and ``tree_height`` alone: per query, one op
-        call for all of them (on CPU their images share the threads; the bits of one call each), as many at
-        once as ``_BANDWIDTHS_AT_ONCE`` allows."""
-        from torchmanifold.ops import temporal_adaptive_manifold_filter
-        from torchmanifold.ops.adaptive_manifold import _filter_bandwidths
-        from torchmanifold.ops.temporal import _spacetime_bandwidths
-
-        per_call = max(1, _BANDWIDTHS_AT_ONCE // max(1, x[0].numel()))
-        if len(filters) > per_call:
-            return [y for i in range(0, len(filters), per_call) for y in _Filter.apply_each(filters[i:i + per_call], x)]
-        f0, st = filters[0], filters[0].st
-        sigmas, heights = [f.sigma_s for f in filters], [f.tree_height for f in filters]
-        outs = []  # per query (K, C, H, W)
-        for q in f0.qt:
-            k = frame_at(f0.ft, q)
-            if st.temporal_radius == 0 and k is not None:
-                y = _filter_bandwidths(x[k:k + 1], f0.g[k:k + 1], sigmas, 1.0, heights, f0.gs[k])[:, 0]
-            else:
-                ids = f0._window(q)
-                xw, gw, ftw = _frames(x, ids)[None], _frames(f0.g, ids)[None], [f0.ft[i] for i in ids]
-                if st.mode == "spacetime":
-                    y = _spacetime_bandwidths(xw, gw, ftw, [q], sigmas, 1.0, st.sigma_t, heights,
-                                              f0._sigmas_at(q))[:, 0, 0]
-                else:  # the window mean, then the spatial filter, per bandwidth
-                    y = torch.stack([temporal_adaptive_manifold_filter(
-                        xw, gw, ftw, [q], s, 1.0, sigma_t=st.sigma_t, mode=st.mode, tree_height=h,
-                        guide_sigmas=f0._sigmas_at(q))[0, 0] for s, h in zip(sigmas, heights)])
-            outs.append(y)
-        return list((outs[0][:, None] if len(outs) == 1 else torch.stack(outs, 1)).unbind(0))
-
-    def normalise(self, num: Tensor, den: Tensor, values: Tensor, mask: Tensor,
-                  bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
-        """``num / den`` at the queries; where no valid sample lies under the kernel, the interpolated
-        (masked) input; guarded (see :meth:`_guard`). ``bounds``: :meth:`window_bounds` of ``values`` and
-        ``mask`` where the caller holds them (they do not depend on the bandwidth)."""
-        if _fast.enabled(num, den, values, mask):
-            radius = 0 if values.dtype == torch.float64 else self._guard_radius()
-            if self._per_frame():
-                return _fast.normalise_guard(num, den, values, mask, radius)
-            fallback = self.at_queries(values * mask)
-            hi, nlo = (bounds or self.window_bounds(values, mask)) if radius else (fallback, fallback)
-            return _fast.normalise_guard_bounds(num, den, fallback, hi, nlo, radius)
-        ok = den > _min_support(den.dtype)
-        out = torch.where(ok, num / torch.where(ok, den, 1.0), self.at_queries(values * mask))
-        return self._guard(out, values, mask, bounds)
-
-    def _per_frame(self) -> bool:
-        """Every query is a frame and mixes that frame alone (at_queries and at_queries_max are identities)."""
-        return self.qt == self.ft and (self.st.temporal_radius == 0 or all(
-            self._window(q) == [k] for k, q in enumerate(self.qt)))
-
-    def _guard_radius(self) -> int:
-        return max(1, int(math.ceil(_GUARD_RADIUS * self.sigma_s)))
-
-    def __call__(self, values: Tensor, mask: Tensor) -> Tensor:
-        y = self.apply(torch.cat([values * mask, mask], 1))
-        return self.normalise(y[:, :-1], y[:, -1:], values, mask)
-
-    def with_held_out(self, values: Tensor, mask: Tensor, cell: int = 1) -> tuple[Tensor, Tensor]:
-        """``self(values, mask)`` of 3-channel values, and each pixel's filter of the other checkerboard
-        half's samples alone (NaN where that half has none under the kernel), from one op call of both
-        halves (:func:`_halves_stack` of ``cell``)."""
-        pred, num, den = _split_halves(self.apply(_halves_stack(values, mask, cell)), cell)
-        return self.normalise(num, den, values, mask), pred
-
-    def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
-        """At each query, the largest valid value of its window's frames and the largest minus valid value
-        (``-max`` of the dtype where none): what the guard's box maxima start from."""
-        big = torch.finfo(values.dtype).max
-        return (self.at_queries_max(torch.where(mask > 0, values, -big)),
-                self.at_queries_max(torch.where(mask > 0, -values, -big)))
-
-    def _guard(self, out: Tensor, values: Tensor, mask: Tensor,
-               bounds: tuple[Tensor, Tensor] | None = None) -> Tensor:
-        """A normalised filter is a convex combination: keep the result inside the range of the valid
-        samples near the pixel. In float32 a pixel far from every manifold (weights ~1e-38) can come back
-        as garbage; this bounds it (float64 needs no guard)."""
-        if values.dtype == torch.float64:
-            return out
-        r = self._guard_radius()
-        big = torch.finfo(values.dtype).max
-        # the window's largest first, then the box (max commutes): one box per query, not per frame
-        hi, lo = bounds or self.window_bounds(values, mask)
-        hi, lo = _box_max(hi, r), -_box_max(lo, r)
-        ok = hi > -big / 2
-        return torch.where(ok, torch.minimum(torch.maximum(out, lo), hi), out)
-
-    def at_queries_max(self, x: Tensor) -> Tensor:
-        """Largest of the window's frames around each query (the bound of what the filter may mix)."""
-        outs = []
-        for q in self.qt:
-            k = frame_at(self.ft, q)
-            ids = self._window(q) if self.st.temporal_radius > 0 or k is None else [k]
-            outs.append(_frames(x, ids).amax(0))
-        return torch.stack(outs)
-
-    def at_queries(self, x: Tensor) -> Tensor:
-        """Per-frame data ``(T, C, H, W)`` at the query times, linear between bracketing frames."""
-        return self.at_frames_to_queries(x, self.ft, self.qt)
-
-    @staticmethod
-    def at_frames_to_queries(x: Tensor, ft: list[float], qt: list[float]) -> Tensor:
-        if list(qt) == list(ft):
-            return x
-        at = [frame_at(ft, q) for q in qt]
-        if all(k is not None for k in at):
-            return _frames(x, at)
-        return torch.stack([interpolate(x, ft, q) for q in qt])
-
-
-def _frames(x: Tensor, ids: Sequence[int]) -> Tensor:
-    """``x[ids]`` along the frame dimension: a view where the frames are consecutive (a window, one
-    query's frame), a copy otherwise."""
-    ids = list(ids)
-    if ids and ids == list(range(ids[0], ids[0] + len(ids))):
-        return x[ids[0]:ids[0] + len(ids)]
-    return x[ids]
-
-
-def _halves(shape, device, cell: int = 1) -> Tensor:
-    """A checkerboard ``(1, 1, H, W)`` of ``cell`` x ``cell`` pixel squares: 1 on half the pixels, 0 on the
-    other half."""
-    H, W = shape[-2:]
-    yy = torch.arange(H, device=device)[:, None] // cell
-    xx = torch.arange(W, device=device)[None, :] // cell
-    return ((yy + xx) % 2 == 0)[None, None]
-
-
-#: Cross-validation takes each pixel's noise as its own. A reconstruction filter that splats each sample
-#: into the pixels around (Mitsuba's default, a gaussian of 2 px radius) shares samples between
-#: neighbours: the other half's prediction then holds part of the pixel's own noise and narrow
-#: bandwidths look right. A bounce-lit room rendered so (mi_indirect_dof, gaussian) came out 2 dB under a
-#: plain Gaussian blur from 1 spp. Where the noise is found correlated (:func:`_cv_cell`) the halves are a
-#: checkerboard of squares this many pixels wide, so that most pixels (36 of 64) have no neighbour in the
-#: other half. On six Mitsuba clips rendered so, 8 px scored best on four and within 0.06 dB of 4 px on the
-#: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); 8 px squares everywhere would cost the 12
-#: box-filtered scenes 0.05 / 0.11 dB from 1 / 4 spp, at most 0.35 on one (benchmarks/validation/findings.md),
-#: so they are only where the test finds them needed.
-_CORRELATED_CELL = 8
-#: the test: in rows (and columns) of four pixels on one plain surface, how often the differences of the
-#: two adjacent pairs, x1 - x0 and x2 - x3, have one sign. Their covariance is the correlation of adjacent
-#: pixels (less twice that of pixels two apart, and a plain surface's slope), so independent noise gives
-#: them one sign half the time and splatted samples more often: 0.47-0.52 on every frame of the validation
-#: clips that has the pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five
-#: Mitsuba clips rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
-_CORRELATED_SIGNS = 0.535
-#: a plain surface: albedo and normal within a quarter of their range sigmas over the four pixels
-_PLAIN_SPAN = 0.25
-#: the feature groups constant over a plain surface (depth and position run along it)
-_PLAIN_GROUPS = ("albedo", "N", "Ncam")
-#: pairs of differences the share needs (a frame with fewer says nothing): its standard error is then at
-#: most 0.011, and the bound three of them above one half
-_MIN_SIGN_PAIRS = 2000
-#: Without albedo nothing marks a plain surface (normals alone take in texture, which pulls the share below
-#: one half), so the test runs on every row of four pixels of the colour's residual about its own Gaussian
-#: blur of this width (pixels): the blur takes out most of the texture and shading, and its taps give
-#: independent noise a share a little under one half.
-_RESIDUAL_BLUR = 1.0
-#: the bound on the residuals' share: first frames of the validation clips from 1 and 4 spp 0.47-0.51, the
-#: two Cycles clips with its Blackman-Harris filter 0.45-0.49, the six Mitsuba clips with its gaussian
-#: 0.543-0.589 (benchmarks/validation/findings.md); the bound lies between
-_CORRELATED_RESIDUAL_SIGNS = 0.525
-#: the squares there: without albedo only the narrow candidates keep texture, and inside a square they have
-#: no sample of the other half within reach, so they go unjudged. The six Mitsuba clips with its gaussian,
-#: colour alone, from 1 / 4 spp: squares of 2 / 4 / 8 px 23.57 / 26.82, 24.25 / 27.00, 24.25 / 26.33 dB
-#: (per-pixel halves 22.64 / 25.94); 8 px blurs `mi_still_textures` 2.5 dB under its raw frames from 4 spp,
-#: 4 px leaves the bounce-lit room 3 / 2 dB under a Gaussian blur (7 with per-pixel halves)
-_CORRELATED_CELL_NO_ALBEDO = 4
-
-
-def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tensor:
-    """Each frame's cross-validation cell ``(T,)`` int64: :data:`_CORRELATED_CELL` where neighbouring pixels'
-    noise is correlated, else 1. From the samples ``e`` ``(T, 3, H, W)`` at ``valid`` pixels (bool
-    ``(T, 1, H, W)``) and the guide's albedo and normal channels ``(T, F, H, W)`` of range sigmas ``(T, F)``:
-    in every row (column) of four valid pixels on one plain surface, whether ``x1 - x0`` and ``x2 - x3`` have
-    one sign (a difference of 0, as between two black pixels, tells nothing). With no such channel (``F`` 0:
-    no albedo guides), in every row of four valid pixels of the residual about a blur
-    (:data:`_RESIDUAL_BLUR`, :data:`_CORRELATED_RESIDUAL_SIGNS`), and the squares are
-    :data:`_CORRELATED_CELL_NO_ALBEDO` wide."""
-    with torch.no_grad():
-        T, _, H, W = e.shape
-        out = torch.ones(T, dtype=torch.int64)
-        x = luminance(torch.where(valid, e, 0.0))
-        residual = features.shape[1] == 0
-        if residual:
-            x = x - footprint_blur(x, _RESIDUAL_BLUR)
-        else:
-            g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
-        agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
-        for dim in (-1, -2):
-            n = x.shape[dim] - 3
-            if n <= 0:
-                continue
-            at = [x.narrow(dim, k, n) for k in range(4)]
-            near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
-            if residual:
-                plain = torch.ones_like(near, dtype=torch.bool)
-            else:
-                four = [g.narrow(dim, k, n) for k in range(4)]
-                hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
-                lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
-                plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
-            for k in range(4):
-                plain &= valid.narrow(dim, k, n)
-            counted = plain & (near != 0) & (far != 0)
-            agree += (counted & (near == far)).flatten(1).sum(1)
-            total += counted.flatten(1).sum(1)
-        bound = _CORRELATED_RESIDUAL_SIGNS if residual else _CORRELATED_SIGNS
-        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > bound * total)
-        return torch.where(correlated, _CORRELATED_CELL_NO_ALBEDO if residual else _CORRELATED_CELL, out)
-
-
-def _halves_stack(e: Tensor, mask: Tensor, cell: int = 1) -> Tensor:
-    """The op's input for cross-validation, ``(T, 8, H, W)``: per checkerboard half ``h`` (:func:`_halves`
-    of ``cell``, then its complement) ``[e m h, m h]``, for samples ``e`` ``(T, 3, H, W)`` of weights ``m``
-    ``(T, 1, H, W)``. The op's output on it holds each half's filter apart (:func:`_split_halves`)."""
-    if cell == 1 and _fast.enabled(e, mask):
-        return _fast.cv_halves(e, mask)
-    half = _halves(e.shape, e.device, cell).to(e.dtype)
-    return torch.cat([x for h in (half, 1 - half) for x in (e * (mask * h), mask * h)], 1)
-
-
-def _split_halves(y: Tensor, cell: int = 1) -> tuple[Tensor, Tensor, Tensor]:
-    """The op's output on :func:`_halves_stack` ``(Q, 8, H, W)`` of the same ``cell`` -> each pixel's
-    prediction from the other half's samples alone ``(Q, 3, H, W)`` (NaN where that half has no sample
-    under the kernel: no support, no estimate), and both halves' sums ``num`` ``(Q, 3, H, W)``, ``den``
-    ``(Q, 1, H, W)``: the unnormalised filter of all samples."""
-    if cell == 1 and _fast.enabled(y):
-        return _fast.cv_split(y)
-    Q, _, H, W = y.shape
-    half = _halves(y.shape, y.device, cell)
-    y = y.view(Q, 2, 4, H, W)
-    num, den = y[:, :, :3], y[:, :, 3:]
-    # a pixel of the first half is predicted from the second half's samples and the other way round
-    other_num = torch.where(half, num[:, 1], num[:, 0])
-    other_den = torch.where(half, den[:, 1], den[:, 0])
-    ok = other_den > _min_support(y.dtype)
-    pred = torch.where(ok, other_num / torch.where(ok, other_den, 1.0), float("nan"))
-    return pred, num.sum(1), den.sum(1)
-
-
-def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
-                      settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
-                      range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
-                      cell: int = 1) -> Tensor:
-    """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
-
-    The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
-    the pixels (Rousselle et al. 2012): each sample is predicted by the filter of the other half's
-    samples alone, whose noise is independent of it, so the squared difference is the prediction's
-    error plus the sample's variance, the same for every bandwidth. The squared differences are
-    weighted as relative errors (against ``level``, a radiance estimate, plus a tenth of the frame's
-    mean) and pooled over ``selection_blur`` pixels; a bandwidth's weight is the likelihood that its
-    excess over the least error is noise (:func:`_excess_error_z2`). Each bandwidth's own output uses
-    all samples (the two halves' sums add up).
-
-    Args:
-        e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights (0: not filtered here).
-        level: ``(T, 3, H, W)`` radiance estimate at the frames, or ``None`` (then the output at
-            ``sigma_s`` itself).
-        pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
-            ``None`` (1).
-        cell: the halves' checkerboard squares, in pixels (:func:`_cv_cell`).
-
-    Returns:
-        ``(Q, 3, H, W)`` at the query times.
-    """
-    T = e.shape[0]
-    st = settings
-    # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
-    # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
-    query_frames = [frame_at(ft, q) for q in qt]
-    at_frames = all(k is not None for k in query_frames)
-    cv_times = qt if at_frames else ft
-    idx = query_frames if at_frames else list(range(T))
-    preds, fulls, cv_outs = [], [], []
-    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale,
-                       tree_height_at(st, b)) for b in st.bandwidths]
-    stack = _halves_stack(e, mask, cell)
-    # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
-    windowed = not filters[0]._per_frame() and e.dtype != torch.float64
-    bounds = filters[0].window_bounds(e, mask) if windowed else None
-    for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
-        pred, num, den = _split_halves(y, cell)
-        cv_out = filt.normalise(num, den, e, mask, bounds)
-        preds.append(pred)
-        cv_outs.append(cv_out)
-        if at_frames:
-            fulls.append(cv_out)
-        else:
-            at_queries = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
-            fulls.append(at_queries(e, mask))
-    if level is None:
-        level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
-    else:
-        level = _frames(level, idx)
-    # the residuals in units of the brightest frame mean of each query's window (its prediction mixes the
-    # window's frames), so that the z statistics, which square their squares, overflow float32 neither on
-    # a clip of values about 1e10 nor on a black frame between lit ones; per window, not per call, so that
-    # a frame's bytes do not depend on which other frames share the call (a unit: no gradient passes it)
-    brightness = _frame_mean(luminance(e.detach()).clamp_min(0.0), mask)[:, 0, 0, 0]
-    top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
-    scale = torch.where(top > 0, top, torch.ones_like(top))
-    e, mask = _frames(e, idx), _frames(mask, idx)
-    lum = luminance(level).clamp_min(0.0)
-    mean = _frame_mean(lum, mask)
-    # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
-    # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
-    unit = torch.where(mean > 0, mean, torch.ones_like(mean))
-    weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
-    e, preds = e / scale, [p / scale for p in preds]
-    # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
-    # varies on its own scale: pooling wider mixes places where it differs); frames pool apart, so
-    # frames of one width go in one call
-    widest = sigma_s * max(st.bandwidths)
-    blurs = [st.selection_blur if pooling is None else
-             max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
-    groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
-
-    def part(xs: list, g: list) -> list:
-        return [x if len(groups) == 1 else _frames(x, g) for x in xs]
-
-    if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
-            _fast.enabled(e, weight, mask, *preds, *fulls):
-        return torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
-                                         blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
-                          for g in groups])
-    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]])
-                    for g in groups], 1)
-    if not at_frames:
-        z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
-    if st.selection_softness > 0:
-        w = torch.softmax(-z2 / (2 * st.selection_softness ** 2), 0)
-    else:  # the least error has z = 0
-        w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
-        w = w.to(e.dtype)
-    return (torch.stack(fulls) * w).sum(0)
-
-
-def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
-    """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
-    H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
-    weighted by ``weight`` and pooled over ``blur`` pixels."""
-    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
-    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
-    # residual is taken as 0 first, so no NaN reaches a gradient)
-    held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T, 1, H, W)
-    sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
-                      for p, h in zip(preds, held)])
-    sq = torch.where(held, sq, math.nan)
-    worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
-    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
-    return _excess_error_z2(sq, mask, blur, held | ~held.any(0, keepdim=True))
-
-
 def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
                        at_queries) -> Tensor:
     """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
@@ -844,50 +407,6 @@ def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
     ``sigma`` shrinks.
     """
     return _normalised_blur(e, weight, sigma)
-
-
-def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
-    """How surely each candidate's error exceeds the least one's: ``z^2`` per candidate and pixel.
-
-    ``sq`` ``(K, T, 1, H, W)`` holds each candidate's weighted squared cross-validation residuals; a pixel's
-    error of candidate b is their mean under a Gaussian of ``blur`` pixels (weighted by ``mask``
-    ``(T, 1, H, W)``). The excess D of b over the least-error candidate a is the pooled mean of the
-    residual differences d = sq_b - sq_a, whose standard error comes from their spread under the same
-    kernel: ``var = sum k^2 m (d - D)^2 / (sum k m)^2``. The residuals of two candidates share the sample's
-    own noise, so d is far less noisy than either residual; a candidate is out only where the evidence
-    says so. ``z^2 = D^2 / var``, 0 for the least-error candidate. Candidates not ``allowed`` (bool, like
-    ``sq``) and those whose error exceeds ``_SELECTION_ERROR_CUT`` times the least are left out
-    (``_LEFT_OUT``); the least-error allowed candidate never is.
-    """
-    K = sq.shape[0]
-    pool = footprint_blur(mask, blur).clamp_min(1e-6)
-    err = footprint_blur(sq.flatten(0, 1), blur).view_as(sq) / pool
-    if blur > 0:  # sum_j k_j^2 f_j = (sum_i k1_i^2)^2 times the blur of f at sigma / sqrt(2)
-        c, blur2 = float((_gaussian_taps(blur, torch.float64) ** 2).sum()) ** 2, blur / math.sqrt(2)
-    else:
-        c, blur2 = 1.0, 0.0
-    inv = c / pool ** 2
-    s1 = footprint_blur(sq.flatten(0, 1), blur2).view_as(sq) * inv
-    m2 = footprint_blur(mask, blur2) * inv
-    pairs = [(a, b) for a in range(K) for b in range(a + 1, K)]
-    d2 = {}
-    if pairs:
-        T = sq.shape[1]
-        blurred = footprint_blur(torch.cat([(sq[b] - sq[a]) ** 2 for a, b in pairs]), blur2)
-        for k, (a, b) in enumerate(pairs):
-            d2[a, b] = d2[b, a] = blurred[k * T:(k + 1) * T] * inv
-    best = torch.where(allowed, err, math.inf).argmin(0)  # (T, 1, H, W)
-    least = err.gather(0, best[None])[0]
-    z2 = torch.zeros_like(err)
-    for b in range(K):
-        for a in range(K):
-            if a != b:
-                D = err[b] - err[a]
-                var = d2[a, b] - 2 * D * (s1[b] - s1[a]) + D * D * m2
-                z2[b] = torch.where(best == a, D.clamp_min(0) ** 2 / var.clamp_min(1e-30), z2[b])
-    out = ~allowed | (err > _SELECTION_ERROR_CUT * least)
-    keep = torch.arange(K, device=err.device).view(-1, 1, 1, 1, 1) == best
-    return torch.where(out & ~keep, _LEFT_OUT, z2)
 
 
 @serial
@@ -993,7 +512,7 @@ class FrameState:
         pooling: ``(T,)`` float64, the factor on ``selection_blur`` for each frame (1 but where the pilot is
             noisy, :func:`_selection_pooling`).
         cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
-            neighbouring pixels' noise is correlated, :func:`_cv_cell`).
+            neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other
@@ -1442,10 +961,11 @@ def _selection_pooling(relative_noise: Tensor) -> Tensor:
     units of a range sigma: 1 where the pilot is trusted whole (up to :data:`_PILOT_TRUSTED`), and the
     noise over that beyond it. The pooled errors' standard error goes as the noise over the square root of
     the pixels pooled, so the width grows as the noise: the selection tells the candidates apart as surely
-    as at a trusted pilot (up to the widest candidate's bandwidth, :func:`_select_bandwidth`). Only the two
-    rooms lit by bounce light alone are that noisy (0.23-0.36 against at most 0.11, ``findings.md``): over
-    all frames from 1 / 4 spp, ``mi_indirect_dof`` (tuning part) +0.08 / +0.28 dB and ``bl_indirect_dof``
-    (held out) +0.21 / +0.25; every other scene keeps its bits."""
+    as at a trusted pilot (up to the widest candidate's bandwidth,
+    :func:`~torchmanifold.pipeline.selection._select_bandwidth`). Only the two rooms lit by bounce light alone
+    are that noisy (0.23-0.36 against at most 0.11, ``findings.md``): over all frames from 1 / 4 spp,
+    ``mi_indirect_dof`` (tuning part) +0.08 / +0.28 dB and ``bl_indirect_dof`` (held out) +0.21 / +0.25;
+    every other scene keeps its bits."""
     return (relative_noise.to(torch.float64) / _PILOT_TRUSTED).clamp_min(1.0)
 
 
@@ -1481,10 +1001,11 @@ def _albedo_widened(sigmas: Tensor, names: Sequence[str], noise: Tensor) -> Tens
 
 
 def _trusted_level(pilot: Tensor, mask: Tensor, trust: Tensor) -> Tensor:
-    """The level the bandwidth selection weighs its errors by (relative errors, :func:`_select_bandwidth`):
-    the pilot where it is trusted, the frame's mean where not (absolute errors), blended by ``trust``
-    ``(T,)``. A noisy pilot, dark where its samples are sparse, would weigh a few pixels' errors far above
-    the rest (``mi_indirect_dof``: +0.44 / +0.89 dB with absolute errors; ``findings.md``)."""
+    """The level the bandwidth selection weighs its errors by (relative errors,
+    :func:`~torchmanifold.pipeline.selection._select_bandwidth`): the pilot where it is trusted, the frame's
+    mean where not (absolute errors), blended by ``trust`` ``(T,)``. A noisy pilot, dark where its samples are
+    sparse, would weigh a few pixels' errors far above the rest (``mi_indirect_dof``: +0.44 / +0.89 dB with
+    absolute errors; ``findings.md``)."""
     w = trust.to(pilot.dtype).view(-1, 1, 1, 1)
     if bool((w >= 1).all()):
         return pilot

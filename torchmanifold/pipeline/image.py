@@ -1,11 +1,17 @@
 """Image helpers the frame step's stages share: luminance, per-frame means and totals whose bits do not follow
-the thread count, the small Gaussian of a pixel's footprint, and a pixel's four neighbours."""
+the thread count, the small Gaussian of a pixel's footprint, a pixel's four neighbours, and the offset that
+keeps relative measures finite in the dark."""
 from __future__ import annotations
 
 import math
 
 import torch
 from torch import Tensor
+
+#: the log-radiance guide's offset as a fraction of the frame's mean luminance (validation set: 0.1
+#: separates shadows and lights as well as 0 does in bright scenes, without resolving noise in dark ones);
+#: the bandwidth selection's relative errors take the same offset
+_LOG_RADIANCE_OFFSET = 0.1
 
 
 def luminance(x: Tensor) -> Tensor:

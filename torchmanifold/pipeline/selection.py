@@ -1,0 +1,289 @@
+"""Each pixel's bandwidth from the data: the filter runs at several bandwidths and every pixel blends them by
+their error, estimated by cross-validation between two checkerboard halves of the samples (Rousselle et al.
+2012), a bandwidth weighed by the likelihood that its error in excess of the least one's is noise. Where a
+renderer's reconstruction filter shares samples between neighbouring pixels, the halves are squares of
+pixels (:func:`_cv_cell`)."""
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from torchmanifold.pipeline import _fast
+from torchmanifold.pipeline.filter import _Filter, _frames, _halves_stack, _split_halves, tree_height_at
+from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _gaussian_taps, footprint_blur,
+                                          luminance)
+from torchmanifold.timewindow import frame_at, window
+
+if TYPE_CHECKING:
+    from torchmanifold.pipeline.denoise import DenoiseSettings
+
+
+#: a bandwidth whose pooled cross-validated error is over this many times the least one's is left out,
+#: whatever the evidence: one catastrophic residual widens its own standard error, so z alone would keep
+#: it (frames 0-2 of the validation set: -0.01 / 0.00 dB from 1 / 4 spp, and it removed 20-700x bright
+#: pixels from mi_glass_mirror, while the op centred values at their range's middle; since they are
+#: centred nearest 0, without it 0.000 / -0.008, `bl_moving_metal` -0.07 from 4 spp)
+_SELECTION_ERROR_CUT = 2.0
+
+
+#: z^2 of a bandwidth left out (weight exp(-z^2 / 2) = 0)
+_LEFT_OUT = 1e30
+
+
+#: Cross-validation takes each pixel's noise as its own. A reconstruction filter that splats each sample
+#: into the pixels around (Mitsuba's default, a gaussian of 2 px radius) shares samples between
+#: neighbours: the other half's prediction then holds part of the pixel's own noise and narrow
+#: bandwidths look right. A bounce-lit room rendered so (mi_indirect_dof, gaussian) came out 2 dB under a
+#: plain Gaussian blur from 1 spp. Where the noise is found correlated (:func:`_cv_cell`) the halves are a
+#: checkerboard of squares this many pixels wide, so that most pixels (36 of 64) have no neighbour in the
+#: other half. On six Mitsuba clips rendered so, 8 px scored best on four and within 0.06 dB of 4 px on the
+#: fifth (that room: 2 / 4 / 8 px +1.3 / +3.7 / +5.0 dB); 8 px squares everywhere would cost the 12
+#: box-filtered scenes 0.05 / 0.11 dB from 1 / 4 spp, at most 0.35 on one (benchmarks/validation/findings.md),
+#: so they are only where the test finds them needed.
+_CORRELATED_CELL = 8
+
+
+#: the test: in rows (and columns) of four pixels on one plain surface, how often the differences of the
+#: two adjacent pairs, x1 - x0 and x2 - x3, have one sign. Their covariance is the correlation of adjacent
+#: pixels (less twice that of pixels two apart, and a plain surface's slope), so independent noise gives
+#: them one sign half the time and splatted samples more often: 0.47-0.52 on every frame of the validation
+#: clips that has the pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five
+#: Mitsuba clips rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
+_CORRELATED_SIGNS = 0.535
+
+
+#: a plain surface: albedo and normal within a quarter of their range sigmas over the four pixels
+_PLAIN_SPAN = 0.25
+
+
+#: the feature groups constant over a plain surface (depth and position run along it)
+_PLAIN_GROUPS = ("albedo", "N", "Ncam")
+
+
+#: pairs of differences the share needs (a frame with fewer says nothing): its standard error is then at
+#: most 0.011, and the bound three of them above one half
+_MIN_SIGN_PAIRS = 2000
+
+
+#: Without albedo nothing marks a plain surface (normals alone take in texture, which pulls the share below
+#: one half), so the test runs on every row of four pixels of the colour's residual about its own Gaussian
+#: blur of this width (pixels): the blur takes out most of the texture and shading, and its taps give
+#: independent noise a share a little under one half.
+_RESIDUAL_BLUR = 1.0
+
+
+#: the bound on the residuals' share: first frames of the validation clips from 1 and 4 spp 0.47-0.51, the
+#: two Cycles clips with its Blackman-Harris filter 0.45-0.49, the six Mitsuba clips with its gaussian
+#: 0.543-0.589 (benchmarks/validation/findings.md); the bound lies between
+_CORRELATED_RESIDUAL_SIGNS = 0.525
+
+
+#: the squares there: without albedo only the narrow candidates keep texture, and inside a square they have
+#: no sample of the other half within reach, so they go unjudged. The six Mitsuba clips with its gaussian,
+#: colour alone, from 1 / 4 spp: squares of 2 / 4 / 8 px 23.57 / 26.82, 24.25 / 27.00, 24.25 / 26.33 dB
+#: (per-pixel halves 22.64 / 25.94); 8 px blurs `mi_still_textures` 2.5 dB under its raw frames from 4 spp,
+#: 4 px leaves the bounce-lit room 3 / 2 dB under a Gaussian blur (7 with per-pixel halves)
+_CORRELATED_CELL_NO_ALBEDO = 4
+
+
+def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tensor:
+    """Each frame's cross-validation cell ``(T,)`` int64: :data:`_CORRELATED_CELL` where neighbouring pixels'
+    noise is correlated, else 1. From the samples ``e`` ``(T, 3, H, W)`` at ``valid`` pixels (bool
+    ``(T, 1, H, W)``) and the guide's albedo and normal channels ``(T, F, H, W)`` of range sigmas ``(T, F)``:
+    in every row (column) of four valid pixels on one plain surface, whether ``x1 - x0`` and ``x2 - x3`` have
+    one sign (a difference of 0, as between two black pixels, tells nothing). With no such channel (``F`` 0:
+    no albedo guides), in every row of four valid pixels of the residual about a blur
+    (:data:`_RESIDUAL_BLUR`, :data:`_CORRELATED_RESIDUAL_SIGNS`), and the squares are
+    :data:`_CORRELATED_CELL_NO_ALBEDO` wide."""
+    with torch.no_grad():
+        T, _, H, W = e.shape
+        out = torch.ones(T, dtype=torch.int64)
+        x = luminance(torch.where(valid, e, 0.0))
+        residual = features.shape[1] == 0
+        if residual:
+            x = x - footprint_blur(x, _RESIDUAL_BLUR)
+        else:
+            g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
+        agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
+        for dim in (-1, -2):
+            n = x.shape[dim] - 3
+            if n <= 0:
+                continue
+            at = [x.narrow(dim, k, n) for k in range(4)]
+            near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
+            if residual:
+                plain = torch.ones_like(near, dtype=torch.bool)
+            else:
+                four = [g.narrow(dim, k, n) for k in range(4)]
+                hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
+                lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
+                plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
+            for k in range(4):
+                plain &= valid.narrow(dim, k, n)
+            counted = plain & (near != 0) & (far != 0)
+            agree += (counted & (near == far)).flatten(1).sum(1)
+            total += counted.flatten(1).sum(1)
+        bound = _CORRELATED_RESIDUAL_SIGNS if residual else _CORRELATED_SIGNS
+        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > bound * total)
+        return torch.where(correlated, _CORRELATED_CELL_NO_ALBEDO if residual else _CORRELATED_CELL, out)
+
+
+def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
+                      settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
+                      range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
+                      cell: int = 1) -> Tensor:
+    """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
+
+    The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
+    the pixels (Rousselle et al. 2012): each sample is predicted by the filter of the other half's
+    samples alone, whose noise is independent of it, so the squared difference is the prediction's
+    error plus the sample's variance, the same for every bandwidth. The squared differences are
+    weighted as relative errors (against ``level``, a radiance estimate, plus a tenth of the frame's
+    mean) and pooled over ``selection_blur`` pixels; a bandwidth's weight is the likelihood that its
+    excess over the least error is noise (:func:`_excess_error_z2`). Each bandwidth's own output uses
+    all samples (the two halves' sums add up).
+
+    Args:
+        e: ``(T, 3, H, W)`` samples; mask ``(T, 1, H, W)`` their weights (0: not filtered here).
+        level: ``(T, 3, H, W)`` radiance estimate at the frames, or ``None`` (then the output at
+            ``sigma_s`` itself).
+        pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
+            ``None`` (1).
+        cell: the halves' checkerboard squares, in pixels (:func:`_cv_cell`).
+
+    Returns:
+        ``(Q, 3, H, W)`` at the query times.
+    """
+    T = e.shape[0]
+    st = settings
+    # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
+    # once, its halves' sums are its output); otherwise at every frame, the errors interpolated.
+    query_frames = [frame_at(ft, q) for q in qt]
+    at_frames = all(k is not None for k in query_frames)
+    cv_times = qt if at_frames else ft
+    idx = query_frames if at_frames else list(range(T))
+    preds, fulls, cv_outs = [], [], []
+    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale,
+                       tree_height_at(st, b)) for b in st.bandwidths]
+    stack = _halves_stack(e, mask, cell)
+    # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
+    windowed = not filters[0]._per_frame() and e.dtype != torch.float64
+    bounds = filters[0].window_bounds(e, mask) if windowed else None
+    for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
+        pred, num, den = _split_halves(y, cell)
+        cv_out = filt.normalise(num, den, e, mask, bounds)
+        preds.append(pred)
+        cv_outs.append(cv_out)
+        if at_frames:
+            fulls.append(cv_out)
+        else:
+            at_queries = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
+            fulls.append(at_queries(e, mask))
+    if level is None:
+        level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
+    else:
+        level = _frames(level, idx)
+    # the residuals in units of the brightest frame mean of each query's window (its prediction mixes the
+    # window's frames), so that the z statistics, which square their squares, overflow float32 neither on
+    # a clip of values about 1e10 nor on a black frame between lit ones; per window, not per call, so that
+    # a frame's bytes do not depend on which other frames share the call (a unit: no gradient passes it)
+    brightness = _frame_mean(luminance(e.detach()).clamp_min(0.0), mask)[:, 0, 0, 0]
+    top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
+    scale = torch.where(top > 0, top, torch.ones_like(top))
+    e, mask = _frames(e, idx), _frames(mask, idx)
+    lum = luminance(level).clamp_min(0.0)
+    mean = _frame_mean(lum, mask)
+    # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
+    # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
+    unit = torch.where(mean > 0, mean, torch.ones_like(mean))
+    weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
+    e, preds = e / scale, [p / scale for p in preds]
+    # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
+    # varies on its own scale: pooling wider mixes places where it differs); frames pool apart, so
+    # frames of one width go in one call
+    widest = sigma_s * max(st.bandwidths)
+    blurs = [st.selection_blur if pooling is None else
+             max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
+    groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
+
+    def part(xs: list, g: list) -> list:
+        return [x if len(groups) == 1 else _frames(x, g) for x in xs]
+
+    if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
+            _fast.enabled(e, weight, mask, *preds, *fulls):
+        return torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
+                                         blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
+                          for g in groups])
+    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]])
+                    for g in groups], 1)
+    if not at_frames:
+        z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
+    if st.selection_softness > 0:
+        w = torch.softmax(-z2 / (2 * st.selection_softness ** 2), 0)
+    else:  # the least error has z = 0
+        w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
+        w = w.to(e.dtype)
+    return (torch.stack(fulls) * w).sum(0)
+
+
+def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
+    """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
+    H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
+    weighted by ``weight`` and pooled over ``blur`` pixels."""
+    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
+    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
+    # residual is taken as 0 first, so no NaN reaches a gradient)
+    held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T, 1, H, W)
+    sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
+                      for p, h in zip(preds, held)])
+    sq = torch.where(held, sq, math.nan)
+    worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
+    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
+    return _excess_error_z2(sq, mask, blur, held | ~held.any(0, keepdim=True))
+
+
+def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
+    """How surely each candidate's error exceeds the least one's: ``z^2`` per candidate and pixel.
+
+    ``sq`` ``(K, T, 1, H, W)`` holds each candidate's weighted squared cross-validation residuals; a pixel's
+    error of candidate b is their mean under a Gaussian of ``blur`` pixels (weighted by ``mask``
+    ``(T, 1, H, W)``). The excess D of b over the least-error candidate a is the pooled mean of the
+    residual differences d = sq_b - sq_a, whose standard error comes from their spread under the same
+    kernel: ``var = sum k^2 m (d - D)^2 / (sum k m)^2``. The residuals of two candidates share the sample's
+    own noise, so d is far less noisy than either residual; a candidate is out only where the evidence
+    says so. ``z^2 = D^2 / var``, 0 for the least-error candidate. Candidates not ``allowed`` (bool, like
+    ``sq``) and those whose error exceeds ``_SELECTION_ERROR_CUT`` times the least are left out
+    (``_LEFT_OUT``); the least-error allowed candidate never is.
+    """
+    K = sq.shape[0]
+    pool = footprint_blur(mask, blur).clamp_min(1e-6)
+    err = footprint_blur(sq.flatten(0, 1), blur).view_as(sq) / pool
+    if blur > 0:  # sum_j k_j^2 f_j = (sum_i k1_i^2)^2 times the blur of f at sigma / sqrt(2)
+        c, blur2 = float((_gaussian_taps(blur, torch.float64) ** 2).sum()) ** 2, blur / math.sqrt(2)
+    else:
+        c, blur2 = 1.0, 0.0
+    inv = c / pool ** 2
+    s1 = footprint_blur(sq.flatten(0, 1), blur2).view_as(sq) * inv
+    m2 = footprint_blur(mask, blur2) * inv
+    pairs = [(a, b) for a in range(K) for b in range(a + 1, K)]
+    d2 = {}
+    if pairs:
+        T = sq.shape[1]
+        blurred = footprint_blur(torch.cat([(sq[b] - sq[a]) ** 2 for a, b in pairs]), blur2)
+        for k, (a, b) in enumerate(pairs):
+            d2[a, b] = d2[b, a] = blurred[k * T:(k + 1) * T] * inv
+    best = torch.where(allowed, err, math.inf).argmin(0)  # (T, 1, H, W)
+    least = err.gather(0, best[None])[0]
+    z2 = torch.zeros_like(err)
+    for b in range(K):
+        for a in range(K):
+            if a != b:
+                D = err[b] - err[a]
+                var = d2[a, b] - 2 * D * (s1[b] - s1[a]) + D * D * m2
+                z2[b] = torch.where(best == a, D.clamp_min(0) ** 2 / var.clamp_min(1e-30), z2[b])
+    out = ~allowed | (err > _SELECTION_ERROR_CUT * least)
+    keep = torch.arange(K, device=err.device).view(-1, 1, 1, 1, 1) == best
+    return torch.where(out & ~keep, _LEFT_OUT, z2)
