@@ -39,7 +39,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    add their samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall
    in the pixel's square.
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
-   Monte Carlo noise: those pixels keep their samples (:func:`_escaped`).
+   Monte Carlo noise: those pixels keep their samples (:func:`_escaped`), unless their colour is noise, as
+   in fog (:func:`_noisy_sky`): then they are filtered with the rest, with no albedo or feature of their own.
 
 Every statistic comes from the frames of one query's window, so a clip gives the same bytes streamed,
 sharded or all at once.
