@@ -906,8 +906,8 @@ def _sky_samples(kind: str, H: int = 32, W: int = 32) -> torch.Tensor:
                                          ("stripes", False), ("sun", False), ("black", False)])
 def test_noisy_sky_tells_noise_from_the_environment(kind, expect):
     """Only independent noise makes a sky noise (R = 1 within a factor sqrt(2)): a gradient, edges, stripes a
-    pixel wide, a one-pixel sun 1000x brighter than the sky and a black sky do not; frames are judged apart,
-    and a sky too small to judge (under 500 rows of three pixels) is not noise."""
+    pixel wide, a sun of two pixels 600-1000x brighter than the sky and a black sky do not; frames are judged
+    apart, and a sky too small to judge (under 500 rows of three pixels) is not noise."""
     c = _sky_samples(kind)
     sky = torch.ones(1, 1, *c.shape[2:], dtype=torch.bool)
     assert bool(D._noisy_sky(c, sky)) == expect
