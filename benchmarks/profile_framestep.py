@@ -41,6 +41,7 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     a = ap.parse_args(argv)
     from torchmanifold.pipeline import denoise as D
+    from torchmanifold.pipeline import footprint as FP
 
     clock = defaultdict(float)
 
@@ -55,10 +56,11 @@ def main(argv=None):
                 clock[label] += time.perf_counter() - t
         setattr(owner, name, timed)
 
+    # each stage wrapped in the module whose code calls it
     for name in ("_sanitize", "_demodulation_albedo", "_footprint_albedo", "_guide", "_extent", "_log_radiance",
-                 "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth",
-                 "_footprint_average"):
+                 "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth"):
         wrap(D, name, name)
+    wrap(FP, "_footprint_average", "_footprint_average")
     wrap(D._Filter, "apply", "op calls (_Filter.apply)")
     wrap(D._Filter, "_guard", "_guard (in normalise)")
     wrap(D._Filter, "normalise", "normalise (incl. guard)")
