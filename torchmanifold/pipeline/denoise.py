@@ -592,7 +592,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     # (Mitsuba's convention), which keep it apart from the surfaces, and it is filtered with them, not
     # averaged apart as flat
     lit = sky & ~kept
-    alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
+    if bool(lit.any()):
+        alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
     escaped = kept & (mask > 0)
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
@@ -812,13 +813,12 @@ def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
     than :data:`_MIN_SKY_TRIPLETS` rows of three sky pixels, or a black sky, is not). In NumPy float64, whose
     sums do not depend on the thread count."""
     out = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)
-    with torch.no_grad():
-        lum = luminance(c.detach()).double().clamp_min(0.0)[:, 0].cpu().numpy()
-        masks = sky[:, 0].cpu().numpy()
     lo, hi = _NOISY_SKY
-    for t, (x, s) in enumerate(zip(lum, masks)):
-        if int(s.sum()) < _MIN_SKY_TRIPLETS:
-            continue
+    # most frames have no sky to judge: they skip the copy into NumPy
+    for t in torch.nonzero(sky.flatten(1).sum(1) >= _MIN_SKY_TRIPLETS).flatten().tolist():
+        with torch.no_grad():
+            x = luminance(c[t:t + 1].detach()).double().clamp_min(0.0)[0, 0].cpu().numpy()
+            s = sky[t, 0].cpu().numpy()
         y = x / np.maximum(x + x[s].mean(), 1e-300)
         near, far = [], []
         for a, b, d, m in ((y[:, :-2], y[:, 1:-1], y[:, 2:], s[:, :-2] & s[:, 1:-1] & s[:, 2:]),
