@@ -306,7 +306,7 @@ class SpacetimeFilter {
     for (int64_t k = 0; k < n; ++k) src[k] = level[k].eta.data();
     const int64_t work = bpg_ * df_ * W_ * n * ((nf + 1) * (3 * D_ + 8) + 2 * nf * C_ + (leaf ? 0 : 4 * D_));
     parallel_work(0, groups_, work, [&](int64_t gb, int64_t ge) {
-      std::vector<T> e(D_ * W_), dist(W_), ws(W_), fp(C_ * W_), t0(W_), t1(W_);
+      std::vector<T> e(D_ * W_), dist(W_), ws(W_), fp(nf * C_ * W_), t0(W_), t1(W_);
       std::vector<RowUpsampler<T>> eta = upsamplers(src, D_);
       for (int64_t bi = gb * bpg_; bi < std::min(Hl_, ge * bpg_); ++bi) {
         for (int64_t p = 0; p < n * (C_ + 1); ++p) std::fill_n(sl.P.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
@@ -314,6 +314,7 @@ class SpacetimeFilter {
           std::fill_n(Q.data() + p * Nl_ + bi * Wl_, Wl_, T(0));
         for (int64_t i = bi * df_; i < std::min(H_, (bi + 1) * df_); ++i) {
           const int64_t row = i * W_;
+          centred_rows(row, fp.data());
           for (int64_t k = 0; k < n; ++k) {
             eta_row(eta[k], D_, i, W_, e.data());
             // the query's weight: slices, min D and the split
@@ -336,16 +337,9 @@ class SpacetimeFilter {
                 for (int64_t j = 0; j < W_; ++j) ws[j] = m[j] ? ws[j] * fr.tau : T(0);
               else
                 for (int64_t j = 0; j < W_; ++j) ws[j] *= fr.tau;
-              for (int64_t c = 0; c < C_; ++c) {
-                const T* x = fr.f + c * N_ + row;
-                T* y = fp.data() + c * W_;
-                const T cc = c_[c];
-                if (m)
-                  for (int64_t j = 0; j < W_; ++j) y[j] = m[j] ? x[j] - cc : T(0);
-                else
-                  for (int64_t j = 0; j < W_; ++j) y[j] = x[j] - cc;
-                block_dot_row(ws.data(), y, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
-              }
+              const T* y = fp.data() + a * C_ * W_;
+              for (int64_t c = 0; c < C_; ++c)
+                block_dot_row(ws.data(), y + c * W_, W_, df_, Wl_, pk + c * Nl_ + bi * Wl_);
               block_sum_row(ws.data(), W_, df_, Wl_, pk + C_ * Nl_ + bi * Wl_);
             }
             if (leaf) continue;
@@ -378,6 +372,24 @@ class SpacetimeFilter {
     sliced_.push_back(std::move(sl));
     if (leaf) return {};
     return children(level, Q, D_, Hl_, Wl_, ss_low_);
+  }
+
+  // Each splatting frame's values at the row at offset `row`, about the channel centres and 0 where the
+  // frame's splat mask is 0: fp ((frames, C, W)), shared by every node of a level.
+  void centred_rows(int64_t row, T* fp) const {
+    for (size_t a = 0; a < act_.size(); ++a) {
+      const Frame<T>& fr = act_[a];
+      const uint8_t* m = fr.all_finite ? nullptr : fr.ms.data() + row;
+      for (int64_t c = 0; c < C_; ++c) {
+        const T* x = fr.f + c * N_ + row;
+        T* y = fp + (static_cast<int64_t>(a) * C_ + c) * W_;
+        const T cc = c_[c];
+        if (m)
+          for (int64_t j = 0; j < W_; ++j) y[j] = m[j] ? x[j] - cc : T(0);
+        else
+          for (int64_t j = 0; j < W_; ++j) y[j] = x[j] - cc;
+      }
+    }
   }
 
   // S = sum over levels and nodes of w up(blur P), S0 likewise; out = c + S / S0 where S0 clears the
