@@ -7,7 +7,7 @@ import time
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -22,14 +22,33 @@ from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
 
-__all__ = ["denoise_files", "denoised_frames", "denoise_window", "prepared_window", "filter_window",
-           "ClipWindow", "OUTPUT_LAYOUTS"]
+__all__ = ["denoise_files", "clip_summary", "denoised_frames", "denoise_window", "prepared_window",
+           "filter_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
 OUTPUT_LAYOUTS = ("input", "plain")
 #: what each frame's record counts, summed over the clip in the summary
 FRAME_STATS = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed", "noisy_sky_frames")
+
+
+def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
+                 samples_per_pixel: float | None) -> dict:
+    """What a clip's summary says of its frames: the non-finite counts and sky frames of the frames'
+    records (:data:`FRAME_STATS`; a record of an earlier version without ``noisy_sky_frames`` counts 0)
+    summed in frame order, the mean share of firefly energy removed, and the samples per pixel with the
+    bandwidth and footprint they set. The one-process and the sharded command both report it."""
+    total, n = dict.fromkeys(FRAME_STATS, 0), 0
+    for rec in records:
+        n += 1
+        for k in FRAME_STATS:
+            total[k] += rec.get(k, 0)
+    return {"nonfinite_samples": total["nonfinite_color"] + total["nonfinite_features"],
+            "nonfinite_color": total["nonfinite_color"], "nonfinite_features": total["nonfinite_features"],
+            "firefly_energy_removed": total["firefly_energy_removed"] / max(n, 1),
+            "noisy_sky_frames": total["noisy_sky_frames"], "samples_per_pixel": samples_per_pixel,
+            "sigma_s": spatial_sigma(settings, samples_per_pixel),
+            "footprint_sigma": footprint_width(settings, samples_per_pixel)}
 
 
 def _check_inputs(inputs: Sequence, out, output_layout: str) -> tuple[list[Path], Path]:
@@ -251,7 +270,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     spp = clip_samples_per_pixel(first, samples_per_pixel)
     outp = prepare_out(outp, overwrite)
 
-    stats_sum = dict.fromkeys(FRAME_STATS, 0)
+    records = []
     t0 = time.perf_counter()
     writes: deque[Future] = deque()
     with staged_dir(outp) as stage, ThreadPoolExecutor(1, thread_name_prefix="exr-write") as writer, \
@@ -259,8 +278,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
             ClipWindow(inputs, first, color_channels, spp, pool) as clip:
         for t, y, rec, frame in tqdm(denoised_frames(clip, settings, pool), total=len(inputs), desc="denoise",
                                      unit="frame", disable=not progress):
-            for k in stats_sum:
-                stats_sum[k] += rec[k]
+            records.append(rec)
             # written on a thread while later frames are filtered; a failed write raises before the staged
             # folder is moved into place
             writes.append(writer.submit(write_color, stage / inputs[t].name, y, frame, output_layout))
@@ -273,12 +291,5 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     return {"frames": n, "size": list(first.size), "layout": first.layout, "layer": first.layer,
             "feature_channels": fnames, "sources": {k: first.sources[k] for k in ["R", "G", "B", *fnames]},
             "notes": clip.notes + ([adapted] if adapted else []),
-            "nonfinite_samples": stats_sum["nonfinite_color"] + stats_sum["nonfinite_features"],
-            "nonfinite_color": stats_sum["nonfinite_color"],
-            "nonfinite_features": stats_sum["nonfinite_features"],
-            "firefly_energy_removed": stats_sum["firefly_energy_removed"] / n,
-            "noisy_sky_frames": stats_sum["noisy_sky_frames"],
-            "samples_per_pixel": clip.samples_per_pixel,
-            "sigma_s": spatial_sigma(settings, clip.samples_per_pixel),
-            "footprint_sigma": footprint_width(settings, clip.samples_per_pixel),
+            **clip_summary(records, settings, clip.samples_per_pixel),
             "seconds_per_frame": (time.perf_counter() - t0) / n, "outputs": outputs}

@@ -42,8 +42,7 @@ from typing import Sequence
 
 import torch
 
-from torchmanifold.pipeline.denoise import DenoiseSettings, adapt_to_features, denoise_frames, spatial_sigma
-from torchmanifold.pipeline.footprint import footprint_width
+from torchmanifold.pipeline.denoise import DenoiseSettings, adapt_to_features, denoise_frames
 from torchmanifold.timewindow import frame_at, index_window, window
 
 __all__ = ["Chunk", "plan_chunks", "denoise_halo", "render_cone", "traced_frames", "connect",
@@ -541,7 +540,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ImportError: Ray is not installed. ConnectionError: nothing answers at ``address``.
     """
     from torchmanifold.io.frames import read_render_frame
-    from torchmanifold.pipeline.denoise_files import _check_inputs, clip_samples_per_pixel
+    from torchmanifold.pipeline.denoise_files import _check_inputs, clip_samples_per_pixel, clip_summary
 
     if chunk is not None:
         _check_chunk(chunk)
@@ -573,17 +572,9 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         if started:
             ray.shutdown()
     shards.update(chunk=size, halo=r, skipped=len(finished))
-    recs = [manifest["done"][str(t)] for t in range(n)]  # every frame is listed now
-    nc = sum(x["nonfinite_color"] for x in recs)
-    nf = sum(x["nonfinite_features"] for x in recs)
-    ff = 0.0
-    for x in recs:  # in frame order, as the one-process path sums
-        ff += x["firefly_energy_removed"]
+    recs = [manifest["done"][str(t)] for t in range(n)]  # every frame is listed now, summed in frame order
     return {"frames": n, "size": list(first.size), "feature_channels": first.feature_names,
-            "nonfinite_samples": nc + nf, "nonfinite_color": nc, "nonfinite_features": nf,
-            "firefly_energy_removed": ff / n,
-            "noisy_sky_frames": sum(x.get("noisy_sky_frames", 0) for x in recs), "samples_per_pixel": spp,
-            "sigma_s": spatial_sigma(settings, spp), "footprint_sigma": footprint_width(settings, spp),
+            **clip_summary(recs, settings, spp),
             "seconds_per_frame": shards["seconds"] / max(shards["written"], 1),
             "outputs": [str(outp / p.name) for p in inputs], "shards": shards}
 
