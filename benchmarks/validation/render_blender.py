@@ -477,6 +477,61 @@ def clip_fog(scene, n: int):
                             "per unit, colour 0.9)."), moving
 
 
+def _principled(name: str, rgb, **inputs) -> tuple:
+    """Principled BSDF with ``inputs`` set by socket name; returns (material, node tree, BSDF node)."""
+    m, nt, out = _material(name)
+    bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
+    for k, v in inputs.items():
+        bsdf.inputs[k].default_value = v
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return m, nt, bsdf
+
+
+def clip_materials(scene, n: int):
+    """Materials the other clips lack: subsurface scattering, a light that is an emissive mesh (Cycles writes
+    its emission as its denoising albedo), a spot light's cone, alpha cut-outs and glossy plastic."""
+    room(diffuse("floor", (0.6, 0.6, 0.6), ("checker", (0.7, 0.7, 0.7), (0.2, 0.2, 0.25), 8.0)),
+         diffuse("back", (0.7, 0.7, 0.7)), diffuse("left", (0.6, 0.2, 0.15)), diffuse("right", (0.2, 0.5, 0.3)),
+         diffuse("ceil", (0.75, 0.75, 0.75)))
+    skin = _principled("skin", (0.9, 0.6, 0.45), **{"Subsurface Weight": 1.0, "Subsurface Scale": 0.1,
+                                                     "Roughness": 0.4})[0]
+    add("uv_sphere", skin, (-0.45, 0.2, 0.3), radius=0.3, segments=48, ring_count=24, smooth=True)
+    add("cube", _principled("plastic", (0.1, 0.2, 0.7), Roughness=0.15)[0], (0.45, 0.4, 0.2), (0, 0, 25),
+        scale=(0.2, 0.2, 0.2))
+    neon, nt, out = _material("neon")
+    emit = nt.nodes.new("ShaderNodeEmission")
+    emit.inputs["Color"].default_value = (1.0, 0.45, 0.1, 1.0)
+    emit.inputs["Strength"].default_value = 15.0
+    nt.links.new(emit.outputs["Emission"], out.inputs["Surface"])
+    add("cylinder", neon, (0, 0.95, 1.5), (0, 90, 0), radius=0.02, depth=1.2, vertices=16)
+    leaf, nt, bsdf = _principled("leaf", (0.2, 0.6, 0.15), Roughness=0.6)
+    holes = nt.nodes.new("ShaderNodeTexChecker")
+    holes.inputs["Scale"].default_value = 5.0
+    holes.inputs["Color1"].default_value = (1, 1, 1, 1)
+    holes.inputs["Color2"].default_value = (0, 0, 0, 1)
+    nt.links.new(holes.outputs["Fac"], bsdf.inputs["Alpha"])
+    panel = add("plane", leaf, (0.1, -0.2, 0.9), (80, 0, 10), size=0.6)
+    panel.pass_index = 1
+    light("SPOT", (-0.6, -0.6, 1.9), 60.0, rotation=(40, 0, -35), spot_size=math.radians(35), spot_blend=0.05,
+          shadow_soft_size=0.02)
+    light("AREA", (0, 0, 1.995), 8.0, size=0.4)
+    black_world()
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        target = lerp([-0.2, 0, 0.8], [0.2, 0, 0.8], t)
+        panel.location = (0.1 + 0.2 * t, -0.2, 0.9)
+        camera(scene, (0, -3.6, 1.0), target, 40)
+        return {"panel": {"location": list(panel.location)}, "camera": {"origin": [0, -3.6, 1.0], "target": target}}
+
+    desc = ("Box room with a checker floor: a subsurface sphere (Principled, subsurface weight 1, scale 0.1), a "
+            "glossy blue plastic cube (roughness 0.15), a thin orange emissive tube (emission shader, strength 15) "
+            "5 cm before the back wall, a panel with checker alpha cut-outs that slides, a spot light (35 degrees, "
+            "blend 0.05) and a dim 0.4x0.4 area light in the ceiling. The camera pans.")
+    return animate, desc, ["panel"]
+
+
 CLIPS = {
     # name: (builder, clip id for seeds, hazards, reference spp, frame of the second reference). 256 spp at 128x128
     # keeps a clip near 3 min of rendering on the 2 shared cores here (glass clip: 21 s per 128-spp frame under load).
@@ -500,6 +555,10 @@ CLIPS = {
     # The sky rule's hazard rendered by Cycles (render_mitsuba.py's mi_fog): rendered on demand, not committed.
     "bl_fog": (clip_fog, 16, ["medium", "noisy_depth_zero_pixels", "environment_lit_open_scene", "thin_geometry",
                               "moving_object", "camera_pan"], 256, None),
+    # Rendered on demand as a probe, not committed: two 512-spp references of frame 4 agree to the figure in
+    # benchmarks/results/validation/probes (the walls lit by the small tube stay grainy).
+    "bl_materials": (clip_materials, 17, ["subsurface", "emissive_mesh", "spot_light", "alpha_cutout", "plastic",
+                                          "moving_object", "camera_pan"], 512, 4),
 }
 
 
