@@ -888,33 +888,45 @@ def test_noisy_sky_is_filtered():
     assert st["noisy_sky_frames"] == 0
 
 
+def _splatted(x: torch.Tensor, sigma: float = 0.5, radius: int = 2) -> torch.Tensor:
+    """``x`` ``(1, 3, H + 2 r, W + 2 r)`` seen through a reconstruction filter that splats each sample over its
+    neighbours (Mitsuba's default: a Gaussian of 0.5 px, 2 px wide): ``(1, 3, H, W)``."""
+    d = torch.arange(-radius, radius + 1, dtype=x.dtype)
+    k = torch.exp(-(d.view(-1, 1) ** 2 + d ** 2) / (2 * sigma ** 2))
+    return torch.nn.functional.conv2d(x, (k / k.sum()).expand(3, 1, -1, -1).contiguous(), groups=3)
+
+
 def _sky_samples(kind: str, H: int = 32, W: int = 32) -> torch.Tensor:
     g = torch.Generator().manual_seed(3)
     x = torch.linspace(0.0, 1.0, W).view(1, 1, 1, W)
     smooth = (0.5 + 0.4 * x).expand(1, 3, H, W)
     return {"noise": 0.5 * torch.empty(1, 3, H, W).exponential_(generator=g),
+            "splatted noise": _splatted(0.5 * torch.empty(1, 3, H + 4, W + 4).exponential_(generator=g)),
             "smooth": smooth,
             "smooth and slightly noisy": smooth * (1 + 0.01 * torch.randn(1, 3, H, W, generator=g)),
             "edges": smooth * (1 + ((torch.arange(W) // 4 + torch.arange(H).view(-1, 1) // 4) % 2)),
             "stripes": (0.2 + 0.6 * (torch.arange(W) % 2).float()).expand(1, 3, H, W),
+            "wide stripes": (0.2 + 0.6 * (torch.arange(W) // 2 % 2).float()).expand(1, 3, H, W),
             "sun": smooth + 500.0 * ((x - 0.5).abs() < 0.02) * (torch.arange(H).view(-1, 1) == 9),
             "black": torch.zeros(1, 3, H, W)}[kind]
 
 
-@pytest.mark.parametrize("kind,expect", [("noise", True), ("smooth", False),
+@pytest.mark.parametrize("kind,expect", [("noise", True), ("splatted noise", True), ("smooth", False),
                                          ("smooth and slightly noisy", False), ("edges", False),
-                                         ("stripes", False), ("sun", False), ("black", False)])
+                                         ("stripes", False), ("wide stripes", False), ("sun", False),
+                                         ("black", False)])
 def test_noisy_sky_tells_noise_from_the_environment(kind, expect):
-    """Only independent noise makes a sky noise (R = 1 within a factor sqrt(2)): a gradient, edges, stripes a
-    pixel wide, a sun of two pixels 600-1000x brighter than the sky and a black sky do not; frames are judged
-    apart, and a sky too small to judge (under 500 rows of three pixels) is not noise."""
+    """Only noise makes a sky noise (R = 1 within a factor sqrt(2)), also where a reconstruction filter
+    splats each sample over its neighbours, correlating adjacent pixels: a gradient, edges, stripes one or
+    two pixels wide, a sun of two pixels 600-1000x brighter than the sky and a black sky do not; frames are
+    judged apart, and a sky too small to judge (under 500 rows of five pixels) is not noise."""
     c = _sky_samples(kind)
     sky = torch.ones(1, 1, *c.shape[2:], dtype=torch.bool)
     assert bool(D._noisy_sky(c, sky)) == expect
     both = torch.cat([c, _sky_samples("smooth")])
     assert D._noisy_sky(both, sky.expand(2, -1, -1, -1)).flatten().tolist() == [expect, False]
     small = torch.zeros_like(sky)
-    small[..., :12, :12] = True  # 2 * 12 * 10 = 240 rows of three
+    small[..., :12, :12] = True  # 2 * 12 * 8 = 192 rows of five
     assert not bool(D._noisy_sky(c, small))
 
 

@@ -793,45 +793,58 @@ def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
 #: that meets no surface reads depth 0 as well, and its colour is in-scattered light, as noisy as any. Kept,
 #: the validation set's probes in fog scored 19.2 / 20.2 dB from 1 / 4 spp (Mitsuba, ``mi_fog``; OIDN 33.4 /
 #: 35.6) and 21.6 / 30.5 (Cycles, ``bl_fog``; OIDN 31.8 / 34.3, a Gaussian blur 22.4 / 32.0). Noise is told
-#: from the environment's own detail by R, the mean square of the sky's differences between adjacent pixels
-#: over that of pixels two apart (rows and columns of three sky pixels, on the luminance tone-mapped by the
-#: sky's mean): independent noise gives 1, a smooth gradient 1/4, an edge 1/2, stripes a pixel wide more
-#: than 1. Per frame, from 1 and 4 spp: the validation set's skies (Mitsuba's and Cycles', 128x128 and
-#: 256x256) 0.24-0.31, the two fog clips 0.97-1.03. The sky is noise within a factor sqrt(2) of 1
+#: from the environment's own detail by R, the mean square of the sky's differences between pixels two
+#: apart over that of pixels four apart (rows and columns of five sky pixels, on the luminance tone-mapped
+#: by the sky's mean): noise gives 1, a smooth gradient 1/4, an edge 1/2, stripes two pixels wide more than
+#: 1. Two apart, not adjacent: a reconstruction filter that splats each sample over its neighbours
+#: (Mitsuba's default gaussian) correlates adjacent pixels' noise, and their differences' ratio to those two
+#: apart fell to 0.48-0.59 on the Mitsuba fog probe rendered that way, where two against four apart gives
+#: 0.88-0.98. Per frame, from 1 and 4 spp: the validation set's skies (Mitsuba's and Cycles', 128x128 and
+#: 256x256) 0.25-0.28, the fog probes 0.96-1.03 with box filters. The sky is noise where R is within a
+#: factor sqrt(2) of 1 and adjacent pixels differ by no more than sqrt(2) times as much as pixels two apart
+#: (noise, splatted or not, differs less; stripes a pixel wide, which R cannot see, differ more)
 #: (``benchmarks/validation/findings.md``).
 _NOISY_SKY = (2.0 ** -0.5, 2.0 ** 0.5)
+#: the pixel spacings the sky's differences are taken at (see :data:`_NOISY_SKY`)
+_SKY_LAGS = (1, 2, 4)
 #: the largest differences left out of both means: a small sun's rim or a few stars are points, which a
 #: smooth sky around them would make look like noise
 _SKY_OUTLIERS = 0.01
-#: rows of three sky pixels the test needs: for independent noise R's standard error is then about 0.09
-_MIN_SKY_TRIPLETS = 500
+#: rows of five sky pixels the test needs: for independent noise R's standard error is then about 0.09
+_MIN_SKY_RUNS = 500
 
 
 def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
     """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of the sky pixels ``sky`` (bool ``(T, 1, H, W)``,
     :func:`_escaped`) is noise: ``(T, 1, 1, 1)`` bool, by the ratio of :data:`_NOISY_SKY` (a frame with fewer
-    than :data:`_MIN_SKY_TRIPLETS` rows of three sky pixels, or a black sky, is not). In NumPy float64, whose
+    than :data:`_MIN_SKY_RUNS` rows of five sky pixels, or a black sky, is not). In NumPy float64, whose
     sums do not depend on the thread count."""
     out = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)
     lo, hi = _NOISY_SKY
+    span = _SKY_LAGS[-1]
     # most frames have no sky to judge: they skip the copy into NumPy
-    for t in torch.nonzero(sky.flatten(1).sum(1) >= _MIN_SKY_TRIPLETS).flatten().tolist():
+    for t in torch.nonzero(sky.flatten(1).sum(1) >= _MIN_SKY_RUNS).flatten().tolist():
         with torch.no_grad():
             x = luminance(c[t:t + 1].detach()).double().clamp_min(0.0)[0, 0].cpu().numpy()
             s = sky[t, 0].cpu().numpy()
         y = x / np.maximum(x + x[s].mean(), 1e-300)
-        near, far = [], []
-        for a, b, d, m in ((y[:, :-2], y[:, 1:-1], y[:, 2:], s[:, :-2] & s[:, 1:-1] & s[:, 2:]),
-                           (y[:-2], y[1:-1], y[2:], s[:-2] & s[1:-1] & s[2:])):
-            near.append((a - b)[m] ** 2)
-            far.append((a - d)[m] ** 2)
-        near, far = np.concatenate(near), np.concatenate(far)
-        if near.size < _MIN_SKY_TRIPLETS:
+        diffs = {lag: [] for lag in _SKY_LAGS}
+        for yy, ss in ((y, s), (y.T, s.T)):  # rows, then columns
+            n = ss.shape[1] - span  # runs start at columns 0..n-1
+            if n <= 0:
+                continue
+            run = ss[:, :n].copy()  # every pixel of the run is sky
+            for k in range(1, span + 1):
+                run &= ss[:, k:n + k]
+            for lag, d in diffs.items():
+                d.append((yy[:, :n] - yy[:, lag:n + lag])[run] ** 2)
+        count = sum(d.size for d in diffs[span])
+        if count < _MIN_SKY_RUNS:
             continue
-        keep = near.size - int(_SKY_OUTLIERS * near.size)  # the largest 1% left out of each
-        near_sum = np.partition(near, keep - 1)[:keep].sum()
-        far_sum = np.partition(far, keep - 1)[:keep].sum()
-        out[t] = bool(lo * far_sum < near_sum < hi * far_sum)
+        keep = count - int(_SKY_OUTLIERS * count)  # the largest 1% left out of each mean
+        adjacent, near, far = (np.partition(np.concatenate(diffs[lag]), keep - 1)[:keep].sum()
+                               for lag in _SKY_LAGS)
+        out[t] = bool(lo * far < near < hi * far and adjacent < hi * near)
     return out
 
 
