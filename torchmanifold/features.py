@@ -17,14 +17,13 @@ Meanings: ``T`` the sample's time in frames; ``Z`` the distance along the camera
 the camera's near clip plane, ``clip_start`` 0.1 by default: checked on a Blender 5.0.1 render in
 ``tests/io``); ``Zplane`` the distance along the camera's view axis (Blender's
 ``Depth`` pass: planar depth, background written as 1e10, read as 0); ``albedo`` the first hit's
-diffuse reflectance (Mitsuba: 0 on glass and mirrors; Blender's denoising albedo looks through
-near-specular surfaces, and on a light seen directly it is the light's emitted radiance, far above 1:
-seen on ``bl_motion_blur`` and the ``bl_materials`` probe; Mitsuba's is pi times the BSDF towards the
-normal where a BSDF defines no diffuse part: 22.5 on a rough aluminium conductor of alpha 0.1 seen
-head-on, Mitsuba 3.9.1); ``N`` the
-world-space normal facing the ray; ``Ncam`` the camera-space normal (X right, Y up, +Z forward:
-surfaces facing the camera have Z < 0) that Blender's denoising data gives,
-looking through near-specular surfaces like its albedo; ``P`` the world-space position; ``D`` the
+diffuse reflectance (Mitsuba: 0 on glass and mirrors, and pi times the BSDF towards the normal where a
+BSDF defines no diffuse part: 22.5 on a rough aluminium conductor of alpha 0.1 seen head-on, Mitsuba
+3.9.1; Blender's denoising albedo looks through near-specular surfaces, and on a light seen directly it
+is the light's emitted radiance, far above 1: seen on ``bl_motion_blur`` and the ``bl_materials``
+probe); ``N`` the world-space normal facing the ray; ``Ncam`` the camera-space normal (X right, Y
+up, +Z forward: surfaces facing the camera have Z < 0) that Blender's denoising data gives, looking
+through near-specular surfaces like its albedo; ``P`` the world-space position; ``D`` the
 direction the path leaves the first hit (one random draw per sample); ``S`` the shadow-ray direction
 at the first hit (one random draw per sample).
 

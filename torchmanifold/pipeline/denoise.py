@@ -801,8 +801,8 @@ def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
 #: apart fell to 0.48-0.59 on the Mitsuba fog probe rendered that way, where two against four apart gives
 #: 0.88-0.98. Per frame, from 1 and 4 spp: the validation set's skies (Mitsuba's and Cycles', 128x128 and
 #: 256x256) 0.25-0.28, the fog probes 0.96-1.03 with box filters. The sky is noise where R is within a
-#: factor sqrt(2) of 1 and adjacent pixels differ by no more than sqrt(2) times as much as pixels two apart
-#: (noise, splatted or not, differs less; stripes a pixel wide, which R cannot see, differ more)
+#: factor sqrt(2) of 1 and adjacent pixels differ by no more than sqrt(2) times as much as pixels two apart:
+#: noise, splatted or not, differs less, stripes a pixel wide (which R cannot see) differ more
 #: (``benchmarks/validation/findings.md``).
 _NOISY_SKY = (2.0 ** -0.5, 2.0 ** 0.5)
 #: the pixel spacings the sky's differences are taken at (see :data:`_NOISY_SKY`)
@@ -816,7 +816,7 @@ _MIN_SKY_RUNS = 500
 
 def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
     """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of the sky pixels ``sky`` (bool ``(T, 1, H, W)``,
-    :func:`_escaped`) is noise: ``(T, 1, 1, 1)`` bool, by the ratio of :data:`_NOISY_SKY` (a frame with fewer
+    :func:`_escaped`) is noise: ``(T, 1, 1, 1)`` bool, by the ratios of :data:`_NOISY_SKY` (a frame with fewer
     than :data:`_MIN_SKY_RUNS` rows of five sky pixels, or a black sky, is not). In NumPy float64, whose
     sums do not depend on the thread count."""
     out = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)
