@@ -888,6 +888,21 @@ def test_noisy_sky_is_filtered():
     assert st["noisy_sky_frames"] == 0
 
 
+def test_sky_samples_in_a_pixel_are_divided_by_one():
+    """In fog, a pixel whose samples mostly met no surface (posts thinner than a pixel, or a filter that
+    splats sky samples beside them) averages the albedo, normal and depth of a few surface samples with the
+    sky samples' zeros, while its colour is the fog's like the sky around. Its sky share (what its normal
+    lacks of unit length) is divided by 1 like the sky: the sky's error stays what it is without the posts,
+    where dividing the pixel by its few samples' albedo made it many times too bright and spread it."""
+    T, H, W = 2, 48, 48
+    f, names, truth, color, sky = _fog(T, H, W, 11)
+    without = (denoise_frames(color, f, names) - truth)[sky].abs().mean()
+    posts = (slice(None), slice(None), slice(0, 16), slice(8, 40, 8))
+    f[posts] = 0.1 * _plane(T, H, W)[0][posts]
+    with_posts = (denoise_frames(color, f, names) - truth)[sky].abs().mean()
+    assert with_posts < 1.05 * without, (with_posts, without)
+
+
 def _splatted(x: torch.Tensor, sigma: float = 0.5, radius: int = 2) -> torch.Tensor:
     """``x`` ``(1, 3, H + 2 r, W + 2 r)`` seen through a reconstruction filter that splats each sample over its
     neighbours (Mitsuba's default: a Gaussian of 0.5 px, 2 px wide): ``(1, 3, H, W)``."""

@@ -593,6 +593,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     # averaged apart as flat
     lit = sky & ~kept
     if bool(lit.any()):
+        alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings.albedo_eps)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
     escaped = kept & (mask > 0)
     e = c / alb
@@ -846,6 +847,45 @@ def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
                                for lag in _SKY_LAGS)
         out[t] = bool(lo * far < near < hi * far and adjacent < hi * near)
     return out
+
+
+#: how far (pixels) from a sky pixel a pixel may mix sky samples into its mean: a reconstruction filter that
+#: splats samples reaches 2 px (Mitsuba's default gaussian), a box filter keeps them in their own pixel
+_SKY_MIX_RADIUS = 2
+
+
+def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str], lit: Tensor,
+                      eps: float) -> tuple[Tensor, Tensor]:
+    """The demodulation albedo ``alb`` ``(T, 3, H, W)`` and flat pixels ``flat`` ``(T, 1, H, W)``
+    (:func:`_demodulation_albedo`) with the share of each pixel's samples that met no surface divided by 1,
+    as a filtered sky is (``lit`` ``(T, 1, H, W)``: the sky pixels of frames whose sky is noise,
+    :func:`_noisy_sky`).
+
+    A pixel beside such a sky averages samples that met a surface and samples that did not, which renderers
+    write with no normal and an albedo of their own (Mitsuba 0, Cycles in fog the medium's colour), while
+    their colour is scattered light like the sky's. Divided by its surface samples' albedo alone, the pixel
+    reads many times too bright and the filter spreads that into the sky: Mitsuba's fog probe, rendered with
+    its default gaussian filter, came out twice as bright as the reference around the horizon. The share
+    ``s`` of sky samples is what the mean normal lacks of unit length, taken only within
+    :data:`_SKY_MIX_RADIUS` of the sky (elsewhere a normal is also shorter where its samples' normals
+    differ); the albedo becomes ``a + s (1 - a0)``, ``a`` the renderer's albedo and ``a0`` the frame's mean
+    albedo over its sky pixels (the sky samples' part of ``a``). A pixel flat for its small albedo whose
+    albedo so reaches ``eps`` (``albedo_eps``) was mostly sky, and is demodulated. A frame without normals
+    keeps its albedo."""
+    canon = [canonical_name(n) for n in names]
+    unit = next((g for g in feature_table.FEATURES if g.unit and all(c in canon for c in g.channels)), None)
+    if unit is None or not all(a in canon for a in _ALBEDO):
+        return alb, flat
+    normal = torch.stack([f[:, canon.index(c)] for c in unit.channels], 1)
+    share = (1.0 - torch.linalg.vector_norm(normal, dim=1, keepdim=True)).clamp(0.0, 1.0)
+    r = _SKY_MIX_RADIUS
+    near = nn.functional.max_pool2d(lit.to(f.dtype), 2 * r + 1, 1, r) > 0
+    raw = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
+    sky = lit.to(f.dtype)
+    sky_albedo = (raw * sky).sum((2, 3), keepdim=True) / sky.sum((2, 3), keepdim=True).clamp_min(1.0)
+    mixed_albedo = raw + share * (1.0 - sky_albedo).clamp_min(0.0)
+    mixed = near & ~lit & (share > 0) & (luminance(mixed_albedo) >= eps)
+    return torch.where(mixed, mixed_albedo.clamp_min(eps), alb), flat & ~mixed
 
 
 def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
