@@ -903,6 +903,30 @@ def test_sky_samples_in_a_pixel_are_divided_by_one():
     assert with_posts < 1.05 * without, (with_posts, without)
 
 
+def test_paths_scattered_before_a_surface_are_its_samples():
+    """Cycles writes a path that scatters in fog as depth 0 wherever it is: from 1 spp the ground in fog is
+    ground samples and such pixels at random (their albedo the medium's colour, no normal). They are
+    samples of the ground behind them, whose pixel the reference shows as the mean of both; filtered apart
+    from the ground as sky, the two came out as speckle."""
+    T, H, W = 2, 48, 48
+    f, names, truth = _fog(T, H, W, 13, "cycles")[:3]
+    g = torch.Generator().manual_seed(15)
+    scattered = (torch.rand(T, 1, H, W, generator=g) < 0.45) & (torch.arange(H).view(1, 1, H, 1) >= 16)
+    f = torch.where(scattered, 0.0, f)
+    f[:, 0:3] = torch.where(scattered, 0.3 + torch.rand(T, 1, H, W, generator=g), f[:, 0:3])
+    fog = 0.45  # the light the medium scatters towards the camera
+    color = _noisy(torch.where(scattered, torch.full_like(truth, fog), truth), 13)
+    ground = (slice(None), slice(None), slice(16, None))
+    mean = truth.clone()
+    mean[ground] = 0.55 * truth[ground] + 0.45 * fog
+    out = denoise_frames(color, f, names)
+    assert (out - mean)[ground].abs().mean() < 0.085 * (color - mean)[ground].abs().mean()
+    # Mitsuba's fog: its sky pixels are rays that left the scene, in one region, and stay sky
+    region = torch.zeros(T, 1, H, W, dtype=torch.bool)
+    region[:, :, :16] = True
+    assert not D._scattered_before_surfaces(region, region).any()
+
+
 def _splatted(x: torch.Tensor, sigma: float = 0.5, radius: int = 2) -> torch.Tensor:
     """``x`` ``(1, 3, H + 2 r, W + 2 r)`` seen through a reconstruction filter that splats each sample over its
     neighbours (Mitsuba's default: a Gaussian of 0.5 px, 2 px wide): ``(1, 3, H, W)``."""
