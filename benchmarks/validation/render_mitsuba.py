@@ -232,6 +232,27 @@ def clip_fog(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_materials(f: int, n: int) -> tuple[dict, dict]:
+    """The room of ``clip_ceiling_light`` with BSDFs the set lacks: a near-mirror principled metal (its albedo
+    AOV is its base colour, where a smooth conductor's is 0), smooth plastic, a clear coat and a blend."""
+    scene, info = clip_ceiling_light(f, n)
+    rgb = lambda v: {"type": "rgb", "value": v}  # noqa: E731
+    scene["tall_box"] = {"type": "sphere", "center": [-0.4, -0.62, -0.35], "radius": 0.38,
+                         "bsdf": {"type": "principled", "base_color": rgb([0.92, 0.92, 0.95]), "metallic": 1.0,
+                                  "roughness": 0.04}}
+    scene["plastic_ball"] = {"type": "sphere", "center": [0.45, -0.75, -0.45], "radius": 0.25,
+                             "bsdf": {"type": "plastic", "diffuse_reflectance": rgb([0.1, 0.25, 0.6])}}
+    scene["coated_ball"] = {"type": "sphere", "center": [0.05, -0.82, -0.6], "radius": 0.18,
+                            "bsdf": {"type": "principled", "base_color": rgb([0.7, 0.2, 0.1]), "roughness": 0.5,
+                                     "clearcoat": 1.0, "clearcoat_gloss": 0.9}}
+    scene["mover"]["bsdf"] = {"type": "blendbsdf", "weight": 0.5, "bsdf_0": diffuse([0.65, 0.55, 0.2]),
+                              "bsdf_1": {"type": "roughconductor", "material": "Au", "alpha": 0.2}}
+    info["description"] += (" The tall box is now a near-mirror sphere (principled, metallic, roughness 0.04), beside "
+                            "a smooth plastic ball and a clear-coated principled ball; the sliding box is half "
+                            "diffuse, half rough gold (blendbsdf).")
+    return scene, info
+
+
 def thinlens(origin, target, fov: float, aperture: float, focus: float, up=(0, 1, 0)) -> dict:
     """``sensor`` with a thin lens: ``aperture`` radius, in focus at ``focus`` along the view axis."""
     return {**sensor(origin, target, fov, up), "type": "thinlens", "aperture_radius": aperture,
@@ -455,6 +476,10 @@ CLIPS = {
     # committed set is at its 60 MB budget).
     "mi_fog": (clip_fog, 7, ["medium", "noisy_depth_zero_pixels", "environment_lit_open_scene", "thin_geometry",
                              "moving_object", "camera_pan"], ["ball"], 1024, None),
+    # Mitsuba BSDFs the set lacks: rendered on demand as a probe, not committed. The near-mirror sphere throws
+    # caustics over the room, which 256 spp leaves grainy: 2048.
+    "mi_materials": (clip_materials, 8, ["principled_metal", "near_mirror", "smooth_plastic", "clearcoat",
+                                         "blend", "moving_object", "contact_shadow"], ["mover"], 2048, None),
 }
 
 # Clips rendered with another integrator than ``path`` (inside the ``aov`` integrator for the noisy passes too).
