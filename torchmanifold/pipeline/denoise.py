@@ -862,7 +862,7 @@ def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
 #: did) 0.016-0.025
 _SCATTERED_AMONG_SURFACES = 0.1
 #: in such a frame, a sky pixel with at least this many of its eight neighbours on surfaces is a path
-#: scattered before the surface behind it. `bl_fog` frames 0-3 from 1 spp (29.59 dB without): 4 / 3 / 2 / 1
+#: scattered before the surface behind it. ``bl_fog`` frames 0-3 from 1 spp (29.59 dB without): 4 / 3 / 2 / 1
 #: give 30.96 / 31.61 / 31.85 / 31.73 (OIDN 31.80 over all frames)
 _SCATTERED_NEIGHBOURS = 2
 
