@@ -592,12 +592,13 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     # (Mitsuba's convention), which keep it apart from the surfaces, and it is filtered with them, not
     # averaged apart as flat
     lit = sky & ~kept
-    scattered = _scattered_before_surfaces(sky, lit)
-    if bool(scattered.any()):  # samples of the surface behind: its features and albedo, from beside
-        f = _from_neighbours(f, scattered, ~sky)
-        alb_s, flat_s = _demodulation_albedo(f, names, settings)
-        alb, flat = torch.where(scattered, alb_s, alb), torch.where(scattered, flat_s, flat)
-        lit = lit & ~scattered
+    if bool(lit.any()):
+        scattered = _scattered_before_surfaces(sky, lit)
+        if bool(scattered.any()):  # samples of the surface behind: its features and albedo, from beside
+            f = _from_neighbours(f, scattered, ~sky)
+            alb_s, flat_s = _demodulation_albedo(f, names, settings)
+            alb, flat = torch.where(scattered, alb_s, alb), torch.where(scattered, flat_s, flat)
+            lit = lit & ~scattered
     if bool(lit.any()):
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings.albedo_eps)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
@@ -732,6 +733,15 @@ def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
     return c, f, mask, em, stats
 
 
+def _albedo(f: Tensor, names: Sequence[str]) -> Tensor | None:
+    """The renderer's albedo ``(T, 3, H, W)`` from features ``f`` named ``names`` (any alias), negatives
+    taken as 0; ``None`` where the three channels are not all there."""
+    canon = [canonical_name(n) for n in names]
+    if not all(a in canon for a in _ALBEDO):
+        return None
+    return torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
+
+
 def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
     """The albedo the colour is divided by, ``(T, 3, H, W)``, and where it is flat (1), ``(T, 1, H, W)``.
 
@@ -739,11 +749,10 @@ def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSetti
     delta BSDFs (Mitsuba's glass and mirrors) and on black surfaces. Dividing by a clamped tiny albedo
     and multiplying back by a blurred one draws bright rims, so such pixels are not demodulated at all.
     """
-    canon = [canonical_name(n) for n in names]
     T, _, H, W = f.shape
-    if not (settings.demodulate and all(a in canon for a in _ALBEDO)):
+    alb = _albedo(f, names) if settings.demodulate else None
+    if alb is None:
         return f.new_ones(T, 3, H, W), f.new_ones(T, 1, H, W, dtype=torch.bool)
-    alb = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
     flat = luminance(alb) < settings.albedo_eps
     return torch.where(flat, 1.0, alb.clamp_min(settings.albedo_eps)), flat
 
@@ -912,13 +921,13 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
     keeps its albedo."""
     canon = [canonical_name(n) for n in names]
     unit = next((g for g in feature_table.FEATURES if g.unit and all(c in canon for c in g.channels)), None)
-    if unit is None or not all(a in canon for a in _ALBEDO):
+    raw = _albedo(f, names)
+    if unit is None or raw is None:
         return alb, flat
     normal = torch.stack([f[:, canon.index(c)] for c in unit.channels], 1)
     share = (1.0 - torch.linalg.vector_norm(normal, dim=1, keepdim=True)).clamp(0.0, 1.0)
     r = _SKY_MIX_RADIUS
     near = nn.functional.max_pool2d(lit.to(f.dtype), 2 * r + 1, 1, r) > 0
-    raw = torch.stack([f[:, canon.index(a)] for a in _ALBEDO], 1).clamp_min(0.0)
     sky = lit.to(f.dtype)
     sky_albedo = (raw * sky).sum((2, 3), keepdim=True) / sky.sum((2, 3), keepdim=True).clamp_min(1.0)
     mixed_albedo = raw + share * (1.0 - sky_albedo).clamp_min(0.0)
