@@ -1231,6 +1231,120 @@ def test_texture_on_a_flat_surface_keeps_its_detail(monkeypatch):
     assert torch.equal(unknown, denoise_frames(c, f, names))
 
 
+def _edge_clip(spp: int, H: int = 48, W: int = 48, S: int = 16, seed: int = 0):
+    """A plane under white light whose albedo steps from 0.2 to 0.8 along a slanted line, ``spp`` samples
+    per pixel at random points of it: ``(colour, features, names, truth)``, the truth the pixels' box
+    averages (``S`` x ``S`` sub-pixel grid)."""
+    gen = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
+    step = 0.2 + 0.6 * ((xx.double() + 0.3 * yy.double()) / S > W / 2).double()
+    truth = step.view(H, S, W, S).mean((1, 3))
+    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    albedo = step[iy, ix].mean(-1).expand(3, H, W)
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+    plane = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W), torch.full((1, H, W), 3.0)])
+    f = torch.cat([albedo, plane])[None].float()
+    return albedo[None].float(), f, names, truth.expand(3, H, W)[None].float()
+
+
+@pytest.mark.parametrize("spp", [1, 4])
+def test_an_edge_s_pixels_average_along_it(spp, monkeypatch):
+    """A pixel that an edge crosses shows the share of its few samples on either side, a noisy estimate of
+    the area it covers, which its neighbours along the edge share: averaged along the edge, its error
+    against the pixels' box average falls below that of the footprint average alone (1 / 4 spp: 0.49 /
+    0.65 of the input's against 0.56 / 0.82); away from the edge the result keeps the surfaces' values."""
+    c, f, names, truth = _edge_clip(spp)
+    edge = (truth[0, 0] > 0.21) & (truth[0, 0] < 0.79)
+    inner = torch.zeros_like(edge)
+    inner[4:-4, 4:-4] = True
+
+    def error(x):
+        return float((x - truth)[0, :, edge & inner].abs().mean())
+
+    out = denoise_frames(c, f, names, samples_per_pixel=spp)
+    far = ~FP.footprint_blur(edge[None, None].float(), 2.0)[0, 0].gt(1e-3) & inner
+    torch.testing.assert_close(out[0, :, far], truth[0, :, far], rtol=0.01, atol=0)
+    monkeypatch.setattr(FP, "_ALONG_EDGE", 0.0)
+    footprint_alone = denoise_frames(c, f, names, samples_per_pixel=spp)
+    assert error(out) < 0.92 * error(footprint_alone) < 0.92 * error(c), \
+        (error(out), error(footprint_alone), error(c))
+
+
+def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """:func:`FP._along_edges` of ``(1, 3, H, W)`` pixel by pixel (float64): central differences of the
+    tone-mapped luminance, their tensor under a Gaussian (replicated border), its minor eigenvector, and
+    taps at whole steps along it, bilinear with the border's pixels repeated, weighed by the surety there and
+    the footprint average's range weight; a light (its share) keeps its value."""
+    x = x[0].double().numpy()
+    lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
+    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
+    k = FP._FOOTPRINT_KNEE * lum(x).mean()
+    y = x / (k + x)
+    ly = lum(y)
+    H, W = ly.shape
+    gx, gy = np.zeros_like(ly), np.zeros_like(ly)
+    gx[:, 1:-1] = (ly[:, 2:] - ly[:, :-2]) / 2
+    gy[1:-1, :] = (ly[2:, :] - ly[:-2, :]) / 2
+    ts = FP._EDGE_TENSOR_SIGMA
+    r = int(math.ceil(3 * ts))
+    g = np.exp(-np.arange(-r, r + 1) ** 2 / (2 * ts * ts))
+    g /= g.sum()
+
+    def blur(a):
+        out = np.zeros_like(a)
+        for i in range(H):
+            for j in range(W):
+                out[i, j] = sum(g[u + r] * g[v + r] * a[min(max(i + u, 0), H - 1), min(max(j + v, 0), W - 1)]
+                                for u in range(-r, r + 1) for v in range(-r, r + 1))
+        return out
+
+    jxx, jxy, jyy = blur(gx * gx), blur(gx * gy), blur(gy * gy)
+
+    def at(a, py, px):
+        py, px = min(max(py, 0.0), H - 1.0), min(max(px, 0.0), W - 1.0)
+        i0, j0 = int(math.floor(py)), int(math.floor(px))
+        i1, j1, fy, fx = min(i0 + 1, H - 1), min(j0 + 1, W - 1), py - i0, px - j0
+        return ((1 - fy) * ((1 - fx) * a[..., i0, j0] + fx * a[..., i0, j1])
+                + fy * ((1 - fx) * a[..., i1, j0] + fx * a[..., i1, j1]))
+
+    coherence = np.empty_like(ly)
+    for i in range(H):
+        for j in range(W):
+            m = np.array([[jxx[i, j], jxy[i, j]], [jxy[i, j], jyy[i, j]]])
+            lo, hi = np.linalg.eigvalsh(m)
+            coherence[i, j] = min((hi - lo) / max(hi + lo, 1e-30), 1.0) ** FP._EDGE_COHERENCE_POWER
+    out = np.empty_like(y)
+    for i in range(H):
+        for j in range(W):
+            m = np.array([[jxx[i, j], jxy[i, j]], [jxy[i, j], jyy[i, j]]])
+            tx, ty = np.linalg.eigh(m)[1][:, 0]  # (x, y) of the minor eigenvector
+            num, den = y[:, i, j].copy(), 1.0
+            for t in range(1, int(math.ceil(2.5 * sigma)) + 1):
+                for s in (t, -t):
+                    tap = at(y, i + s * ty, j + s * tx)
+                    w = math.exp(-t * t / (2 * sigma * sigma)) * at(coherence, i + s * ty, j + s * tx)
+                    w *= math.exp(-(lum(tap) - ly[i, j]) ** 2 / (2 * FP._FOOTPRINT_RANGE ** 2))
+                    num += w * tap
+                    den += w
+            light = share(ly[i, j])
+            out[:, i, j] = y[:, i, j] + coherence[i, j] * (1 - light) * (num / den - y[:, i, j])
+    return torch.from_numpy(k * out / (1 - out))[None]
+
+
+def test_along_edges_against_brute_force():
+    gen = torch.Generator().manual_seed(3)
+    H, W = 12, 14
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                            indexing="ij")
+    noise = 0.3 * torch.rand(3, H, W, generator=gen, dtype=torch.float64)
+    x = (0.2 + (xx + 0.6 * yy > 7).double() + noise)[None]
+    x[0, :, 2, 3] = 40.0  # a light: the tone-mapped domain keeps it from the dark beside it
+    for sigma in (0.6, 1.3):
+        got = FP._along_edges(x, torch.full((1, 1, H, W), sigma, dtype=x.dtype), FP._edge_directions(x))
+        torch.testing.assert_close(got, _along_edges_brute(x, sigma), rtol=1e-9, atol=1e-12)
+
+
 def _plane_positions(H, W, shift=(0.0, 0.0), seed=0, lift=0.0):
     """World positions of 1-spp samples on the plane z = lift seen straight on, one world unit per 10
     pixels: each pixel's sample at its own uniform jitter, the view moved by ``shift`` pixels."""

@@ -35,9 +35,10 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    area, so thin geometry comes out dotted and texture speckled; the result is averaged over a pixel-sized
    footprint, in a tone-mapped domain and only among pixels of similar brightness, so a light's edge does
    not bleed into the dark beside it. On a smooth surface the albedo, whose detail is texture, gets a
-   narrower footprint than the light. Where the renderer gives world positions, the window's other frames
-   add their samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall
-   in the pixel's square.
+   narrower footprint than the light. A pixel that an edge crosses shows its few samples' share of either
+   side; its neighbours along the edge share it, so the footprint reaches along edges, by the sample count.
+   Where the renderer gives world positions, the window's other frames add their samples of each pixel's
+   albedo: a still view's of the same pixel, a moving view's that fall in the pixel's square.
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`), unless their colour is noise, as
    in fog (:func:`_noisy_sky`): then they are filtered with the rest, with no albedo or feature of their own.
