@@ -580,17 +580,25 @@ def test_light_flush_with_ceiling_leaves_no_halo():
     torch.testing.assert_close(out[light], truth[light], rtol=0.05, atol=0)
 
 
+def _lum_brute(a):
+    return 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]
+
+
+def _tone_mapped_brute(x: torch.Tensor):
+    """The footprint average's domain of ``(1, 3, H, W)`` in numpy (float64): ``(luminance, light share,
+    knee k, y = x / (k + x), y's luminance)``."""
+    x = x[0].double().numpy()
+    k = FP._FOOTPRINT_KNEE * _lum_brute(x).mean()
+    y = x / (k + x)
+    return _lum_brute, (lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)), k, y, _lum_brute(y)
+
+
 def _footprint_average_brute(x: torch.Tensor, sigma: float,
                              unseen_border: float | None = None) -> torch.Tensor:
     """Brute force, pixel by pixel (float64): the footprint average with its range weight everywhere
     (``unseen_border`` None), or with the weight between two adjacent pixels, one a light, giving way by the
     light share times the dimmer's lit neighbours beyond one, plus ``unseen_border``."""
-    x = x[0].double().numpy()
-    lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
-    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
-    k = FP._FOOTPRINT_KNEE * lum(x).mean()
-    y = x / (k + x)
-    ly = lum(y)
+    lum, share, k, y, ly = _tone_mapped_brute(x)
     H, W = ly.shape
     lit = lambda i, j: share(ly[i, j]) if 0 <= i < H and 0 <= j < W else 0.0  # noqa: E731
     count = np.array([[lit(i - 1, j) + lit(i + 1, j) + lit(i, j - 1) + lit(i, j + 1) for j in range(W)]
@@ -1276,12 +1284,7 @@ def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
     tone-mapped luminance, their tensor under a Gaussian (replicated border), its minor eigenvector, and
     taps at whole steps along it, bilinear with the border's pixels repeated, weighed by the surety there and
     the footprint average's range weight; a light (its share) keeps its value."""
-    x = x[0].double().numpy()
-    lum = lambda a: 0.2126 * a[0] + 0.7152 * a[1] + 0.0722 * a[2]  # noqa: E731
-    share = lambda v: min(max(4.0 * v - 2.0, 0.0), 1.0)  # noqa: E731
-    k = FP._FOOTPRINT_KNEE * lum(x).mean()
-    y = x / (k + x)
-    ly = lum(y)
+    lum, share, k, y, ly = _tone_mapped_brute(x)
     H, W = ly.shape
     gx, gy = np.zeros_like(ly), np.zeros_like(ly)
     gx[:, 1:-1] = (ly[:, 2:] - ly[:, :-2]) / 2
