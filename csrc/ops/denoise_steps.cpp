@@ -58,4 +58,11 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // 0 where search (bool (K, H, W)) is false (radius: the flow's pooling).
   m.def("_footprint_samples(Tensor p, Tensor others, Tensor albedo, Tensor valid, Tensor search, "
         "int radius) -> (Tensor, Tensor)");
+  // footprint._edge_directions after its knee: x (T, 3, H, W), k (T,) -> (T, 3, H, W), each pixel's
+  // coherence^power and edge direction (tx, ty) from the structure tensor blurred over tensor_sigma.
+  m.def("_edge_directions(Tensor x, Tensor k, float tensor_sigma, float power) -> Tensor");
+  // footprint._along_edges after its knees, of M images along one set of directions: x (M, T, 3, H, W), k
+  // (M, T), the per-pixel widths sigma (M, T, 1, H, W), the directions (T, 3, H, W) of _edge_directions ->
+  // (M, T, 3, H, W).
+  m.def("_along_edges(Tensor x, Tensor k, Tensor sigma, Tensor directions, float range_sigma) -> Tensor");
 }

@@ -1344,7 +1344,8 @@ def test_along_edges_against_brute_force():
     x = (0.2 + (xx + 0.6 * yy > 7).double() + noise)[None]
     x[0, :, 2, 3] = 40.0  # a light: the tone-mapped domain keeps it from the dark beside it
     for sigma in (0.6, 1.3):
-        got = FP._along_edges(x, torch.full((1, 1, H, W), sigma, dtype=x.dtype), FP._edge_directions(x))
+        width = torch.full((1, 1, H, W), sigma, dtype=x.dtype)
+        got = FP._along_edges([x], [width], FP._edge_directions(x))[0]
         torch.testing.assert_close(got, _along_edges_brute(x, sigma), rtol=1e-9, atol=1e-12)
 
 

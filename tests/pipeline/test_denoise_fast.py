@@ -107,6 +107,30 @@ def test_footprint_average_equals_reference(frame):
     torch.testing.assert_close(out, ref, rtol=1e-12, atol=0)
 
 
+def test_along_edges_equals_reference(frame):
+    """The structure tensor's directions and the average along them, fused, against the PyTorch stage:
+    float rounding apart (sin, cos, atan2, exp and the bilinear taps' order)."""
+    for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
+        x = e * m
+        d, d_ref = _both(FP._edge_directions, x)
+        torch.testing.assert_close(d[:, 0], d_ref[:, 0], rtol=1e-4, atol=1e-6, msg=name)
+        # a direction is defined up to sign, and only where the tensor is not isotropic
+        sure = d_ref[:, 0] > 1e-3
+        dot = (d[:, 1] * d_ref[:, 1] + d[:, 2] * d_ref[:, 2]).abs()
+        assert bool((dot[sure] > 1 - 1e-4).all()), name
+        g = torch.Generator().manual_seed(1)
+        widths = [torch.rand(x.shape[0], 1, *x.shape[2:], generator=g) * s for s in (2.0, 0.5)]
+        images = [x, 3 * x.flip(-1) + 0.1]  # two images along the same directions, each its own width
+        for a, b in zip(*_both(FP._along_edges, images, widths, d_ref)):
+            torch.testing.assert_close(a, b, rtol=2e-5, atol=1e-6, equal_nan=True, msg=name)
+    x = frame["e"].double()
+    d = FP._edge_directions(x)
+    with _fast.reference():
+        torch.testing.assert_close(d, FP._edge_directions(x), rtol=1e-9, atol=1e-12)
+    out, ref = _both(FP._along_edges, [x], [torch.full_like(x[:, :1], 1.3)], d)
+    torch.testing.assert_close(out[0], ref[0], rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize("with_level", [False, True])
 def test_bandwidth_selection_blend_equals_reference(frame, with_level):
     """_select_bandwidth with its cross-validated errors, pooling and softmax blend in C++."""
@@ -307,6 +331,10 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.sanitize(e.clone().index_fill_(3, torch.tensor([5]), math.nan), e)[:3],
         lambda: _fast.same_pixel(e[0], e[:1] + 0.01 * m[:1], 1.0, 0.25, 2),
         lambda: _fast.footprint_samples(e[0], e[:1] + 0.01 * m[:1], e[:1], m[:1, 0], m[:1, 0] > 0, 2),
+        lambda: _fast.edge_directions(e, torch.tensor([[[[0.3]]]]), 1.0, 3.0),
+        lambda: _fast.along_edges(torch.stack([e, 2 * e]), torch.tensor([0.3, 0.5]),
+                                  torch.stack([m + 0.5, m]),
+                                  _fast.edge_directions(e, torch.tensor([[[[0.3]]]]), 1.0, 3.0), 0.3),
     ]
     old = torch.get_num_threads()
     try:
@@ -348,6 +376,12 @@ def test_op_argument_errors():
         torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
     with pytest.raises(ValueError, match="float32 or float64"):
         torch.ops.torchmanifold._kuwahara3(x.half())
+    with pytest.raises(ValueError, match="tensor_sigma must be > 0"):
+        torch.ops.torchmanifold._edge_directions(x, torch.ones(1), 0.0, 3.0)
+    with pytest.raises(ValueError, match="sigma must be .M, T, 1, H, W."):
+        torch.ops.torchmanifold._along_edges(x[None], torch.ones(1, 1), x[None], x, 0.3)
+    with pytest.raises(ValueError, match="directions must be .T, 3, H, W."):
+        torch.ops.torchmanifold._along_edges(x[None], torch.ones(1, 1), x[None, :, :1], x[:, :2], 0.3)
     p, o = torch.zeros(3, 4, 4), torch.zeros(2, 3, 4, 4)
     every = torch.ones(2, 4, 4, dtype=torch.bool)
     with pytest.raises(ValueError, match="others must be .K, 3, H, W."):
@@ -374,7 +408,10 @@ def _op_samples():
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
             ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2)),
-            ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], m[:, 0] > 0, 2))]
+            ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], m[:, 0] > 0, 2)),
+            ("_edge_directions", (e, torch.ones(T), 1.0, 3.0)),
+            ("_along_edges", (e[None], torch.ones(1, T), m[None] + 0.5, torch.rand(T, 3, H, W, generator=g),
+                              0.3))]
 
 
 @pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])

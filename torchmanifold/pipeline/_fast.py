@@ -21,7 +21,7 @@ from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
            "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "same_pixel",
-           "footprint_samples"]
+           "footprint_samples", "edge_directions", "along_edges"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -86,6 +86,22 @@ def footprint_average(x: Tensor, k: Tensor, sigma: float, range_sigma: float,
     ``(T, 1, 1, 1)`` -> ``(T, 3, H, W)``."""
     return torch.ops.torchmanifold._footprint_average(x, k.reshape(-1), float(sigma), float(range_sigma),
                                                       float(unseen_border))
+
+
+@parallel
+def edge_directions(x: Tensor, k: Tensor, tensor_sigma: float, power: float) -> Tensor:
+    """``footprint._edge_directions`` after its knee: x ``(T, 3, H, W)``, k ``(T, 1, 1, 1)`` ->
+    ``(T, 3, H, W)``, each pixel's coherence to ``power`` and its edge direction ``(tx, ty)``."""
+    return torch.ops.torchmanifold._edge_directions(x, k.reshape(-1), float(tensor_sigma), float(power))
+
+
+@parallel
+def along_edges(x: Tensor, k: Tensor, sigma: Tensor, directions: Tensor, range_sigma: float) -> Tensor:
+    """``footprint._along_edges`` after the knees of M images sharing one set of directions: x ``(M, T, 3, H,
+    W)``, k ``(M, T, 1, 1, 1)``, sigma ``(M, T, 1, H, W)``, directions ``(T, 3, H, W)``
+    (:func:`edge_directions`) -> ``(M, T, 3, H, W)``."""
+    return torch.ops.torchmanifold._along_edges(x, k.reshape(x.shape[:2]), sigma, directions,
+                                                float(range_sigma))
 
 
 @parallel
@@ -180,6 +196,14 @@ def _register_fakes() -> None:
 
     @torch.library.register_fake(lib + "_footprint_average")
     def _(x, k, sigma, range_sigma, unseen_border=0.0):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_edge_directions")
+    def _(x, k, tensor_sigma, power):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_along_edges")
+    def _(x, k, sigma, directions, range_sigma):
         return torch.empty_like(x, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_kuwahara3")

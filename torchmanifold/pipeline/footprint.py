@@ -136,8 +136,7 @@ def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> T
     if sigma <= 0:
         return x
     x = x.clamp_min(0.0)
-    lum = luminance(x)
-    k = _FOOTPRINT_KNEE * _frame_mean(lum, torch.ones_like(lum)).clamp_min(1e-30)
+    k = _knee(x)
     if _fast.enabled(x, k):
         return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE, unseen_border)
     y = x / (k + x)
@@ -180,13 +179,15 @@ _EDGE_TENSOR_SIGMA = 1.0
 _EDGE_COHERENCE_POWER = 3.0
 
 
-def _edge_directions(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Each pixel's edge direction in ``(T, 3, H, W)`` radiance and how surely it lies on one edge, each
-    ``(T, H, W)``: ``(coherence, tx, ty)``. The direction is the minor eigenvector of the structure tensor
+def _edge_directions(x: Tensor) -> Tensor:
+    """Each pixel's edge direction in ``(T, 3, H, W)`` radiance and how surely it lies on one edge:
+    ``(T, 3, H, W)`` of ``(surety, tx, ty)``. The direction is the minor eigenvector of the structure tensor
     of the tone-mapped luminance (smoothed over :data:`_EDGE_TENSOR_SIGMA` px), the surety the tensor's
     coherence to :data:`_EDGE_COHERENCE_POWER`: a corner or texture of many directions has a low one."""
-    y = _tone_mapped(x)[0]
-    ly = luminance(y)
+    k = _knee(x)
+    if _fast.enabled(x, k):
+        return _fast.edge_directions(x, k, _EDGE_TENSOR_SIGMA, _EDGE_COHERENCE_POWER)
+    ly = luminance(_tone_mapped(x, k))
     gx, gy = torch.zeros_like(ly), torch.zeros_like(ly)
     gx[..., 1:-1] = (ly[..., 2:] - ly[..., :-2]) / 2
     gy[..., 1:-1, :] = (ly[..., 2:, :] - ly[..., :-2, :]) / 2
@@ -194,19 +195,26 @@ def _edge_directions(x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     spread = torch.sqrt((jxx - jyy) ** 2 + 4 * jxy * jxy)
     coherence = (spread / (jxx + jyy).clamp_min(1e-30)).clamp(0.0, 1.0) ** _EDGE_COHERENCE_POWER
     across = 0.5 * torch.atan2(2 * jxy, jxx - jyy)  # the gradient's direction
-    return coherence, -torch.sin(across), torch.cos(across)
+    return torch.stack([coherence, -torch.sin(across), torch.cos(across)], 1)
 
 
-def _tone_mapped(x: Tensor) -> tuple[Tensor, Tensor]:
-    """``x / (k + x)`` of ``(T, 3, H, W)`` radiance and ``k``, the footprint average's knee."""
+def _knee(x: Tensor) -> Tensor:
+    """The footprint average's tone-mapping knee ``(T, 1, 1, 1)`` of ``(T, 3, H, W)`` radiance: a few times
+    each frame's mean luminance (``x`` clamped at 0)."""
+    lum = luminance(x.clamp_min(0.0))
+    return _FOOTPRINT_KNEE * _frame_mean(lum, torch.ones_like(lum)).clamp_min(1e-30)
+
+
+def _tone_mapped(x: Tensor, k: Tensor) -> Tensor:
+    """``x / (k + x)`` of ``(T, 3, H, W)`` radiance clamped at 0, ``k`` its knee (:func:`_knee`)."""
     x = x.clamp_min(0.0)
-    k = _FOOTPRINT_KNEE * _frame_mean(luminance(x), torch.ones_like(x[:, :1])).clamp_min(1e-30)
-    return x / (k + x), k
+    return x / (k + x)
 
 
-def _along_edges(x: Tensor, sigma: Tensor, directions: tuple[Tensor, Tensor, Tensor]) -> Tensor:
-    """``(T, 3, H, W)`` radiance averaged along the edges of ``directions`` (:func:`_edge_directions`), over
-    a Gaussian of ``sigma`` pixels (``(T, 1, H, W)``, each pixel its own; 0 leaves a pixel as it is).
+def _along_edges(images: Sequence[Tensor], widths: Sequence[Tensor], directions: Tensor) -> list[Tensor]:
+    """Each ``(T, 3, H, W)`` radiance of ``images`` averaged along the edges of ``directions``
+    (:func:`_edge_directions`), over a Gaussian of its ``widths`` pixels (``(T, 1, H, W)``, each pixel its
+    own; 0 leaves a pixel as it is).
 
     A pixel that a silhouette, a light's border or a texture's edge crosses shows the share of its few
     samples that fell on either side, a noisy estimate of the area it covers; its neighbours along the
@@ -215,17 +223,26 @@ def _along_edges(x: Tensor, sigma: Tensor, directions: tuple[Tensor, Tensor, Ten
     in the footprint average's tone-mapped domain with its range weight; lights (:func:`_light_share`) keep
     their value, and their borders are the footprint average's.
     """
-    reach = float(sigma.max()) if sigma.numel() else 0.0
+    reach = max((float(w.max()) for w in widths if w.numel()), default=0.0)
     if reach <= 0:
-        return x
-    coherence, tx, ty = directions
+        return list(images)
+    knees = [_knee(x) for x in images]
+    if _fast.enabled(*images, *knees, *widths, directions):
+        out = _fast.along_edges(torch.stack(list(images)), torch.stack(knees), torch.stack(list(widths)),
+                                directions, _FOOTPRINT_RANGE)
+        return list(out.unbind(0))
+    return [_along_edges_reference(x, k, w, directions, reach) for x, k, w in zip(images, knees, widths)]
+
+
+def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tensor, reach: float) -> Tensor:
+    """:func:`_along_edges` of one image of knee ``k``, its taps out to 2.5 ``reach`` (the widest width)."""
+    y = _tone_mapped(x, k)
+    coherence, tx, ty = directions.unbind(1)
     T, _, H, W = x.shape
-    y, k = _tone_mapped(x)
-    # a tap weighs by the surety at its own place too: beyond a corner, or among pixel-sized texture, the
-    # edge does not go on; and, as in the footprint average, by its brightness, so that a light does not mix
-    # with the dark beyond its corner
     ly = luminance(y)
-    yc = torch.cat([y, ly, coherence[:, None]], 1)
+    # a tap weighs by the surety at its own place too: beyond a corner, or among pixel-sized texture, the
+    # edge does not go on; and, as in the footprint average, by its brightness
+    yc = torch.cat([y, coherence[:, None]], 1)
     rows = torch.arange(H, dtype=x.dtype, device=x.device).view(1, H, 1)
     cols = torch.arange(W, dtype=x.dtype, device=x.device).view(1, 1, W)
     inv = 1.0 / (2.0 * sigma * sigma).clamp_min(1e-30)
@@ -237,7 +254,7 @@ def _along_edges(x: Tensor, sigma: Tensor, directions: tuple[Tensor, Tensor, Ten
                                 (rows + s * ty + 0.5) * (2.0 / H) - 1], -1)
             tap = torch.nn.functional.grid_sample(yc, grid, mode="bilinear", padding_mode="border",
                                                   align_corners=False)
-            wt = w * tap[:, 4:] * torch.exp(-(tap[:, 3:4] - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
+            wt = w * tap[:, 3:] * torch.exp(-(luminance(tap[:, :3]) - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
             num = num + wt * tap[:, :3]
             den = den + wt
     # a light keeps its own value: near its display white a tap a few percent into the dark beside it would
@@ -548,7 +565,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     width = _edge_width(sigma, None, out)
     edges = bool((width > 0).any())
     if smooth is None or sigma <= 0:
-        return _along_edges(out, width, _edge_directions(out)) if edges else out
+        return _along_edges([out], [width], _edge_directions(out))[0] if edges else out
     w = smooth * (~flat).to(smooth.dtype)
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
     if counts is not None and most > 1 and bool((counts > 1).any()):
@@ -561,7 +578,6 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         return out + w * (light * texture - out)
     # the edges are the result's; the albedo's own samples, counts times the frame's, set its width
     directions = _edge_directions(out + w * (light * texture - out))
-    out = _along_edges(out, width, directions)
-    textured = _along_edges(light, width, directions) * _along_edges(texture, _edge_width(sigma, counts, out),
-                                                                      directions)
-    return out + w * (textured - out)
+    out, light, texture = _along_edges([out, light, texture], [width, width, _edge_width(sigma, counts, out)],
+                                       directions)
+    return out + w * (light * texture - out)

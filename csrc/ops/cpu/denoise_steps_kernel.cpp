@@ -16,6 +16,7 @@
 #include <cstring>
 #include <limits>
 #include <tuple>
+#include <type_traits>
 #include <vector>
 
 #include "ops/cpu/workspace.h"
@@ -993,6 +994,243 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
   return out;
 }
 
+// ------------------------------------------------------------------------------ edges
+// footprint._tone_mapped: y = x / (k + x) of x clamped at 0 (NaN kept), three planes and their luminance.
+template <typename T>
+void tone_mapped(const T* px, T k, int64_t HW, T* y) {
+  for (int64_t i = 0; i < HW; ++i) {
+    const T a = px[i] < T(0) ? T(0) : px[i], b = px[HW + i] < T(0) ? T(0) : px[HW + i],
+            c = px[2 * HW + i] < T(0) ? T(0) : px[2 * HW + i];
+    y[i] = a / (k + a);
+    y[HW + i] = b / (k + b);
+    y[2 * HW + i] = c / (k + c);
+    y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
+  }
+}
+
+// footprint._edge_directions: x (T, 3, H, W), k (T,) -> (T, 3, H, W): each pixel's coherence^power and
+// edge direction (tx, ty), from the structure tensor of the tone-mapped luminance's central differences
+// (0 on the border rows and columns), blurred by footprint_blur's Gaussian of tensor_sigma.
+at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, double tensor_sigma, double power) {
+  const char* op = "_edge_directions";
+  check_float(x_, "x", op);
+  check_shape(x_, "x", op, 4);
+  TORCH_CHECK_VALUE(x_.size(1) == 3, op, ": x must be (T, 3, H, W), got ", x_.sizes());
+  TORCH_CHECK_VALUE(k_.dim() == 1 && k_.size(0) == x_.size(0) && k_.scalar_type() == x_.scalar_type(), op,
+                    ": k must be (T,) = (", x_.size(0), ",) of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
+  TORCH_CHECK_VALUE(tensor_sigma > 0, op, ": tensor_sigma must be > 0, got ", tensor_sigma);
+  const at::Tensor x = x_.contiguous(), kt = k_.contiguous();
+  const int64_t Tn = x.size(0), H = x.size(2), W = x.size(3), HW = H * W;
+  at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
+  if (out.numel() == 0) return out;
+  const int64_t r = gaussian_radius(tensor_sigma);
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "edge_directions_cpu", [&] {
+    using T = scalar_t;
+    const std::vector<T> taps = gaussian_taps<T>(tensor_sigma, r);
+    const T pw = static_cast<T>(power);
+    Scratch<T> yb, jb;
+    yb.resize(4 * HW);
+    jb.resize(3 * HW);  // gx gx, gx gy, gy gy, then blurred along x in place
+    for (int64_t t = 0; t < Tn; ++t) {
+      T* y = yb.data();
+      T* j3 = jb.data();
+      tone_mapped(x.data_ptr<T>() + t * 3 * HW, kt.data_ptr<T>()[t], HW, y);
+      const T* ly = y + 3 * HW;
+      at::parallel_for(0, H, row_grain(W * (2 * r + 1)), [&](int64_t y0, int64_t y1) {
+        Scratch<T> rowb, padb;
+        rowb.resize(3 * W);
+        padb.resize(W + 2 * r);
+        for (int64_t i = y0; i < y1; ++i) {
+          T* g = rowb.data();
+          for (int64_t j = 0; j < W; ++j) {
+            const T gx = (j > 0 && j < W - 1) ? (ly[i * W + j + 1] - ly[i * W + j - 1]) / T(2) : T(0);
+            const T gy = (i > 0 && i < H - 1) ? (ly[(i + 1) * W + j] - ly[(i - 1) * W + j]) / T(2) : T(0);
+            g[j] = gx * gx;
+            g[W + j] = gx * gy;
+            g[2 * W + j] = gy * gy;
+          }
+          for (int64_t c = 0; c < 3; ++c) blur_row(g + c * W, taps, r, W, padb.data(), j3 + c * HW + i * W);
+        }
+      });
+      T* po = out.data_ptr<T>() + t * 3 * HW;
+      at::parallel_for(0, H, row_grain(W * (2 * r + 1)), [&](int64_t y0, int64_t y1) {
+        Scratch<T> accb;
+        accb.resize(3 * W);
+        T* a = accb.data();
+        for (int64_t i = y0; i < y1; ++i) {
+          for (int64_t c = 0; c < 3; ++c) blur_column(j3 + c * HW, H, W, i, taps, r, a + c * W);
+          for (int64_t j = 0; j < W; ++j) {
+            const T jxx = a[j], jxy = a[W + j], jyy = a[2 * W + j];
+            const T spread = std::sqrt((jxx - jyy) * (jxx - jyy) + T(4) * jxy * jxy);
+            const T tr = std::max(jxx + jyy, T(1e-30));
+            T c = spread / tr;
+            c = c < T(0) ? T(0) : (c > T(1) ? T(1) : c);
+            const T across = T(0.5) * std::atan2(T(2) * jxy, jxx - jyy);
+            po[i * W + j] = std::pow(c, pw);
+            po[HW + i * W + j] = -std::sin(across);
+            po[2 * HW + i * W + j] = std::cos(across);
+          }
+        }
+      });
+    }
+  });
+  return out;
+}
+
+// footprint._along_edges: M images x (M, T, 3, H, W) with their knees k (M, T) and per-pixel widths sigma
+// (M, T, 1, H, W), along the directions (T, 3, H, W) they share -> (M, T, 3, H, W). Taps at whole steps
+// s = +-1 .. ceil(2.5 max sigma) along (tx, ty), bilinear with the coordinates clamped to the image
+// (grid_sample's border padding), each weighed by its Gaussian, the coherence there and the range weight of
+// the luminance of its tone-mapped colour; the average blends in by the pixel's coherence and how far it is not a light.
+// The images share the taps' places and corner weights.
+at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at::Tensor& sigma_,
+                           const at::Tensor& dir_, double range_sigma) {
+  const char* op = "_along_edges";
+  check_float(x_, "x", op);
+  check_shape(x_, "x", op, 5);
+  TORCH_CHECK_VALUE(x_.size(2) == 3, op, ": x must be (M, T, 3, H, W), got ", x_.sizes());
+  const int64_t M = x_.size(0), Tn = x_.size(1), H = x_.size(3), W = x_.size(4), HW = H * W;
+  TORCH_CHECK_VALUE(k_.sizes() == at::IntArrayRef({M, Tn}) && k_.scalar_type() == x_.scalar_type(), op,
+                    ": k must be (M, T) = (", M, ", ", Tn, ") of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
+  TORCH_CHECK_VALUE(sigma_.sizes() == at::IntArrayRef({M, Tn, 1, H, W}) && sigma_.scalar_type() == x_.scalar_type(),
+                    op, ": sigma must be (M, T, 1, H, W) = (", M, ", ", Tn, ", 1, ", H, ", ", W, ") of x's dtype, got ",
+                    sigma_.sizes(), " ", sigma_.scalar_type());
+  TORCH_CHECK_VALUE(dir_.sizes() == at::IntArrayRef({Tn, 3, H, W}) && dir_.scalar_type() == x_.scalar_type(), op,
+                    ": directions must be (T, 3, H, W) = (", Tn, ", 3, ", H, ", ", W, ") of x's dtype, got ",
+                    dir_.sizes());
+  TORCH_CHECK_VALUE(range_sigma > 0, op, ": range_sigma must be > 0, got ", range_sigma);
+  const at::Tensor x = x_.contiguous(), kt = k_.contiguous(), sg = sigma_.contiguous(), dr = dir_.contiguous();
+  at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
+  if (out.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "along_edges_cpu", [&] {
+    using T = scalar_t;
+    const T* ps = sg.data_ptr<T>();
+    T reach = T(0);
+    for (int64_t i = 0; i < M * Tn * HW; ++i) reach = std::max(reach, ps[i]);
+    const int64_t R = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(2.5 * static_cast<double>(reach))));
+    const T inv_range = T(1) / static_cast<T>(2 * range_sigma * range_sigma);
+    const int64_t V = 3 * M + 1;  // per pixel each image's y0 y1 y2, then the coherence
+    Scratch<T> yb, tapb;
+    yb.resize(M * 4 * HW);
+    tapb.resize(V * HW);
+    for (int64_t t = 0; t < Tn; ++t) {
+      T* y = yb.data();  // (M, 4, H, W)
+      T* tp = tapb.data();
+      const T* coh = dr.data_ptr<T>() + t * 3 * HW;
+      const T* tx = coh + HW;
+      const T* ty = coh + 2 * HW;
+      for (int64_t m = 0; m < M; ++m) {
+        T* ym = y + m * 4 * HW;
+        tone_mapped(x.data_ptr<T>() + (m * Tn + t) * 3 * HW, kt.data_ptr<T>()[m * Tn + t], HW, ym);
+        for (int64_t p = 0; p < HW; ++p)
+          for (int64_t c = 0; c < 3; ++c) tp[V * p + 3 * m + c] = ym[c * HW + p];
+      }
+      for (int64_t p = 0; p < HW; ++p) tp[V * p + 3 * M] = coh[p];
+      // a row at a time, in passes over its pixels that vectorise (positions, weights, exp, sums) around the
+      // one that gathers the taps' corners
+      at::parallel_for(0, H, row_grain(W * 4 * R * M), [&](int64_t y0, int64_t y1) {
+        Scratch<T> rowb;
+        rowb.resize((V + 2 + 7 * M) * W);
+        T* __restrict fx = rowb.data();
+        T* __restrict fy = fx + W;
+        T* __restrict v = fy + W;           // V planes: the taps' values
+        T* __restrict inv = v + V * W;      // M planes each: 1 / (2 sigma^2), the step's Gaussian,
+        T* __restrict wd = inv + M * W;     // the numerators (3 planes), den and a tap's weight
+        T* __restrict num = wd + M * W;
+        T* __restrict den = num + 3 * M * W;
+        T* __restrict wt = den + M * W;
+        for (int64_t i = y0; i < y1; ++i) {
+          const int64_t row = i * W;
+          const T* __restrict txr = tx + row;
+          const T* __restrict tyr = ty + row;
+          for (int64_t m = 0; m < M; ++m) {
+            const T* __restrict sr = ps + (m * Tn + t) * HW + row;
+            const T* ym = y + m * 4 * HW;
+            for (int64_t j = 0; j < W; ++j) {
+              inv[m * W + j] = T(1) / std::max(T(2) * sr[j] * sr[j], T(1e-30));
+              for (int64_t c = 0; c < 3; ++c) num[(3 * m + c) * W + j] = ym[c * HW + row + j];
+              den[m * W + j] = T(1);
+            }
+          }
+          for (int64_t d = 1; d <= R; ++d) {
+            const T dd = static_cast<T>(d * d);
+            for (int64_t m = 0; m < M; ++m) {
+              const T* __restrict sr = ps + (m * Tn + t) * HW + row;
+              for (int64_t j = 0; j < W; ++j)
+                wd[m * W + j] = sr[j] > T(0) ? exp_lanes(-dd * inv[m * W + j]) : T(0);
+            }
+            for (int64_t sgn = 1; sgn >= -1; sgn -= 2) {
+              const T step = static_cast<T>(sgn * d);
+              for (int64_t j = 0; j < W; ++j) {
+                const T a = static_cast<T>(j) + step * txr[j], b = static_cast<T>(i) + step * tyr[j];
+                fx[j] = a < T(0) ? T(0) : (a > T(W - 1) ? T(W - 1) : a);
+                fy[j] = b < T(0) ? T(0) : (b > T(H - 1) ? T(H - 1) : b);
+              }
+              // the gather, its value count fixed at compile time for one image and for three
+              auto gather = [&](auto count) {
+                constexpr int64_t n = decltype(count)::value;
+                const int64_t nv = n > 0 ? n : V;
+                for (int64_t j = 0; j < W; ++j) {
+                  const int64_t x0 = static_cast<int64_t>(fx[j]), yy0 = static_cast<int64_t>(fy[j]);  // >= 0
+                  const int64_t x1 = std::min(x0 + 1, W - 1), yy1 = std::min(yy0 + 1, H - 1);
+                  const T ax = fx[j] - static_cast<T>(x0), ay = fy[j] - static_cast<T>(yy0);
+                  const T w00 = (T(1) - ax) * (T(1) - ay), w01 = ax * (T(1) - ay), w10 = (T(1) - ax) * ay,
+                          w11 = ax * ay;
+                  const T *c00 = tp + nv * (yy0 * W + x0), *c01 = tp + nv * (yy0 * W + x1),
+                          *c10 = tp + nv * (yy1 * W + x0), *c11 = tp + nv * (yy1 * W + x1);
+                  for (int64_t c = 0; c < nv; ++c)
+                    v[c * W + j] = w00 * c00[c] + w01 * c01[c] + w10 * c10[c] + w11 * c11[c];
+                }
+              };
+              if (V == 4)
+                gather(std::integral_constant<int64_t, 4>());
+              else if (V == 10)
+                gather(std::integral_constant<int64_t, 10>());
+              else
+                gather(std::integral_constant<int64_t, 0>());
+              const T* __restrict vc = v + 3 * M * W;
+              for (int64_t m = 0; m < M; ++m) {
+                const T* __restrict vm = v + 3 * m * W;
+                const T* __restrict lr = y + (m * 4 + 3) * HW + row;
+                const T* __restrict wdm = wd + m * W;
+                T* __restrict wm = wt + m * W;
+                for (int64_t j = 0; j < W; ++j) {
+                  const T dl = lum(vm[j], vm[W + j], vm[2 * W + j]) - lr[j];
+                  wm[j] = wdm[j] * vc[j] * exp_lanes(-(dl * dl) * inv_range);
+                }
+                T* __restrict a0 = num + 3 * m * W;
+                T* __restrict a1 = a0 + W;
+                T* __restrict a2 = a1 + W;
+                T* __restrict dm = den + m * W;
+                for (int64_t j = 0; j < W; ++j) {
+                  a0[j] += wm[j] * vm[j];
+                  a1[j] += wm[j] * vm[W + j];
+                  a2[j] += wm[j] * vm[2 * W + j];
+                  dm[j] += wm[j];
+                }
+              }
+            }
+          }
+          for (int64_t m = 0; m < M; ++m) {
+            const T k = kt.data_ptr<T>()[m * Tn + t];
+            const T* ym = y + m * 4 * HW;
+            T* po = out.data_ptr<T>() + (m * Tn + t) * 3 * HW;
+            for (int64_t j = 0; j < W; ++j) {
+              const int64_t p = row + j;
+              const T blend = coh[p] * (T(1) - light_share(ym[3 * HW + p]));
+              for (int64_t c = 0; c < 3; ++c) {
+                const T o = ym[c * HW + p] + blend * (num[(3 * m + c) * W + j] / den[m * W + j] - ym[c * HW + p]);
+                po[c * HW + p] = k * o / std::max(T(1) - o, T(1e-6));
+              }
+            }
+          }
+        }
+      });
+    }
+  });
+  return out;
+}
+
 // ------------------------------------------------------------------------------ same pixel
 // denoise._box_mean of one (H, W) plane: the mean over the (2r+1)^2 box, the border replicated, summed
 // along x then along y and divided once, in the same order as the PyTorch sums of shifted views (each
@@ -1264,6 +1502,8 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_normalised_blur", &normalised_blur_cpu);
   m.impl("_same_pixel", &same_pixel_cpu);
   m.impl("_footprint_samples", &footprint_samples_cpu);
+  m.impl("_edge_directions", &edge_directions_cpu);
+  m.impl("_along_edges", &along_edges_cpu);
 }
 
 }  // namespace cpu
