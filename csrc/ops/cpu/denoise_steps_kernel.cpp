@@ -1077,6 +1077,35 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
   return out;
 }
 
+// A row of the taps' places, s steps along (tx, ty) from the pixels of row i, clamped to the image.
+template <typename T>
+void tap_places(const T* __restrict tx, const T* __restrict ty, T s, int64_t i, int64_t W, int64_t H,
+                T* __restrict fx, T* __restrict fy) {
+  const T xmax = static_cast<T>(W - 1), ymax = static_cast<T>(H - 1), fi = static_cast<T>(i);
+  for (int64_t j = 0; j < W; ++j) {
+    const T a = static_cast<T>(j) + s * tx[j], b = fi + s * ty[j];
+    fx[j] = a < T(0) ? T(0) : (a > xmax ? xmax : a);
+    fy[j] = b < T(0) ? T(0) : (b > ymax ? ymax : b);
+  }
+}
+
+// A row of a step's Gaussian, exp(-d^2 inv) where the width sigma > 0, else 0.
+template <typename T>
+void step_weights(const T* __restrict sigma, const T* __restrict inv, T d2, int64_t W, T* __restrict out) {
+  for (int64_t j = 0; j < W; ++j) out[j] = sigma[j] > T(0) ? exp_lanes(-d2 * inv[j]) : T(0);
+}
+
+// A row of the taps' weights along an edge: the step's Gaussian g times the coherence c at the tap times the
+// range weight of the luminance of the tap's tone-mapped colour (v0, v1, v2) against the pixel's, l.
+template <typename T>
+void tap_weights(const T* __restrict v0, const T* __restrict v1, const T* __restrict v2, const T* __restrict l,
+                 const T* __restrict g, const T* __restrict c, T inv_range, int64_t W, T* __restrict out) {
+  for (int64_t j = 0; j < W; ++j) {
+    const T dl = lum(v0[j], v1[j], v2[j]) - l[j];
+    out[j] = g[j] * c[j] * exp_lanes(-(dl * dl) * inv_range);
+  }
+}
+
 // footprint._along_edges: M images x (M, T, 3, H, W) with their knees k (M, T) and per-pixel widths sigma
 // (M, T, 1, H, W), along the directions (T, 3, H, W) they share -> (M, T, 3, H, W). Taps at whole steps
 // s = +-1 .. ceil(2.5 max sigma) along (tx, ty), bilinear with the coordinates clamped to the image
@@ -1154,18 +1183,10 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
           }
           for (int64_t d = 1; d <= R; ++d) {
             const T dd = static_cast<T>(d * d);
-            for (int64_t m = 0; m < M; ++m) {
-              const T* __restrict sr = ps + (m * Tn + t) * HW + row;
-              for (int64_t j = 0; j < W; ++j)
-                wd[m * W + j] = sr[j] > T(0) ? exp_lanes(-dd * inv[m * W + j]) : T(0);
-            }
+            for (int64_t m = 0; m < M; ++m) step_weights(ps + (m * Tn + t) * HW + row, inv + m * W, dd, W, wd + m * W);
             for (int64_t sgn = 1; sgn >= -1; sgn -= 2) {
               const T step = static_cast<T>(sgn * d);
-              for (int64_t j = 0; j < W; ++j) {
-                const T a = static_cast<T>(j) + step * txr[j], b = static_cast<T>(i) + step * tyr[j];
-                fx[j] = a < T(0) ? T(0) : (a > T(W - 1) ? T(W - 1) : a);
-                fy[j] = b < T(0) ? T(0) : (b > T(H - 1) ? T(H - 1) : b);
-              }
+              tap_places(txr, tyr, step, i, W, H, fx, fy);
               // the gather, its value count fixed at compile time for one image and for three
               auto gather = [&](auto count) {
                 constexpr int64_t n = decltype(count)::value;
@@ -1188,26 +1209,12 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
                 gather(std::integral_constant<int64_t, 10>());
               else
                 gather(std::integral_constant<int64_t, 0>());
-              const T* __restrict vc = v + 3 * M * W;
               for (int64_t m = 0; m < M; ++m) {
-                const T* __restrict vm = v + 3 * m * W;
-                const T* __restrict lr = y + (m * 4 + 3) * HW + row;
-                const T* __restrict wdm = wd + m * W;
-                T* __restrict wm = wt + m * W;
-                for (int64_t j = 0; j < W; ++j) {
-                  const T dl = lum(vm[j], vm[W + j], vm[2 * W + j]) - lr[j];
-                  wm[j] = wdm[j] * vc[j] * exp_lanes(-(dl * dl) * inv_range);
-                }
-                T* __restrict a0 = num + 3 * m * W;
-                T* __restrict a1 = a0 + W;
-                T* __restrict a2 = a1 + W;
-                T* __restrict dm = den + m * W;
-                for (int64_t j = 0; j < W; ++j) {
-                  a0[j] += wm[j] * vm[j];
-                  a1[j] += wm[j] * vm[W + j];
-                  a2[j] += wm[j] * vm[2 * W + j];
-                  dm[j] += wm[j];
-                }
+                const T* vm = v + 3 * m * W;
+                tap_weights(vm, vm + W, vm + 2 * W, y + (m * 4 + 3) * HW + row, wd + m * W, v + 3 * M * W,
+                            inv_range, W, wt + m * W);
+                T* a0 = num + 3 * m * W;
+                accumulate_weighted(a0, a0 + W, a0 + 2 * W, den + m * W, wt + m * W, vm, vm + W, vm + 2 * W, W);
               }
             }
           }
