@@ -1282,8 +1282,8 @@ def test_an_edge_s_pixels_average_along_it(spp, monkeypatch):
 def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """:func:`FP._along_edges` of ``(1, 3, H, W)`` pixel by pixel (float64): central differences of the
     tone-mapped luminance, their tensor under a Gaussian (replicated border), its minor eigenvector, and
-    taps at whole steps along it, bilinear with the border's pixels repeated, weighed by the surety there and
-    the footprint average's range weight; a light (its share) keeps its value."""
+    taps at whole steps along it, bilinear with the border's pixels repeated, weighed by the least surety on
+    the way and the footprint average's range weight; a light (its share) keeps its value."""
     lum, share, k, y, ly = _tone_mapped_brute(x)
     H, W = ly.shape
     gx, gy = np.zeros_like(ly), np.zeros_like(ly)
@@ -1323,10 +1323,13 @@ def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
             m = np.array([[jxx[i, j], jxy[i, j]], [jxy[i, j], jyy[i, j]]])
             tx, ty = np.linalg.eigh(m)[1][:, 0]  # (x, y) of the minor eigenvector
             num, den = y[:, i, j].copy(), 1.0
+            least = {1: 1.0, -1: 1.0}  # the least surety so far along each way
             for t in range(1, int(math.ceil(2.5 * sigma)) + 1):
                 for s in (t, -t):
                     tap = at(y, i + s * ty, j + s * tx)
-                    w = math.exp(-t * t / (2 * sigma * sigma)) * at(coherence, i + s * ty, j + s * tx)
+                    way = 1 if s > 0 else -1
+                    least[way] = min(least[way], at(coherence, i + s * ty, j + s * tx))
+                    w = math.exp(-t * t / (2 * sigma * sigma)) * least[way]
                     w *= math.exp(-(lum(tap) - ly[i, j]) ** 2 / (2 * FP._FOOTPRINT_RANGE ** 2))
                     num += w * tap
                     den += w

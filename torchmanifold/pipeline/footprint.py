@@ -168,7 +168,8 @@ def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> T
 #: along the edge has the square ``_ALONG_EDGE * b / n``: 2 px from 1 spp, 1 from 4, none in the limit. The
 #: tuning part of the validation set and `mi_ceiling_light` at 256x256, frames 0-2 of the `denoise` default,
 #: 1 / 4 spp: 4.7 / 6.5 / 9 with taps of any surety +0.15 / +0.14, +0.16 / +0.16, +0.16 / +0.18 dB; 12 with
-#: taps weighed by theirs +0.15 / +0.16, and by brightness too, lights apart, +0.13 / +0.15 (findings.md)
+#: taps weighed by theirs +0.15 / +0.16, and by brightness too, lights apart, +0.13 / +0.15; with the least
+#: surety on the way, 18 instead: 0.00 / +0.02 (findings.md)
 _ALONG_EDGE = 12.0
 #: the structure tensor's smoothing (pixels) that finds an edge's direction: 0.7 / 1 / 1.5 / 2.5 px gained
 #: +0.13 / +0.18 / +0.18 / +0.12 dB from 4 spp on that part (an average of 1 px on our output)
@@ -240,13 +241,14 @@ def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tens
     coherence, tx, ty = directions.unbind(1)
     T, _, H, W = x.shape
     ly = luminance(y)
-    # a tap weighs by the surety at its own place too: beyond a corner, or among pixel-sized texture, the
-    # edge does not go on; and, as in the footprint average, by its brightness
+    # a tap weighs by the least surety met on the way to it: beyond a corner, or among pixel-sized texture,
+    # the edge does not go on; and, as in the footprint average, by its brightness
     yc = torch.cat([y, coherence[:, None]], 1)
     rows = torch.arange(H, dtype=x.dtype, device=x.device).view(1, H, 1)
     cols = torch.arange(W, dtype=x.dtype, device=x.device).view(1, 1, W)
     inv = 1.0 / (2.0 * sigma * sigma).clamp_min(1e-30)
     num, den = y.clone(), torch.ones_like(sigma)
+    reach_min = {1: torch.ones_like(sigma), -1: torch.ones_like(sigma)}
     for t in range(1, max(1, int(math.ceil(2.5 * reach))) + 1):
         w = torch.where(sigma > 0, torch.exp(-t * t * inv), 0.0)
         for s in (t, -t):
@@ -254,7 +256,10 @@ def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tens
                                 (rows + s * ty + 0.5) * (2.0 / H) - 1], -1)
             tap = torch.nn.functional.grid_sample(yc, grid, mode="bilinear", padding_mode="border",
                                                   align_corners=False)
-            wt = w * tap[:, 3:] * torch.exp(-(luminance(tap[:, :3]) - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
+            way = 1 if s > 0 else -1
+            reach_min[way] = torch.minimum(reach_min[way], tap[:, 3:])
+            brightness = torch.exp(-(luminance(tap[:, :3]) - ly) ** 2 / (2 * _FOOTPRINT_RANGE ** 2))
+            wt = w * reach_min[way] * brightness
             num = num + wt * tap[:, :3]
             den = den + wt
     # a light keeps its own value: near its display white a tap a few percent into the dark beside it would

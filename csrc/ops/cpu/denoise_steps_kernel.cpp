@@ -1095,7 +1095,13 @@ void step_weights(const T* __restrict sigma, const T* __restrict inv, T d2, int6
   for (int64_t j = 0; j < W; ++j) out[j] = sigma[j] > T(0) ? exp_lanes(-d2 * inv[j]) : T(0);
 }
 
-// A row of the taps' weights along an edge: the step's Gaussian g times the coherence c at the tap times the
+// m = min(m, c) over a row: the least surety met so far along one way from each pixel.
+template <typename T>
+void running_min(const T* __restrict c, int64_t W, T* __restrict m) {
+  for (int64_t j = 0; j < W; ++j) m[j] = c[j] < m[j] ? c[j] : m[j];
+}
+
+// A row of the taps' weights along an edge: the step's Gaussian g times the least coherence c on the way times the
 // range weight of the luminance of the tap's tone-mapped colour (v0, v1, v2) against the pixel's, l.
 template <typename T>
 void tap_weights(const T* __restrict v0, const T* __restrict v1, const T* __restrict v2, const T* __restrict l,
@@ -1109,9 +1115,9 @@ void tap_weights(const T* __restrict v0, const T* __restrict v1, const T* __rest
 // footprint._along_edges: M images x (M, T, 3, H, W) with their knees k (M, T) and per-pixel widths sigma
 // (M, T, 1, H, W), along the directions (T, 3, H, W) they share -> (M, T, 3, H, W). Taps at whole steps
 // s = +-1 .. ceil(2.5 max sigma) along (tx, ty), bilinear with the coordinates clamped to the image
-// (grid_sample's border padding), each weighed by its Gaussian, the coherence there and the range weight of
-// the luminance of its tone-mapped colour; the average blends in by the pixel's coherence and how far it is not a light.
-// The images share the taps' places and corner weights.
+// (grid_sample's border padding), each weighed by its Gaussian, the least coherence on the way to it (its
+// own included) and the range weight of the luminance of its tone-mapped colour; the average blends in by the
+// pixel's coherence and how far it is not a light. The images share the taps' places and corner weights.
 at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at::Tensor& sigma_,
                            const at::Tensor& dir_, double range_sigma) {
   const char* op = "_along_edges";
@@ -1159,7 +1165,7 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
       // one that gathers the taps' corners
       at::parallel_for(0, H, row_grain(W * 4 * R * M), [&](int64_t y0, int64_t y1) {
         Scratch<T> rowb;
-        rowb.resize((V + 2 + 7 * M) * W);
+        rowb.resize((V + 4 + 7 * M) * W);
         T* __restrict fx = rowb.data();
         T* __restrict fy = fx + W;
         T* __restrict v = fy + W;           // V planes: the taps' values
@@ -1168,6 +1174,7 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
         T* __restrict num = wd + M * W;
         T* __restrict den = num + 3 * M * W;
         T* __restrict wt = den + M * W;
+        T* __restrict reach_min = wt + M * W;  // 2 planes: the least surety so far along each way
         for (int64_t i = y0; i < y1; ++i) {
           const int64_t row = i * W;
           const T* __restrict txr = tx + row;
@@ -1181,6 +1188,7 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
               den[m * W + j] = T(1);
             }
           }
+          std::fill(reach_min, reach_min + 2 * W, T(1));
           for (int64_t d = 1; d <= R; ++d) {
             const T dd = static_cast<T>(d * d);
             for (int64_t m = 0; m < M; ++m) step_weights(ps + (m * Tn + t) * HW + row, inv + m * W, dd, W, wd + m * W);
@@ -1209,10 +1217,11 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
                 gather(std::integral_constant<int64_t, 10>());
               else
                 gather(std::integral_constant<int64_t, 0>());
+              running_min(v + 3 * M * W, W, reach_min + (sgn > 0 ? 0 : W));
               for (int64_t m = 0; m < M; ++m) {
                 const T* vm = v + 3 * m * W;
-                tap_weights(vm, vm + W, vm + 2 * W, y + (m * 4 + 3) * HW + row, wd + m * W, v + 3 * M * W,
-                            inv_range, W, wt + m * W);
+                tap_weights(vm, vm + W, vm + 2 * W, y + (m * 4 + 3) * HW + row, wd + m * W,
+                            reach_min + (sgn > 0 ? 0 : W), inv_range, W, wt + m * W);
                 T* a0 = num + 3 * m * W;
                 accumulate_weighted(a0, a0 + W, a0 + 2 * W, den + m * W, wt + m * W, vm, vm + W, vm + 2 * W, W);
               }
