@@ -123,6 +123,10 @@ def test_along_edges_equals_reference(frame):
         images = [x, 3 * x.flip(-1) + 0.1]  # two images along the same directions, each its own width
         for a, b in zip(*_both(FP._along_edges, images, widths, d_ref)):
             torch.testing.assert_close(a, b, rtol=2e-5, atol=1e-6, equal_nan=True, msg=name)
+    d = FP._edge_directions(frame["e"])
+    d[:, 1:, 5, 7] = math.nan  # a direction that is NaN sends its taps to a pixel inside the image
+    out = FP._along_edges([frame["e"]], [torch.full_like(d[:, :1], 2.0)], d)[0]
+    assert bool(torch.isfinite(out).all())
     x = frame["e"].double()
     d = FP._edge_directions(x)
     with _fast.reference():

@@ -565,6 +565,10 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     (:func:`footprint_width`: its square is ``a + b / spp``): a blend of the footprints of one count and
     of ``most``, whose variance is that square exactly for every count in between. ``unseen_border``: as
     :func:`_footprint_average` takes it.
+
+    Last, each of the product, the light and the albedo is averaged along the result's edges
+    (:func:`_along_edges`), over a width from the samples per pixel (:func:`_edge_width`; the albedo's from
+    its ``counts``).
     """
     out = _footprint_average(irradiance * albedo, sigma, unseen_border)
     width = _edge_width(sigma, None, out)

@@ -1030,7 +1030,7 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
     const T pw = static_cast<T>(power);
     Scratch<T> yb, jb;
     yb.resize(4 * HW);
-    jb.resize(3 * HW);  // gx gx, gx gy, gy gy, then blurred along x in place
+    jb.resize(3 * HW);  // gx gx, gx gy, gy gy blurred along x
     for (int64_t t = 0; t < Tn; ++t) {
       T* y = yb.data();
       T* j3 = jb.data();
@@ -1077,15 +1077,16 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
   return out;
 }
 
-// A row of the taps' places, s steps along (tx, ty) from the pixels of row i, clamped to the image.
+// A row of the taps' places, s steps along (tx, ty) from the pixels of row i, clamped to the image (a NaN
+// direction, from a NaN sample, to its first pixel: every gather stays inside).
 template <typename T>
 void tap_places(const T* __restrict tx, const T* __restrict ty, T s, int64_t i, int64_t W, int64_t H,
                 T* __restrict fx, T* __restrict fy) {
   const T xmax = static_cast<T>(W - 1), ymax = static_cast<T>(H - 1), fi = static_cast<T>(i);
   for (int64_t j = 0; j < W; ++j) {
     const T a = static_cast<T>(j) + s * tx[j], b = fi + s * ty[j];
-    fx[j] = a < T(0) ? T(0) : (a > xmax ? xmax : a);
-    fy[j] = b < T(0) ? T(0) : (b > ymax ? ymax : b);
+    fx[j] = a > T(0) ? (a < xmax ? a : xmax) : T(0);
+    fy[j] = b > T(0) ? (b < ymax ? b : ymax) : T(0);
   }
 }
 
