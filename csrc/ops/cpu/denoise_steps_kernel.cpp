@@ -347,14 +347,19 @@ void accumulate_weighted(T* __restrict a0, T* __restrict a1, T* __restrict a2, T
   }
 }
 
+// x (T, 3, H, W) float radiance and k (T,) its tone-mapping knees, of x's dtype.
+void check_frames_and_knees(const at::Tensor& x, const at::Tensor& k, const char* op) {
+  check_float(x, "x", op);
+  check_shape(x, "x", op, 4);
+  TORCH_CHECK_VALUE(x.size(1) == 3, op, ": x must be (T, 3, H, W), got ", x.sizes());
+  TORCH_CHECK_VALUE(k.dim() == 1 && k.size(0) == x.size(0) && k.scalar_type() == x.scalar_type(), op,
+                    ": k must be (T,) = (", x.size(0), ",) of x's dtype, got ", k.sizes(), " ", k.scalar_type());
+}
+
 at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, double sigma, double range_sigma,
                                  double unseen_border) {
   const char* op = "_footprint_average";
-  check_float(x_, "x", op);
-  check_shape(x_, "x", op, 4);
-  TORCH_CHECK_VALUE(x_.size(1) == 3, op, ": x must be (T, 3, H, W), got ", x_.sizes());
-  TORCH_CHECK_VALUE(k_.dim() == 1 && k_.size(0) == x_.size(0) && k_.scalar_type() == x_.scalar_type(), op,
-                    ": k must be (T,) = (", x_.size(0), ",) of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
+  check_frames_and_knees(x_, k_, op);
   const at::Tensor kt = k_.contiguous();
   TORCH_CHECK_VALUE(sigma > 0 && range_sigma > 0, op, ": sigma and range_sigma must be > 0");
   TORCH_CHECK_VALUE(unseen_border >= 0 && unseen_border <= 1, op, ": unseen_border must be in [0, 1], got ",
@@ -1013,11 +1018,7 @@ void tone_mapped(const T* px, T k, int64_t HW, T* y) {
 // (0 on the border rows and columns), blurred by footprint_blur's Gaussian of tensor_sigma.
 at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, double tensor_sigma, double power) {
   const char* op = "_edge_directions";
-  check_float(x_, "x", op);
-  check_shape(x_, "x", op, 4);
-  TORCH_CHECK_VALUE(x_.size(1) == 3, op, ": x must be (T, 3, H, W), got ", x_.sizes());
-  TORCH_CHECK_VALUE(k_.dim() == 1 && k_.size(0) == x_.size(0) && k_.scalar_type() == x_.scalar_type(), op,
-                    ": k must be (T,) = (", x_.size(0), ",) of x's dtype, got ", k_.sizes(), " ", k_.scalar_type());
+  check_frames_and_knees(x_, k_, op);
   TORCH_CHECK_VALUE(tensor_sigma > 0, op, ": tensor_sigma must be > 0, got ", tensor_sigma);
   const at::Tensor x = x_.contiguous(), kt = k_.contiguous();
   const int64_t Tn = x.size(0), H = x.size(2), W = x.size(3), HW = H * W;
