@@ -1324,7 +1324,7 @@ def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
             tx, ty = np.linalg.eigh(m)[1][:, 0]  # (x, y) of the minor eigenvector
             num, den = y[:, i, j].copy(), 1.0
             least = {1: 1.0, -1: 1.0}  # the least surety so far along each way
-            for t in range(1, int(math.ceil(2.5 * sigma)) + 1):
+            for t in range(1, int(math.ceil(2.0 * sigma)) + 1):
                 for s in (t, -t):
                     tap = at(y, i + s * ty, j + s * tx)
                     way = 1 if s > 0 else -1

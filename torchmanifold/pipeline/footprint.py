@@ -236,7 +236,7 @@ def _along_edges(images: Sequence[Tensor], widths: Sequence[Tensor], directions:
 
 
 def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tensor, reach: float) -> Tensor:
-    """:func:`_along_edges` of one image of knee ``k``, its taps out to 2.5 ``reach`` (the widest width)."""
+    """:func:`_along_edges` of one image of knee ``k``, its taps out to 2 ``reach`` (the widest width)."""
     y = _tone_mapped(x, k)
     coherence, tx, ty = directions.unbind(1)
     T, _, H, W = x.shape
@@ -249,7 +249,7 @@ def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tens
     inv = 1.0 / (2.0 * sigma * sigma).clamp_min(1e-30)
     num, den = y.clone(), torch.ones_like(sigma)
     reach_min = {1: torch.ones_like(sigma), -1: torch.ones_like(sigma)}
-    for t in range(1, max(1, int(math.ceil(2.5 * reach))) + 1):
+    for t in range(1, max(1, int(math.ceil(2.0 * reach))) + 1):
         w = torch.where(sigma > 0, torch.exp(-t * t * inv), 0.0)
         for s in (t, -t):
             grid = torch.stack([(cols + s * tx + 0.5) * (2.0 / W) - 1,

@@ -1116,7 +1116,7 @@ void tap_weights(const T* __restrict v0, const T* __restrict v1, const T* __rest
 
 // footprint._along_edges: M images x (M, T, 3, H, W) with their knees k (M, T) and per-pixel widths sigma
 // (M, T, 1, H, W), along the directions (T, 3, H, W) they share -> (M, T, 3, H, W). Taps at whole steps
-// s = +-1 .. ceil(2.5 max sigma) along (tx, ty), bilinear with the coordinates clamped to the image
+// s = +-1 .. ceil(2 max sigma) along (tx, ty), bilinear with the coordinates clamped to the image
 // (grid_sample's border padding), each weighed by its Gaussian, the least coherence on the way to it (its
 // own included) and the range weight of the luminance of its tone-mapped colour; the average blends in by the
 // pixel's coherence and how far it is not a light. The images share the taps' places and corner weights.
@@ -1144,7 +1144,7 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
     const T* ps = sg.data_ptr<T>();
     T reach = T(0);
     for (int64_t i = 0; i < M * Tn * HW; ++i) reach = std::max(reach, ps[i]);
-    const int64_t R = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(2.5 * static_cast<double>(reach))));
+    const int64_t R = std::max<int64_t>(1, static_cast<int64_t>(std::ceil(2.0 * static_cast<double>(reach))));
     const T inv_range = T(1) / static_cast<T>(2 * range_sigma * range_sigma);
     const int64_t V = 3 * M + 1;  // per pixel each image's y0 y1 y2, then the coherence
     Scratch<T> yb, tapb;
