@@ -61,6 +61,8 @@ def main(argv=None):
                  "_clamp_fireflies", "_pilot_noise", "_radiance_from_pilot", "_select_bandwidth"):
         wrap(D, name, name)
     wrap(FP, "_footprint_average", "_footprint_average")
+    wrap(FP, "_edge_directions", "_edge_directions")
+    wrap(FP, "_along_edges", "_along_edges")
     wrap(D._Filter, "apply", "op calls (_Filter.apply)")
     wrap(D._Filter, "_guard", "_guard (in normalise)")
     wrap(D._Filter, "normalise", "normalise (incl. guard)")

@@ -1066,10 +1066,14 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
             const T tr = std::max(jxx + jyy, T(1e-30));
             T c = spread / tr;
             c = c < T(0) ? T(0) : (c > T(1) ? T(1) : c);
-            const T across = T(0.5) * std::atan2(T(2) * jxy, jxx - jyy);
-            po[i * W + j] = std::pow(c, pw);
-            po[HW + i * W + j] = -std::sin(across);
-            po[2 * HW + i * W + j] = std::cos(across);
+            // the gradient's angle t = atan2(2 jxy, jxx - jyy) / 2 by its half-angle cosine and sine (atan2(0, 0)
+            // = 0 where the tensor is isotropic; a sine of 0 counts as positive)
+            const T c2 = spread > T(0) ? (jxx - jyy) / spread : T(1);
+            const T ct = std::sqrt(std::max(T(0), (T(1) + c2) / T(2)));
+            const T st = std::copysign(std::sqrt(std::max(T(0), (T(1) - c2) / T(2))), jxy < T(0) ? T(-1) : T(1));
+            po[i * W + j] = pw == T(3) ? c * c * c : std::pow(c, pw);
+            po[HW + i * W + j] = -st;
+            po[2 * HW + i * W + j] = ct;
           }
         }
       });
