@@ -1200,26 +1200,34 @@ def test_gradient_through_the_denoiser_is_finite():
     assert y.isfinite().all() and grad.isfinite().all() and grad.abs().sum() > 0
 
 
+def _sampled_plane(tex: torch.Tensor, S: int, spp: int, gen: torch.Generator):
+    """A plane facing the camera under white light whose albedo is the texture ``tex`` ``(3, H S, W S)`` (``S``
+    x ``S`` points a pixel), seen at ``spp`` random points of each pixel: ``(colour, features, names, truth)``,
+    the colour the points' mean albedo ``(1, 3, H, W)`` and the truth the pixels' box averages ``(3, H, W)``
+    in ``tex``'s dtype."""
+    H, W = tex.shape[1] // S, tex.shape[2] // S
+    truth = tex.view(3, H, S, W, S).mean((2, 4))
+    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    albedo = tex[:, iy, ix].mean(-1)
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+    plane = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W), torch.full((1, H, W), 3.0)])
+    return albedo[None].float(), torch.cat([albedo, plane])[None].float(), names, truth
+
+
 def test_texture_on_a_flat_surface_keeps_its_detail(monkeypatch):
     """A striped texture (4-px period) on a plane, seen at one jittered sample per pixel, comes out closer to
     the pixels' true (box) averages than with the product's footprint average alone: on a flat surface the
     albedo is averaged over a narrower footprint than the light. Across a silhouette the rule is off."""
     from torchmanifold.pipeline import denoise as D
 
-    gen = torch.Generator().manual_seed(0)
     H = W = 64
     S = 8  # sub-pixel grid
     yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
     stripes = 0.2 + 0.6 * ((((xx + yy).double() / S) % 4.0) < 2.0).double()
     tex = torch.stack([stripes, 0.8 * stripes, 0.5 * stripes])
-    truth = tex.view(3, H, S, W, S).mean((2, 4))
-    iy = torch.arange(H)[:, None] * S + torch.randint(0, S, (H, W), generator=gen)
-    ix = torch.arange(W)[None, :] * S + torch.randint(0, S, (H, W), generator=gen)
-    albedo = tex[:, iy, ix]
-    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
-    plane = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W), torch.full((1, H, W), 3.0)])
-    f = torch.cat([albedo, plane])[None].float()
-    c = albedo[None].float()  # white light: the colour is the albedo sample
+    c, f, names, truth = _sampled_plane(tex, S, 1, torch.Generator().manual_seed(0))
+    plane = f[0, 3:]
 
     def error(x):
         return float(((x[0].double() - truth) ** 2).mean())
@@ -1243,17 +1251,10 @@ def _edge_clip(spp: int, H: int = 48, W: int = 48, S: int = 16, seed: int = 0):
     """A plane under white light whose albedo steps from 0.2 to 0.8 along a slanted line, ``spp`` samples
     per pixel at random points of it: ``(colour, features, names, truth)``, the truth the pixels' box
     averages (``S`` x ``S`` sub-pixel grid)."""
-    gen = torch.Generator().manual_seed(seed)
     yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
     step = 0.2 + 0.6 * ((xx.double() + 0.3 * yy.double()) / S > W / 2).double()
-    truth = step.view(H, S, W, S).mean((1, 3))
-    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    albedo = step[iy, ix].mean(-1).expand(3, H, W)
-    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
-    plane = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W), torch.full((1, H, W), 3.0)])
-    f = torch.cat([albedo, plane])[None].float()
-    return albedo[None].float(), f, names, truth.expand(3, H, W)[None].float()
+    c, f, names, truth = _sampled_plane(step.expand(3, -1, -1), S, spp, torch.Generator().manual_seed(seed))
+    return c, f, names, truth[None].float()
 
 
 @pytest.mark.parametrize("spp", [1, 4])

@@ -928,8 +928,8 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
     normal = torch.stack([f[:, canon.index(c)] for c in unit.channels], 1)
     share = (1.0 - torch.linalg.vector_norm(normal, dim=1, keepdim=True)).clamp(0.0, 1.0)
     r = _SKY_MIX_RADIUS
-    near = nn.functional.max_pool2d(lit.to(f.dtype), 2 * r + 1, 1, r) > 0
     sky = lit.to(f.dtype)
+    near = nn.functional.max_pool2d(sky, 2 * r + 1, 1, r) > 0
     sky_albedo = (raw * sky).sum((2, 3), keepdim=True) / sky.sum((2, 3), keepdim=True).clamp_min(1.0)
     mixed_albedo = raw + share * (1.0 - sky_albedo).clamp_min(0.0)
     mixed = near & ~lit & (share > 0) & (luminance(mixed_albedo) >= eps)

@@ -139,7 +139,7 @@ def _footprint_average(x: Tensor, sigma: float, unseen_border: float = 0.0) -> T
     k = _knee(x)
     if _fast.enabled(x, k):
         return _fast.footprint_average(x, k, sigma, _FOOTPRINT_RANGE, unseen_border)
-    y = x / (k + x)
+    y = _tone_mapped(x, k)
     ly = luminance(y)
     count = _light_neighbours(ly)
     r = max(1, int(math.ceil(3 * sigma)))

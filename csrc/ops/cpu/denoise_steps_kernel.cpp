@@ -356,6 +356,23 @@ void check_frames_and_knees(const at::Tensor& x, const at::Tensor& k, const char
                     ": k must be (T,) = (", x.size(0), ",) of x's dtype, got ", k.sizes(), " ", k.scalar_type());
 }
 
+// footprint._tone_mapped: y = x / (k + x) of an (H, W) frame's three planes px clamped at 0 (NaN kept), and
+// their luminance: four planes into y.
+template <typename T>
+void tone_mapped(const T* px, T k, int64_t H, int64_t W, T* y) {
+  const int64_t HW = H * W;
+  auto cl = [](T v) { return v < T(0) ? T(0) : v; };  // clamp_min(0), NaN kept
+  at::parallel_for(0, H, row_grain(W), [&](int64_t y0, int64_t y1) {
+    for (int64_t i = y0 * W; i < y1 * W; ++i) {
+      const T a = cl(px[i]), b = cl(px[HW + i]), c = cl(px[2 * HW + i]);
+      y[i] = a / (k + a);
+      y[HW + i] = b / (k + b);
+      y[2 * HW + i] = c / (k + c);
+      y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
+    }
+  });
+}
+
 at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, double sigma, double range_sigma,
                                  double unseen_border) {
   const char* op = "_footprint_average";
@@ -387,18 +404,9 @@ at::Tensor footprint_average_cpu(const at::Tensor& x_, const at::Tensor& k_, dou
     for (int64_t t = 0; t < Tn; ++t) {
       const T* px = x.data_ptr<T>() + t * 3 * HW;
       T* po = out.data_ptr<T>() + t * 3 * HW;
-      auto cl = [](T v) { return v < T(0) ? T(0) : v; };  // clamp_min(0), NaN kept
       const T k = kt.data_ptr<T>()[t];
       T* y = yb.data();
-      at::parallel_for(0, H, row_grain(W), [&](int64_t y0, int64_t y1) {
-        for (int64_t i = y0 * W; i < y1 * W; ++i) {
-          const T a = cl(px[i]), b = cl(px[HW + i]), c = cl(px[2 * HW + i]);
-          y[i] = a / (k + a);
-          y[HW + i] = b / (k + b);
-          y[2 * HW + i] = c / (k + c);
-          y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
-        }
-      });
+      tone_mapped(px, k, H, W, y);
       const T* yl = y + 3 * HW;
       T* cnt = y + 4 * HW;
       auto lit = [&](int64_t i, int64_t j) {  // the light share; none beyond the border
@@ -1000,19 +1008,6 @@ at::Tensor normalised_blur_cpu(const at::Tensor& x_, const at::Tensor& w_, doubl
 }
 
 // ------------------------------------------------------------------------------ edges
-// footprint._tone_mapped: y = x / (k + x) of x clamped at 0 (NaN kept), three planes and their luminance.
-template <typename T>
-void tone_mapped(const T* px, T k, int64_t HW, T* y) {
-  for (int64_t i = 0; i < HW; ++i) {
-    const T a = px[i] < T(0) ? T(0) : px[i], b = px[HW + i] < T(0) ? T(0) : px[HW + i],
-            c = px[2 * HW + i] < T(0) ? T(0) : px[2 * HW + i];
-    y[i] = a / (k + a);
-    y[HW + i] = b / (k + b);
-    y[2 * HW + i] = c / (k + c);
-    y[3 * HW + i] = lum(y[i], y[HW + i], y[2 * HW + i]);
-  }
-}
-
 // footprint._edge_directions: x (T, 3, H, W), k (T,) -> (T, 3, H, W): each pixel's coherence^power and
 // edge direction (tx, ty), from the structure tensor of the tone-mapped luminance's central differences
 // (0 on the border rows and columns), blurred by footprint_blur's Gaussian of tensor_sigma.
@@ -1035,7 +1030,7 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
     for (int64_t t = 0; t < Tn; ++t) {
       T* y = yb.data();
       T* j3 = jb.data();
-      tone_mapped(x.data_ptr<T>() + t * 3 * HW, kt.data_ptr<T>()[t], HW, y);
+      tone_mapped(x.data_ptr<T>() + t * 3 * HW, kt.data_ptr<T>()[t], H, W, y);
       const T* ly = y + 3 * HW;
       at::parallel_for(0, H, row_grain(W * (2 * r + 1)), [&](int64_t y0, int64_t y1) {
         Scratch<T> rowb, padb;
@@ -1162,7 +1157,7 @@ at::Tensor along_edges_cpu(const at::Tensor& x_, const at::Tensor& k_, const at:
       const T* ty = coh + 2 * HW;
       for (int64_t m = 0; m < M; ++m) {
         T* ym = y + m * 4 * HW;
-        tone_mapped(x.data_ptr<T>() + (m * Tn + t) * 3 * HW, kt.data_ptr<T>()[m * Tn + t], HW, ym);
+        tone_mapped(x.data_ptr<T>() + (m * Tn + t) * 3 * HW, kt.data_ptr<T>()[m * Tn + t], H, W, ym);
         for (int64_t p = 0; p < HW; ++p)
           for (int64_t c = 0; c < 3; ++c) tp[V * p + 3 * m + c] = ym[c * HW + p];
       }
