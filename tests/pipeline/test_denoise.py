@@ -1280,6 +1280,51 @@ def test_an_edge_s_pixels_average_along_it(spp, monkeypatch):
         (error(out), error(footprint_alone), error(c))
 
 
+def _silhouette_clip(spp: int, slope: float, H: int = 48, W: int = 48, S: int = 16, seed: int = 0):
+    """A near plane (albedo 0.7, depth 3, facing the camera) before a far one (albedo 0.2, depth 6, tilted),
+    their silhouette the line ``x + slope y = W / 2`` (pixels), under white light; ``spp`` samples per
+    pixel at random points, whose colour and features each pixel averages as renderers' AOVs do: ``(colour,
+    features, names, truth)``, the truth the pixels' box averages (``S`` x ``S`` sub-pixel grid)."""
+    gen = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
+    far = ((xx.double() + 0.5 + slope * (yy.double() + 0.5)) / S > W / 2)[None].double()
+    tilted = torch.tensor([0.6, 0.0, 0.8], dtype=torch.float64).view(3, 1, 1)
+    facing = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(3, 1, 1)
+    albedo = (0.7 - 0.5 * far).expand(3, -1, -1)
+    scene = torch.cat([albedo, facing + far * (tilted - facing), 3.0 + 3.0 * far])
+    truth = scene[:3].view(3, H, S, W, S).mean((2, 4))
+    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    samples = scene[:, iy, ix].mean(-1)
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+    return samples[None, :3].float(), samples[None].float(), names, truth[None].float()
+
+
+@pytest.mark.parametrize("spp, slope", [(1, 0.0), (1, 0.3), (4, 0.3)])
+def test_a_silhouette_s_pixels_keep_their_side(spp, slope, monkeypatch):
+    """The footprint average mixes the far side of a silhouette into the pixels beside it, whose share of it
+    only their own samples and their neighbours' along the silhouette tell. Averaged along it from part-way
+    back to the product before the footprint average, the pixels within one of the silhouette come out
+    closer to their box averages than from the footprint average: where it runs along a pixel border
+    (``slope`` 0) the error is halved, slanted it falls to 0.89 / 0.90 of that from the footprint average
+    (1 / 4 spp)."""
+    c, f, names, truth = _silhouette_clip(spp, slope)
+    W = c.shape[-1]
+    cols = torch.arange(W, dtype=torch.float32).view(1, W)
+    rows = torch.arange(c.shape[-2], dtype=torch.float32).view(-1, 1)
+    near = ((cols + 0.5 + slope * (rows + 0.5)) - W / 2).abs() < 1.5
+    near[:4], near[-4:] = False, False
+
+    def error(x):
+        return float((x - truth)[0, :, near].abs().mean())
+
+    out = denoise_frames(c, f, names, samples_per_pixel=spp)
+    monkeypatch.setattr(FP, "_EDGE_RAW_SHARE", 0.0)
+    from_footprint = denoise_frames(c, f, names, samples_per_pixel=spp)
+    bound = 0.6 if slope == 0 else 0.95
+    assert error(out) < bound * error(from_footprint), (error(out), error(from_footprint))
+
+
 def _along_edges_brute(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """:func:`FP._along_edges` of ``(1, 3, H, W)`` pixel by pixel (float64): central differences of the
     tone-mapped luminance, their tensor under a Gaussian (replicated border), its minor eigenvector, and

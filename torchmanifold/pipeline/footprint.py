@@ -178,6 +178,17 @@ _EDGE_TENSOR_SIGMA = 1.0
 #: corner or texture of many directions has a low one. 6 instead (before the brightness weight): +0.09 /
 #: +0.10 on that part, the held-out 64x64 clips' worst -0.07 instead of -0.18 dB (a checkered floor, 1 spp)
 _EDGE_COHERENCE_POWER = 3.0
+#: across a sure edge the footprint average mixes the far side into a pixel whose share of it only its own
+#: samples and its neighbours' along the edge tell; there the average along the edge starts part-way back
+#: towards the product before the footprint average: this share of the way times the surety to
+#: :data:`_EDGE_RAW_POWER`. Not all of it: a renderer that samples every pixel at the same place (Cycles from
+#: 1 spp) gives the neighbours along an axis-aligned edge no new sample of it (a rod a third of a pixel wide
+#: showed whole: `bl_env_thin` -0.56 dB all the way). The tuning part and `mi_ceiling_light` at 256x256,
+#: frames 0-2, summed over the six clips' gains from 1 / 4 spp: share 0.4 / 0.5 / 0.6 / 0.7 at power 3 +0.53 /
+#: +0.57 / +0.57 / +0.52 and +0.35 / +0.41 / +0.47 / +0.51 dB, worst clip -0.006 / -0.008 / -0.011 / -0.078;
+#: power 2 / 4 at 0.5: +0.56 / +0.55 and +0.44 / +0.38, worst -0.029 / -0.002 (findings.md)
+_EDGE_RAW_SHARE = 0.5
+_EDGE_RAW_POWER = 3.0
 
 
 def _edge_directions(x: Tensor) -> Tensor:
@@ -266,6 +277,14 @@ def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tens
     # take a tenth of its radiance
     y = y + coherence[:, None] * (1.0 - _light_share(ly)) * (num / den - y)
     return k * y / (1.0 - y).clamp_min(1e-6)
+
+
+def _before_footprint(averaged: Tensor, product: Tensor, directions: Tensor) -> Tensor:
+    """The footprint average ``averaged`` ``(T, 3, H, W)`` taken part-way back to the ``product`` it averaged,
+    by the edges' surety (:func:`_edge_directions`): what :func:`_along_edges` averages across a sure edge
+    (:data:`_EDGE_RAW_SHARE`)."""
+    share = _EDGE_RAW_SHARE * directions[:, :1] ** _EDGE_RAW_POWER
+    return averaged + share * (product - averaged)
 
 
 def _edge_width(sigma: float, counts: Tensor | None, like: Tensor) -> Tensor:
@@ -568,13 +587,17 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
 
     Last, each of the product, the light and the albedo is averaged along the result's edges
     (:func:`_along_edges`), over a width from the samples per pixel (:func:`_edge_width`; the albedo's from
-    its ``counts``).
+    its ``counts``); across a sure edge each starts part-way back from its footprint average
+    (:func:`_before_footprint`).
     """
     out = _footprint_average(irradiance * albedo, sigma, unseen_border)
     width = _edge_width(sigma, None, out)
     edges = bool((width > 0).any())
     if smooth is None or sigma <= 0:
-        return _along_edges([out], [width], _edge_directions(out))[0] if edges else out
+        if not edges:
+            return out
+        directions = _edge_directions(out)
+        return _along_edges([_before_footprint(out, irradiance * albedo, directions)], [width], directions)[0]
     w = smooth * (~flat).to(smooth.dtype)
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
     if counts is not None and most > 1 and bool((counts > 1).any()):
@@ -587,6 +610,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         return out + w * (light * texture - out)
     # the edges are the result's; the albedo's own samples, counts times the frame's, set its width
     directions = _edge_directions(out + w * (light * texture - out))
-    out, light, texture = _along_edges([out, light, texture], [width, width, _edge_width(sigma, counts, out)],
-                                       directions)
+    images = [_before_footprint(out, irradiance * albedo, directions),
+              _before_footprint(light, irradiance, directions), _before_footprint(texture, albedo, directions)]
+    out, light, texture = _along_edges(images, [width, width, _edge_width(sigma, counts, out)], directions)
     return out + w * (light * texture - out)
