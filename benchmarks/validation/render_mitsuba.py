@@ -253,6 +253,26 @@ def clip_materials(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_fast_motion(f: int, n: int) -> tuple[dict, dict]:
+    """The room of ``clip_ceiling_light`` seen by a camera that orbits 32 degrees over the clip (large parallax,
+    the open side and the outside coming into view) while a ball rolls across the floor about 11 px a frame:
+    pixels that were hidden a frame before, and features that move faster than the window's filter reaches."""
+    scene, info = clip_ceiling_light(f, n)
+    t = f / max(1, n - 1)
+    angle = np.radians(-16.0 + 32.0 * t)
+    origin = [3.4 * float(np.sin(angle)), 0.1, 3.4 * float(np.cos(angle))]
+    ball_x = -0.8 + 1.6 * t
+    scene["mover"] = {"type": "sphere", "center": [ball_x, -0.8, 0.25], "radius": 0.2,
+                      "bsdf": diffuse([0.2, 0.35, 0.7])}
+    scene["sensor"] = sensor(origin, [0, -0.2, 0], 42)
+    info["description"] += (" Here the camera orbits the room's centre, 32 degrees over the clip at 3.4 units, and "
+                            "the sliding box is a blue ball rolling across the floor from x = -0.8 to 0.8 (about "
+                            "11 px a frame at 128x128).")
+    info["moving"] = {"mover": {"x": ball_x}}
+    info["camera"] = {"origin": origin, "target": [0, -0.2, 0], "fov": 42}
+    return scene, info
+
+
 def thinlens(origin, target, fov: float, aperture: float, focus: float, up=(0, 1, 0)) -> dict:
     """``sensor`` with a thin lens: ``aperture`` radius, in focus at ``focus`` along the view axis."""
     return {**sensor(origin, target, fov, up), "type": "thinlens", "aperture_radius": aperture,
@@ -480,6 +500,10 @@ CLIPS = {
     # caustics over the room, which 256 spp leaves grainy: 2048.
     "mi_materials": (clip_materials, 8, ["principled_metal", "near_mirror", "smooth_plastic", "clearcoat",
                                          "blend", "moving_object", "contact_shadow"], ["mover"], 2048, None),
+    # Fast motion, rendered on demand as a probe, not committed: an orbiting camera and a fast ball.
+    "mi_fast_motion": (clip_fast_motion, 9, ["camera_orbit", "parallax", "disocclusion", "fast_moving_object",
+                                             "contact_shadow", "area_light_in_ceiling_no_emission_aov"],
+                       ["mover"], 512, None),
 }
 
 # Clips rendered with another integrator than ``path`` (inside the ``aov`` integrator for the noisy passes too).
