@@ -6,9 +6,10 @@ pixel (:func:`footprint_width`), in a tone-mapped domain and among pixels of sim
 light's border does not bleed into the dark beside it (:func:`_footprint_average`). On a smooth surface the
 albedo, whose detail is texture, gets a narrower footprint than the light (:func:`_remodulate`). Along an
 edge the footprint reaches further, as far as the few samples' share of either side is noisy
-(:func:`_along_edges`). Where the renderer gives world positions the window's other frames add their samples
-of each pixel's albedo: a still view's of the same pixel, a moving view's that fall in the pixel's square
-(:func:`_window_albedo`).
+(:func:`_along_edges`), and across a sure edge it starts part-way back from the footprint average
+(:func:`_before_footprint`). Where the renderer gives world positions the window's other frames add their
+samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall in the pixel's
+square (:func:`_window_albedo`).
 """
 from __future__ import annotations
 
@@ -590,14 +591,15 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     its ``counts``); across a sure edge each starts part-way back from its footprint average
     (:func:`_before_footprint`).
     """
-    out = _footprint_average(irradiance * albedo, sigma, unseen_border)
+    product = irradiance * albedo
+    out = _footprint_average(product, sigma, unseen_border)
     width = _edge_width(sigma, None, out)
     edges = bool((width > 0).any())
     if smooth is None or sigma <= 0:
         if not edges:
             return out
         directions = _edge_directions(out)
-        return _along_edges([_before_footprint(out, irradiance * albedo, directions)], [width], directions)[0]
+        return _along_edges([_before_footprint(out, product, directions)], [width], directions)[0]
     w = smooth * (~flat).to(smooth.dtype)
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
     if counts is not None and most > 1 and bool((counts > 1).any()):
@@ -610,7 +612,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         return out + w * (light * texture - out)
     # the edges are the result's; the albedo's own samples, counts times the frame's, set its width
     directions = _edge_directions(out + w * (light * texture - out))
-    images = [_before_footprint(out, irradiance * albedo, directions),
-              _before_footprint(light, irradiance, directions), _before_footprint(texture, albedo, directions)]
+    images = [_before_footprint(x, before, directions)
+              for x, before in ((out, product), (light, irradiance), (texture, albedo))]
     out, light, texture = _along_edges(images, [width, width, _edge_width(sigma, counts, out)], directions)
     return out + w * (light * texture - out)
