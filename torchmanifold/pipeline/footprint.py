@@ -181,14 +181,16 @@ _EDGE_TENSOR_SIGMA = 1.0
 _EDGE_COHERENCE_POWER = 3.0
 #: across a sure edge the footprint average mixes the far side into a pixel whose share of it only its own
 #: samples and its neighbours' along the edge tell; there the average along the edge starts part-way back
-#: towards the product before the footprint average: this share of the way times the surety to
-#: :data:`_EDGE_RAW_POWER`. Not all of it: a renderer that samples every pixel at the same place (Cycles from
+#: towards the product before the footprint average: the surety to :data:`_EDGE_RAW_POWER` times a share
+#: of the way that grows with the n samples per pixel, the footprint average keeping this much over sqrt(n)
+#: (:func:`_raw_share`). Not all of it: a renderer that samples every pixel at the same place (Cycles from
 #: 1 spp) gives the neighbours along an axis-aligned edge no new sample of it (a rod a third of a pixel wide
 #: showed whole: `bl_env_thin` -0.56 dB all the way). The tuning part and `mi_ceiling_light` at 256x256,
-#: frames 0-2, summed over the six clips' gains from 1 / 4 spp: share 0.4 / 0.5 / 0.6 / 0.7 at power 3 +0.53 /
-#: +0.57 / +0.57 / +0.52 and +0.35 / +0.41 / +0.47 / +0.51 dB, worst clip -0.006 / -0.008 / -0.011 / -0.078;
-#: power 2 / 4 at 0.5: +0.56 / +0.55 and +0.44 / +0.38, worst -0.029 / -0.002 (findings.md)
-_EDGE_RAW_SHARE = 0.5
+#: frames 0-2, summed over the six clips' gains from 1 / 4 spp, one share for both: 0.4 / 0.5 / 0.6 / 0.7 at
+#: power 3 +0.53 / +0.57 / +0.57 / +0.52 and +0.35 / +0.41 / +0.47 / +0.51 dB, worst clip -0.006 / -0.008 /
+#: -0.011 / -0.078; power 2 / 4 at 0.5: +0.56 / +0.55 and +0.44 / +0.38, worst -0.029 / -0.002. Then 0.75
+#: from 4 spp (this rule): +0.12 more there, the held-out clips +0.20 (ten, worst -0.008) (findings.md)
+_EDGE_FOOTPRINT_KEPT = 0.5
 _EDGE_RAW_POWER = 3.0
 
 
@@ -280,12 +282,20 @@ def _along_edges_reference(x: Tensor, k: Tensor, sigma: Tensor, directions: Tens
     return k * y / (1.0 - y).clamp_min(1e-6)
 
 
-def _before_footprint(averaged: Tensor, product: Tensor, directions: Tensor) -> Tensor:
-    """The footprint average ``averaged`` ``(T, 3, H, W)`` taken part-way back to the ``product`` it averaged,
-    by the edges' surety (:func:`_edge_directions`): what :func:`_along_edges` averages across a sure edge
-    (:data:`_EDGE_RAW_SHARE`)."""
-    share = _EDGE_RAW_SHARE * directions[:, :1] ** _EDGE_RAW_POWER
-    return averaged + share * (product - averaged)
+def _raw_share(sigma: float) -> float:
+    """How far :func:`_before_footprint` goes back at a sure edge for a footprint of ``sigma``:
+    ``1 - _EDGE_FOOTPRINT_KEPT / sqrt(n)``, ``1 / n`` the unseen part of the footprint's square over ``b``
+    (:func:`footprint_width`): 0.5 from 1 spp, 0.75 from 4 (and where the count is unknown), all the way in
+    the limit."""
+    unseen = max(sigma * sigma - _FOOTPRINT_A, 0.0) / _FOOTPRINT_B
+    return min(1.0, max(0.0, 1.0 - _EDGE_FOOTPRINT_KEPT * math.sqrt(unseen)))
+
+
+def _before_footprint(averaged: Tensor, product: Tensor, directions: Tensor, share: float) -> Tensor:
+    """The footprint average ``averaged`` ``(T, 3, H, W)`` taken back towards the ``product`` it averaged,
+    ``share`` (:func:`_raw_share`) of the way times the edges' surety (:func:`_edge_directions`) to
+    :data:`_EDGE_RAW_POWER`: what :func:`_along_edges` averages across a sure edge."""
+    return averaged + share * directions[:, :1] ** _EDGE_RAW_POWER * (product - averaged)
 
 
 def _edge_width(sigma: float, counts: Tensor | None, like: Tensor) -> Tensor:
@@ -599,7 +609,8 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         if not edges:
             return out
         directions = _edge_directions(out)
-        return _along_edges([_before_footprint(out, product, directions)], [width], directions)[0]
+        feed = _before_footprint(out, product, directions, _raw_share(sigma))
+        return _along_edges([feed], [width], directions)[0]
     w = smooth * (~flat).to(smooth.dtype)
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
     if counts is not None and most > 1 and bool((counts > 1).any()):
@@ -612,7 +623,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         return out + w * (light * texture - out)
     # the edges are the result's; the albedo's own samples, counts times the frame's, set its width
     directions = _edge_directions(out + w * (light * texture - out))
-    images = [_before_footprint(x, before, directions)
+    images = [_before_footprint(x, before, directions, _raw_share(sigma))
               for x, before in ((out, product), (light, irradiance), (texture, albedo))]
     out, light, texture = _along_edges(images, [width, width, _edge_width(sigma, counts, out)], directions)
     return out + w * (light * texture - out)
