@@ -1261,8 +1261,8 @@ def _edge_clip(spp: int, H: int = 48, W: int = 48, S: int = 16, seed: int = 0):
 def test_an_edge_s_pixels_average_along_it(spp, monkeypatch):
     """A pixel that an edge crosses shows the share of its few samples on either side, a noisy estimate of
     the area it covers, which its neighbours along the edge share: averaged along the edge, its error
-    against the pixels' box average falls below that of the footprint average alone (1 / 4 spp: 0.50 /
-    0.65 of the input's against 0.56 / 0.82); away from the edge the result keeps the surfaces' values."""
+    against the pixels' box average falls below that of the footprint average alone (1 / 4 spp: 0.47 /
+    0.63 of the input's against 0.56 / 0.82); away from the edge the result keeps the surfaces' values."""
     c, f, names, truth = _edge_clip(spp)
     edge = (truth[0, 0] > 0.21) & (truth[0, 0] < 0.79)
     inner = torch.zeros_like(edge)
@@ -1306,7 +1306,7 @@ def test_a_silhouette_s_pixels_keep_their_side(spp, slope, monkeypatch):
     only their own samples and their neighbours' along the silhouette tell. Averaged along it from part-way
     back to the product before the footprint average, the pixels within one of the silhouette come out
     closer to their box averages than from the footprint average: where it runs along a pixel border
-    (``slope`` 0) the error is halved from 1 spp, slanted it falls to 0.88 / 0.85 of that from the footprint
+    (``slope`` 0) the error is halved from 1 spp, slanted it falls to 0.85 / 0.82 of that from the footprint
     average (1 / 4 spp)."""
     c, f, names, truth = _silhouette_clip(spp, slope)
     W = c.shape[-1]

@@ -177,8 +177,13 @@ _ALONG_EDGE = 12.0
 _EDGE_TENSOR_SIGMA = 1.0
 #: how surely a pixel lies on one edge: its coherence ((l1 - l2) / (l1 + l2), 0 to 1) to this power; a
 #: corner or texture of many directions has a low one. 6 instead (before the brightness weight): +0.09 /
-#: +0.10 on that part, the held-out 64x64 clips' worst -0.07 instead of -0.18 dB (a checkered floor, 1 spp)
-_EDGE_COHERENCE_POWER = 3.0
+#: +0.10 on that part, the held-out 64x64 clips' worst -0.07 instead of -0.18 dB (a checkered floor, 1 spp).
+#: Once the average started back before the footprint average (:func:`_before_footprint`), 2 / 1.5 / 1.25 / 1
+#: against 3, summed over the tuning part and `mi_ceiling_light` at 256x256 from 1 / 4 spp: +0.20 / +0.29 /
+#: +0.31 / +0.29 and +0.29 / +0.46 / +0.55 / +0.63 dB, worst clip -0.002 / -0.02 / -0.05 / -0.08; held
+#: out (ten clips) 2 / 1.5: +0.21 / +0.29 and +0.33 / +0.51, worst -0.06 / -0.12 (the checkered 64x64 and
+#: 80x80 clips)
+_EDGE_COHERENCE_POWER = 2.0
 #: across a sure edge the footprint average mixes the far side into a pixel whose share of it only its own
 #: samples and its neighbours' along the edge tell; there the average along the edge starts part-way back
 #: towards the product before the footprint average: the surety to :data:`_EDGE_RAW_POWER` times a share

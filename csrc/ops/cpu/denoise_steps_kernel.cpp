@@ -1066,7 +1066,7 @@ at::Tensor edge_directions_cpu(const at::Tensor& x_, const at::Tensor& k_, doubl
             const T c2 = spread > T(0) ? (jxx - jyy) / spread : T(1);
             const T ct = std::sqrt(std::max(T(0), (T(1) + c2) / T(2)));
             const T st = std::copysign(std::sqrt(std::max(T(0), (T(1) - c2) / T(2))), jxy < T(0) ? T(-1) : T(1));
-            po[i * W + j] = pw == T(3) ? c * c * c : std::pow(c, pw);
+            po[i * W + j] = pw == T(2) ? c * c : (pw == T(3) ? c * c * c : std::pow(c, pw));
             po[HW + i * W + j] = -st;
             po[2 * HW + i * W + j] = ct;
           }
