@@ -191,10 +191,11 @@ _EDGE_COHERENCE_POWER = 2.0
 #: (:func:`_raw_share`). Not all of it: a renderer that samples every pixel at the same place (Cycles from
 #: 1 spp) gives the neighbours along an axis-aligned edge no new sample of it (a rod a third of a pixel wide
 #: showed whole: `bl_env_thin` -0.56 dB all the way). The tuning part and `mi_ceiling_light` at 256x256,
-#: frames 0-2, summed over the six clips' gains from 1 / 4 spp, one share for both: 0.4 / 0.5 / 0.6 / 0.7 at
-#: power 3 +0.53 / +0.57 / +0.57 / +0.52 and +0.35 / +0.41 / +0.47 / +0.51 dB, worst clip -0.006 / -0.008 /
-#: -0.011 / -0.078; power 2 / 4 at 0.5: +0.56 / +0.55 and +0.44 / +0.38, worst -0.029 / -0.002. Then 0.75
-#: from 4 spp (this rule): +0.12 more there, the held-out clips +0.20 (ten, worst -0.008) (findings.md)
+#: frames 0-2, summed over the six clips' gains from 1 / 4 spp, one share for both (the coherence then cubed):
+#: 0.4 / 0.5 / 0.6 / 0.7 at power 3 +0.53 / +0.57 / +0.57 / +0.52 and +0.35 / +0.41 / +0.47 / +0.51 dB, worst
+#: clip -0.006 / -0.008 / -0.011 / -0.078; power 2 / 4 at 0.5: +0.56 / +0.55 and +0.44 / +0.38, worst -0.029 /
+#: -0.002. Then 0.75 from 4 spp (this rule): +0.12 more there, the held-out clips +0.20 (ten, worst -0.008)
+#: (findings.md)
 _EDGE_FOOTPRINT_KEPT = 0.5
 _EDGE_RAW_POWER = 3.0
 
