@@ -52,6 +52,12 @@ def footprint_width(settings: DenoiseSettings, samples_per_pixel: float | None) 
     return math.sqrt(_FOOTPRINT_A + _FOOTPRINT_B / float(samples_per_pixel))
 
 
+def _unseen(sigma: float) -> float:
+    """The part of a footprint of ``sigma``'s square that its samples leave unseen, ``sigma^2 - a`` (``b /
+    spp``, :func:`footprint_width`); 0 for a footprint at or under the limit's."""
+    return max(sigma * sigma - _FOOTPRINT_A, 0.0)
+
+
 def _footprint_albedo(alb: Tensor, flat: Tensor, sigma: float) -> Tensor:
     """The albedo to multiply back: its average over the pixel footprint, from demodulated pixels only
     (a normalised blur), and 1 where the colour was not demodulated."""
@@ -293,8 +299,7 @@ def _raw_share(sigma: float) -> float:
     ``1 - _EDGE_FOOTPRINT_KEPT / sqrt(n)``, ``1 / n`` the unseen part of the footprint's square over ``b``
     (:func:`footprint_width`): 0.5 from 1 spp, 0.75 from 4 (and where the count is unknown), all the way in
     the limit."""
-    unseen = max(sigma * sigma - _FOOTPRINT_A, 0.0) / _FOOTPRINT_B
-    return min(1.0, max(0.0, 1.0 - _EDGE_FOOTPRINT_KEPT * math.sqrt(unseen)))
+    return min(1.0, max(0.0, 1.0 - _EDGE_FOOTPRINT_KEPT * math.sqrt(_unseen(sigma) / _FOOTPRINT_B)))
 
 
 def _before_footprint(averaged: Tensor, product: Tensor, directions: Tensor, share: float) -> Tensor:
@@ -308,7 +313,7 @@ def _edge_width(sigma: float, counts: Tensor | None, like: Tensor) -> Tensor:
     """The width of :func:`_along_edges` ``(T, 1, H, W)`` for a footprint of ``sigma`` whose pixels hold
     ``counts`` times the frame's samples (``None``: once): :data:`_ALONG_EDGE` times the unseen part of the
     footprint's square (``sigma^2 - a``, that is ``b / spp``) over the count."""
-    share = max(sigma * sigma - _FOOTPRINT_A, 0.0) * _ALONG_EDGE
+    share = _unseen(sigma) * _ALONG_EDGE
     if counts is None:
         return like.new_full((like.shape[0], 1, *like.shape[2:]), math.sqrt(share))
     return (share / counts.clamp_min(1.0)).sqrt()
@@ -621,7 +626,7 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
     texture = _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * sigma)
     if counts is not None and most > 1 and bool((counts > 1).any()):
         # sigma^2 = a + b / spp, so with n times the samples: a + (sigma^2 - a) / n
-        narrow = math.sqrt(_FOOTPRINT_A + max(sigma * sigma - _FOOTPRINT_A, 0.0) / most)
+        narrow = math.sqrt(_FOOTPRINT_A + _unseen(sigma) / most)
         f = ((1.0 / counts - 1.0 / most) / (1.0 - 1.0 / most)).clamp(0.0, 1.0)
         texture = f * texture + (1 - f) * _footprint_albedo(albedo, flat, _TEXTURE_FOOTPRINT * narrow)
     light = _footprint_average(irradiance, sigma, unseen_border)
@@ -629,7 +634,8 @@ def _remodulate(irradiance: Tensor, albedo: Tensor, flat: Tensor, smooth: Tensor
         return out + w * (light * texture - out)
     # the edges are the result's; the albedo's own samples, counts times the frame's, set its width
     directions = _edge_directions(out + w * (light * texture - out))
-    images = [_before_footprint(x, before, directions, _raw_share(sigma))
+    share = _raw_share(sigma)
+    images = [_before_footprint(x, before, directions, share)
               for x, before in ((out, product), (light, irradiance), (texture, albedo))]
     out, light, texture = _along_edges(images, [width, width, _edge_width(sigma, counts, out)], directions)
     return out + w * (light * texture - out)
