@@ -1200,19 +1200,28 @@ def test_gradient_through_the_denoiser_is_finite():
     assert y.isfinite().all() and grad.isfinite().all() and grad.abs().sum() > 0
 
 
+#: the channels of the sampled test scenes: albedo, normal, depth
+_SCENE_NAMES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+
+
+def _point_samples(scene: torch.Tensor, S: int, spp: int, gen: torch.Generator):
+    """``scene`` ``(C, H S, W S)`` (``S`` x ``S`` points a pixel) seen at ``spp`` random points of each pixel:
+    ``(samples, truth)``, the points' means and the pixels' box averages, each ``(C, H, W)``."""
+    C, H, W = scene.shape[0], scene.shape[1] // S, scene.shape[2] // S
+    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
+    return scene[:, iy, ix].mean(-1), scene.view(C, H, S, W, S).mean((2, 4))
+
+
 def _sampled_plane(tex: torch.Tensor, S: int, spp: int, gen: torch.Generator):
     """A plane facing the camera under white light whose albedo is the texture ``tex`` ``(3, H S, W S)`` (``S``
     x ``S`` points a pixel), seen at ``spp`` random points of each pixel: ``(colour, features, names, truth)``,
     the colour the points' mean albedo ``(1, 3, H, W)`` and the truth the pixels' box averages ``(3, H, W)``
     in ``tex``'s dtype."""
-    H, W = tex.shape[1] // S, tex.shape[2] // S
-    truth = tex.view(3, H, S, W, S).mean((2, 4))
-    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    albedo = tex[:, iy, ix].mean(-1)
-    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+    albedo, truth = _point_samples(tex, S, spp, gen)
+    H, W = albedo.shape[1:]
     plane = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W), torch.full((1, H, W), 3.0)])
-    return albedo[None].float(), torch.cat([albedo, plane])[None].float(), names, truth
+    return albedo[None].float(), torch.cat([albedo, plane])[None].float(), list(_SCENE_NAMES), truth
 
 
 def test_texture_on_a_flat_surface_keeps_its_detail(monkeypatch):
@@ -1292,12 +1301,8 @@ def _silhouette_clip(spp: int, slope: float, H: int = 48, W: int = 48, S: int = 
     facing = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).view(3, 1, 1)
     albedo = (0.7 - 0.5 * far).expand(3, -1, -1)
     scene = torch.cat([albedo, facing + far * (tilted - facing), 3.0 + 3.0 * far])
-    truth = scene[:3].view(3, H, S, W, S).mean((2, 4))
-    iy = torch.arange(H)[:, None, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    ix = torch.arange(W)[None, :, None] * S + torch.randint(0, S, (H, W, spp), generator=gen)
-    samples = scene[:, iy, ix].mean(-1)
-    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
-    return samples[None, :3].float(), samples[None].float(), names, truth[None].float()
+    samples, truth = _point_samples(scene, S, spp, gen)
+    return samples[None, :3].float(), samples[None].float(), list(_SCENE_NAMES), truth[None, :3].float()
 
 
 @pytest.mark.parametrize("spp, slope", [(1, 0.0), (1, 0.3), (4, 0.3)])
@@ -1442,10 +1447,7 @@ def _striped_samples(H, W, slide=0.0, seed=0, S=8, period=6.0):
     g = torch.Generator().manual_seed(seed)
     yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
     stripes = 0.2 + 0.6 * (((((xx + yy).double() / S - slide) % period)) < period / 2).double()
-    tex = torch.stack([stripes, 0.8 * stripes, 0.5 * stripes])
-    iy = torch.arange(H)[:, None] * S + torch.randint(0, S, (H, W), generator=g)
-    ix = torch.arange(W)[None, :] * S + torch.randint(0, S, (H, W), generator=g)
-    return tex[:, iy, ix], tex.view(3, H, S, W, S).mean((2, 4))
+    return _point_samples(torch.stack([stripes, 0.8 * stripes, 0.5 * stripes]), S, 1, g)
 
 
 @pytest.mark.parametrize("slide,period,expect", [(0.0, 6.0, True),     # a still texture, other jitters
