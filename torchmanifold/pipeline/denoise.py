@@ -232,6 +232,15 @@ class DenoiseSettings:
             (:func:`~torchmanifold.pipeline.footprint.footprint_width`).
         albedo_eps: albedo luminance below which a pixel is not demodulated (delta BSDFs and black
             surfaces, whose first-hit albedo says nothing about the light there).
+        albedo_floor: the least albedo a demodulated pixel is divided by, per channel (and multiplied
+            back by). A dark surface's colour divided by its own albedo carries its noise many times over
+            into the filter, and where a renderer's albedo does not scale the light (Mitsuba's rough
+            glass: a small albedo rising to the ball's middle over light that does not) the division
+            draws rings. Frames 0-2, the ``denoise`` default, from 1 / 4 spp, the validation set's clips
+            and four at 256x256 summed against 0.02 (``albedo_eps``): 0.05 +0.05 / +0.11 dB (worst clip
+            -0.015), 0.07 +0.39 / +0.23 (worst -0.07, ``mi_still_textures`` from 4 spp), 0.1 +0.29 /
+            -0.06 (worst -0.15, ``cbox_glossy_tex`` from 1 spp); a rough-glass probe +0.09 / +0.16 at
+            0.07 (``benchmarks/validation/findings.md``).
         radiance_sigma: range sigma of the log-radiance guide channel, which keeps lights, shadows
             and what is seen through glass apart where the renderer's features cannot; 0 leaves it out.
             The channel comes from the firefly pilot where there is one, else from the samples
@@ -267,6 +276,7 @@ class DenoiseSettings:
     firefly_k: float = 5.0
     footprint_sigma: float | None = None
     albedo_eps: float = 0.02
+    albedo_floor: float = 0.07
     radiance_sigma: float = 0.5
     demodulate: bool = True
     keep_sky: bool = True
@@ -280,7 +290,7 @@ class DenoiseSettings:
         """Raise TypeError / ValueError (see :mod:`torchmanifold._checks`) on a bad setting; return self."""
         from torchmanifold.ops.temporal import MODES
 
-        for name in ("sigma_s", "firefly_k", "albedo_eps", "sigma_t"):
+        for name in ("sigma_s", "firefly_k", "albedo_eps", "albedo_floor", "sigma_t"):
             check_positive(name, getattr(self, name))
         if isinstance(self.bandwidths, (str, bytes)) or not isinstance(self.bandwidths, Sequence) or \
                 not self.bandwidths:
@@ -601,7 +611,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
             alb, flat = torch.where(scattered, alb_s, alb), torch.where(scattered, flat_s, flat)
             lit = lit & ~scattered
     if bool(lit.any()):
-        alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings.albedo_eps)
+        alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
     escaped = kept & (mask > 0)
     e = c / alb
@@ -749,13 +759,20 @@ def _demodulation_albedo(f: Tensor, names: Sequence[str], settings: DenoiseSetti
     A first-hit albedo darker than ``albedo_eps`` says nothing about the light there: renderers give 0 on
     delta BSDFs (Mitsuba's glass and mirrors) and on black surfaces. Dividing by a clamped tiny albedo
     and multiplying back by a blurred one draws bright rims, so such pixels are not demodulated at all.
+    The others are divided by their albedo, each channel at least ``albedo_floor`` (:func:`_divisor`).
     """
     T, _, H, W = f.shape
     alb = _albedo(f, names) if settings.demodulate else None
     if alb is None:
         return f.new_ones(T, 3, H, W), f.new_ones(T, 1, H, W, dtype=torch.bool)
     flat = luminance(alb) < settings.albedo_eps
-    return torch.where(flat, 1.0, alb.clamp_min(settings.albedo_eps)), flat
+    return torch.where(flat, 1.0, _divisor(alb, settings)), flat
+
+
+def _divisor(alb: Tensor, settings: DenoiseSettings) -> Tensor:
+    """What a demodulated pixel of albedo ``alb`` ``(T, 3, H, W)`` is divided by: each channel at least
+    ``albedo_floor`` (and ``albedo_eps``)."""
+    return alb.clamp_min(max(settings.albedo_eps, settings.albedo_floor))
 
 
 def _lone_flat_samples(c: Tensor, flat: Tensor) -> Tensor:
@@ -903,7 +920,7 @@ _SKY_MIX_RADIUS = 2
 
 
 def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str], lit: Tensor,
-                      eps: float) -> tuple[Tensor, Tensor]:
+                      settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
     """The demodulation albedo ``alb`` ``(T, 3, H, W)`` and flat pixels ``flat`` ``(T, 1, H, W)``
     (:func:`_demodulation_albedo`) with the share of each pixel's samples that met no surface divided by 1,
     as a filtered sky is (``lit`` ``(T, 1, H, W)``: the sky pixels of frames whose sky is noise,
@@ -918,7 +935,7 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
     :data:`_SKY_MIX_RADIUS` of the sky (elsewhere a normal is also shorter where its samples' normals
     differ); the albedo becomes ``a + s (1 - a0)``, ``a`` the renderer's albedo and ``a0`` the frame's mean
     albedo over its sky pixels (the sky samples' part of ``a``). A pixel flat for its small albedo whose
-    albedo so reaches ``eps`` (``albedo_eps``) was mostly sky, and is demodulated. A frame without normals
+    albedo so reaches ``albedo_eps`` was mostly sky, and is demodulated. A frame without normals
     keeps its albedo."""
     canon = [canonical_name(n) for n in names]
     unit = next((g for g in feature_table.FEATURES if g.unit and all(c in canon for c in g.channels)), None)
@@ -932,8 +949,8 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
     near = nn.functional.max_pool2d(sky, 2 * r + 1, 1, r) > 0
     sky_albedo = (raw * sky).sum((2, 3), keepdim=True) / sky.sum((2, 3), keepdim=True).clamp_min(1.0)
     mixed_albedo = raw + share * (1.0 - sky_albedo).clamp_min(0.0)
-    mixed = near & ~lit & (share > 0) & (luminance(mixed_albedo) >= eps)
-    return torch.where(mixed, mixed_albedo.clamp_min(eps), alb), flat & ~mixed
+    mixed = near & ~lit & (share > 0) & (luminance(mixed_albedo) >= settings.albedo_eps)
+    return torch.where(mixed, _divisor(mixed_albedo, settings), alb), flat & ~mixed
 
 
 def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
