@@ -82,12 +82,15 @@ def test_a_room_lit_by_bounce_light_keeps_its_light():
     """A held-out Cycles render (`bl_indirect_dof`): a room lit by bounce light alone, whose light comes as
     sparse bright samples. The firefly clamp took them for fireflies and the pilot's log-radiance channel
     set them apart from every manifold: the denoiser kept 29% of the brightness and scored 6 dB under a
-    Gaussian blur. Now it keeps most of it and beats the blur at its best width."""
+    Gaussian blur. Now it beats the blur at its best width, and each frame keeps its brightness within 5% of
+    the reference's: the clamp still takes some of the light where the pilot cannot be trusted, and gives it
+    back (0.90-0.94 without it; 0.96-0.995 measured)."""
     from torchmanifold.pipeline.progressive import gaussian_baseline
 
     c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2])
     out = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
-    assert float(out.mean()) > 0.6 * float(ref.mean())
+    kept = out.mean((1, 2, 3)) / ref.mean((1, 2, 3))
+    assert bool(((kept - 1).abs() < 0.05).all()), kept
     assert M.psnr(out, ref) > max(M.psnr(gaussian_baseline(c, s), ref) for s in (2.0, 4.0, 8.0))
 
 

@@ -14,7 +14,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
    to it, and the clamped samples are filtered linearly. The energy removed is measured and returned
-   (``stats["firefly_energy_removed"]``).
+   (``stats["firefly_energy_removed"]``); where the pilot is too noisy to trust, it comes back after
+   filtering, in proportion to the result over a wide reach (:func:`_give_back`).
 5. **Guide**: each feature group gets its own range sigma (albedo, normals, world position or depth
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
@@ -142,6 +143,14 @@ _FIREFLY_FLOOR = 0.25
 #: 1% 27.483 / 30.626, 0.5% 27.536 / 30.629, 0.25% 27.542 / 30.624, 0.1% 27.531 / 30.617
 #: (``benchmarks/validation/findings.md``)
 _FIREFLY_MAX_SHARE = 0.005
+#: where the pilot is too noisy to trust, how far (in sigmas of the widest candidate bandwidth) the energy
+#: the clamp took goes back (:func:`_give_back`). The rooms lit by bounce light alone came out 7% dark from
+#: 1 spp, their light clamped as fireflies. Frames 0-2, the ``denoise`` default, from 1 / 4 spp:
+#: ``mi_indirect_dof`` (tuning part) 0.5 / 2 / 4: +0.14 / -0.05, +0.16 / -0.02, +0.10 / -0.02 dB;
+#: ``bl_indirect_dof`` (held out) -0.01 / +0.02, +0.18 / +0.03, +0.23 / +0.02. Given back in every frame,
+#: the pilots that can be trusted lose: from 4 spp `mi_dark_glossy` -6 dB (its small lights' real
+#: highlights spread over the floor), `mi_still_textures` -1.5 (``benchmarks/validation/findings.md``).
+_GIVE_BACK_REACH = 2.0
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 #: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
@@ -525,6 +534,7 @@ class FrameState:
             noisy, :func:`_selection_pooling`).
         cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
             neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
+        clamped: ``(T, 1, H, W)`` the luminance of the radiance the firefly clamp took (0 without a clamp).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other
@@ -548,6 +558,7 @@ class FrameState:
     sigmas: Tensor
     pooling: Tensor
     cv_cell: Tensor
+    clamped: Tensor
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -562,7 +573,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
-                   "guide", "sigmas", "pooling", "cv_cell")
+                   "guide", "sigmas", "pooling", "cv_cell", "clamped")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -632,7 +643,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
         _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
     state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,
-                       torch.ones(c.shape[0], dtype=torch.float64), cell, False, point, counts, fp, base)
+                       torch.ones(c.shape[0], dtype=torch.float64), cell, torch.zeros_like(mask), False, point,
+                       counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -657,7 +669,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
-    state.values = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
+    state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
@@ -708,6 +720,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
+    out = _give_back(out, at_queries(s.clamped), _noisy_pilot(s, ft, qt),
+                     _GIVE_BACK_REACH * base * max(settings.bandwidths))
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -723,8 +737,14 @@ def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
     +-1 (for 5/3 of the op's time there); every other scene keeps its bits."""
     if settings.temporal_radius == 0 or settings.window_radius <= settings.temporal_radius:
         return [False] * len(qt)
+    return _noisy_pilot(state, ft, qt).tolist()
+
+
+def _noisy_pilot(state: FrameState, ft: list[float], qt: list[float]) -> Tensor:
+    """Per query, whether it is a frame whose firefly pilot is too noisy to trust (``state.pooling`` above
+    1, :func:`_selection_pooling`): bool ``(Q,)``."""
     at = [frame_at(ft, q) for q in qt]
-    return [k is not None and float(state.pooling[k]) > 1.0 for k in at]
+    return torch.tensor([k is not None and float(state.pooling[k]) > 1.0 for k in at], dtype=torch.bool)
 
 
 def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):
@@ -1151,10 +1171,11 @@ def _pilot_noise(pilot: Tensor, held_out: Tensor, valid: Tensor) -> Tensor:
 
 
 def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float, stats: dict,
-                     keep: Tensor) -> Tensor:
+                     keep: Tensor) -> tuple[Tensor, Tensor]:
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound, except
-    where ``keep`` (bool ``(T, 1, H, W)``); the energy, the energy removed and the samples clamped are added
-    to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
+    where ``keep`` (bool ``(T, 1, H, W)``): the clamped samples, and the luminance of the radiance taken
+    (``(T, 1, H, W)``, the samples times ``alb``); the energy, the energy removed and the samples clamped
+    are added to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
     noise-free black do not clamp every lit sample (measured on shared/data; on the validation set's
     tuning part 0.1 to 1 are within 0.05 dB). Where more than :data:`_FIREFLY_MAX_SHARE` of a frame's
     samples exceed it, the frame's bound rises until no more do (:func:`_clamp_scale`): so many
@@ -1170,7 +1191,27 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
         stats["energy"] += float(((e * alb) * mask).sum())
         stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
         stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
-    return ec
+    return ec, luminance((e - ec) * alb) * mask
+
+
+def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Tensor:
+    """The output ``out`` ``(Q, 3, H, W)`` with the radiance the firefly clamp took, ``clamped``
+    ``(Q, 1, H, W)`` luminance at the same queries, given back at the queries ``noisy`` (bool ``(Q,)``): each
+    pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a Gaussian of ``sigma`` pixels, so that what
+    the clamp took around a pixel comes back in proportion to what the filter left there.
+
+    Where the pilot is too noisy to trust, the light that reaches most pixels through rare bright paths
+    looks like fireflies to it, and the clamp takes real light: the rooms lit by bounce light alone came out
+    7% dark. Spread out as it was taken, that energy draws blotches; in proportion to the result over a
+    wide reach it changes the brightness alone. Where the pilot can be trusted, what the clamp took is
+    fireflies and bright detail, not light missing around it, and nothing comes back."""
+    if not bool(noisy.any()):
+        return out
+    q = noisy.nonzero().flatten()
+    both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
+    blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
+    gain = 1.0 + blurred[:, :1] / blurred[:, 1:].clamp_min(torch.finfo(out.dtype).tiny)
+    return out.index_copy(0, q, out[q] * gain)
 
 
 def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:
