@@ -69,7 +69,7 @@ from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
                                           luminance)
 from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth
-from torchmanifold.timewindow import frame_at
+from torchmanifold.timewindow import frame_at, window
 
 __all__ = [
     "DenoiseSettings",
@@ -720,8 +720,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
-    out = _give_back(out, at_queries(s.clamped), _noisy_pilot(s, ft, qt),
-                     _GIVE_BACK_REACH * base * max(settings.bandwidths))
+    clamped = torch.stack([s.clamped[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
+    out = _give_back(out, clamped, _noisy_pilot(s, ft, qt), _GIVE_BACK_REACH * base * max(settings.bandwidths))
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
