@@ -1195,10 +1195,11 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
 
 
 def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Tensor:
-    """The output ``out`` ``(Q, 3, H, W)`` with the radiance the firefly clamp took, ``clamped``
-    ``(Q, 1, H, W)`` luminance at the same queries, given back at the queries ``noisy`` (bool ``(Q,)``): each
-    pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a Gaussian of ``sigma`` pixels, so that what
-    the clamp took around a pixel comes back in proportion to what the filter left there.
+    """The output ``out`` ``(Q, 3, H, W)`` with the radiance the firefly clamp took given back at the
+    queries ``noisy`` (bool ``(Q,)``): each pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a
+    Gaussian of ``sigma`` pixels, so that what the clamp took around a pixel comes back in proportion to
+    what the filter left there. ``clamped`` ``(Q, 1, H, W)``: the luminance the clamp took, averaged over
+    each query's time window, so that the gain holds still from frame to frame.
 
     Where the pilot is too noisy to trust, the light that reaches most pixels through rare bright paths
     looks like fireflies to it, and the clamp takes real light: the rooms lit by bounce light alone came out
