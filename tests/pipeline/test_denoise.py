@@ -1139,6 +1139,26 @@ def test_whole_clip_equals_each_window_alone(mitsuba_dir):
         assert torch.equal(whole[t], alone), t
 
 
+def test_energy_given_back_is_each_window_s_alone(monkeypatch):
+    """Where the pilot is too noisy to trust (a bounce-lit room), the energy the clamp took comes back as its
+    mean over each query's window: a clip filtered in one call gives each frame the bytes of its window
+    filtered alone, and the energy given back is there (without it the frames differ)."""
+    c, f, names, _ = _validation_clip("bl_indirect_dof", [0, 1, 2, 3, 4])
+    crop = (slice(None), slice(None), slice(32, 96), slice(32, 96))
+    c, f = c[crop], f[crop]
+    st = DenoiseSettings(temporal_radius=1)
+    whole = denoise_frames(c, f, names, settings=st, samples_per_pixel=1)
+    r = st.window_radius
+    for t in range(5):
+        ids = list(range(max(0, t - r), min(5, t + r + 1)))
+        alone = denoise_frames(c[ids], f[ids], names, settings=st, frame_times=ids, query_times=[t],
+                               samples_per_pixel=1)[0]
+        assert torch.equal(whole[t], alone), t
+    monkeypatch.setattr(D, "_give_back", lambda out, *args: out)
+    kept = denoise_frames(c, f, names, settings=st, samples_per_pixel=1)
+    assert bool((whole.mean((1, 2, 3)) > kept.mean((1, 2, 3))).all())
+
+
 def test_excess_error_z_against_explicit_sums():
     """z of a candidate's excess error at one pixel, against the sums written out over the kernel's
     taps; a candidate without support and one with a catastrophic residual are left out."""
