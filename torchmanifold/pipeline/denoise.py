@@ -720,8 +720,10 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
-    clamped = torch.stack([s.clamped[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
-    out = _give_back(out, clamped, _noisy_pilot(s, ft, qt), _GIVE_BACK_REACH * base * max(settings.bandwidths))
+    noisy = _noisy_pilot(s, ft, qt)
+    if bool(noisy.any()):
+        clamped = torch.stack([s.clamped[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
+        out = _give_back(out, clamped, noisy, _GIVE_BACK_REACH * base * max(settings.bandwidths))
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -1206,8 +1208,6 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Ten
     7% dark. Spread out as it was taken, that energy draws blotches; in proportion to the result over a
     wide reach it changes the brightness alone. Where the pilot can be trusted, what the clamp took is
     fireflies and bright detail, not light missing around it, and nothing comes back."""
-    if not bool(noisy.any()):
-        return out
     q = noisy.nonzero().flatten()
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
