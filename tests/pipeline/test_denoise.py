@@ -1129,14 +1129,21 @@ def test_whole_clip_equals_each_window_alone(mitsuba_dir):
     results by up to 5e-4)."""
     c, f = load_clip(mitsuba_dir, "frame", [0, 1, 2, 3, 4], (slice(96, 144), slice(64, 120)))
     c = c * torch.tensor([1.0, 1.0, 3.0, 1.0, 0.5]).view(-1, 1, 1, 1)
-    st = DenoiseSettings(temporal_radius=1)
-    whole = denoise_frames(c, f, FEATURES, settings=st, samples_per_pixel=1)
+    _each_window_alone(c, f, FEATURES, DenoiseSettings(temporal_radius=1))
+
+
+def _each_window_alone(c, f, names, st):
+    """The 1-spp clip ``c``, ``f`` denoised in one call, after asserting that each frame has the bytes of its
+    window (the filter's and the albedo's) denoised alone."""
+    T = c.shape[0]
+    whole = denoise_frames(c, f, names, settings=st, samples_per_pixel=1)
     r = st.window_radius
-    for t in range(5):
-        ids = list(range(max(0, t - r), min(5, t + r + 1)))
-        alone = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
+    for t in range(T):
+        ids = list(range(max(0, t - r), min(T, t + r + 1)))
+        alone = denoise_frames(c[ids], f[ids], names, settings=st, frame_times=ids, query_times=[t],
                                samples_per_pixel=1)[0]
         assert torch.equal(whole[t], alone), t
+    return whole
 
 
 def test_energy_given_back_is_each_window_s_alone(monkeypatch):
@@ -1147,13 +1154,7 @@ def test_energy_given_back_is_each_window_s_alone(monkeypatch):
     crop = (slice(None), slice(None), slice(32, 96), slice(32, 96))
     c, f = c[crop], f[crop]
     st = DenoiseSettings(temporal_radius=1)
-    whole = denoise_frames(c, f, names, settings=st, samples_per_pixel=1)
-    r = st.window_radius
-    for t in range(5):
-        ids = list(range(max(0, t - r), min(5, t + r + 1)))
-        alone = denoise_frames(c[ids], f[ids], names, settings=st, frame_times=ids, query_times=[t],
-                               samples_per_pixel=1)[0]
-        assert torch.equal(whole[t], alone), t
+    whole = _each_window_alone(c, f, names, st)
     monkeypatch.setattr(D, "_give_back", lambda out, *args: out)
     kept = denoise_frames(c, f, names, settings=st, samples_per_pixel=1)
     assert bool((whole.mean((1, 2, 3)) > kept.mean((1, 2, 3))).all())
