@@ -148,8 +148,8 @@ _FIREFLY_MAX_SHARE = 0.005
 #: 1 spp, their light clamped as fireflies. Frames 0-2, the ``denoise`` default, from 1 / 4 spp:
 #: ``mi_indirect_dof`` (tuning part) 0.5 / 2 / 4: +0.14 / -0.05, +0.16 / -0.02, +0.10 / -0.02 dB;
 #: ``bl_indirect_dof`` (held out) -0.01 / +0.02, +0.18 / +0.03, +0.23 / +0.02. Given back in every frame,
-#: the pilots that can be trusted lose: from 4 spp `mi_dark_glossy` -6 dB (its small lights' real
-#: highlights spread over the floor), `mi_still_textures` -1.5 (``benchmarks/validation/findings.md``).
+#: the pilots that can be trusted lose: from 4 spp ``mi_dark_glossy`` -6 dB (its small lights' real
+#: highlights spread over the floor), ``mi_still_textures`` -1.5 (``benchmarks/validation/findings.md``).
 _GIVE_BACK_REACH = 2.0
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
@@ -642,9 +642,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         else []
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
         _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig,
-                       torch.ones(c.shape[0], dtype=torch.float64), cell, torch.zeros_like(mask), False, point,
-                       counts, fp, base)
+    pooling = torch.ones(c.shape[0], dtype=torch.float64)
+    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, pooling, cell,
+                       torch.zeros_like(mask), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -1177,8 +1177,8 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     """Scale samples brighter than ``k`` times the pilot ``pe`` (plus a floor) down to that bound, except
     where ``keep`` (bool ``(T, 1, H, W)``): the clamped samples, and the luminance of the radiance taken
     (``(T, 1, H, W)``, the samples times ``alb``); the energy, the energy removed and the samples clamped
-    are added to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions next to
-    noise-free black do not clamp every lit sample (measured on shared/data; on the validation set's
+    are added to ``stats``. The floor is a quarter of the frame's mean pilot luminance, so dark regions
+    next to noise-free black do not clamp every lit sample (measured on shared/data; on the validation set's
     tuning part 0.1 to 1 are within 0.05 dB). Where more than :data:`_FIREFLY_MAX_SHARE` of a frame's
     samples exceed it, the frame's bound rises until no more do (:func:`_clamp_scale`): so many
     "fireflies" are the light itself."""
