@@ -43,8 +43,7 @@ def test_session_shows_the_engine_run_built_by_hand(tracer):
     session = DemoSession(tracer, [0.0, 1.0], seed=5)
     by_hand = ProgressiveRenderer(tracer, [0.0, 1.0], seed=5, alpha=DEFAULT_ALPHA, settings=DenoiseSettings(
         sigma_s=3.0, temporal_radius=0, sigma_t=0.5, mode="window", tree_height=2,
-        guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=5.0, bandwidths=(1.0,),
-        selection_softness=0.7))
+        guide=["Z"] + ALBEDO_NORMAL, firefly="clamp", firefly_k=5.0, bandwidths=(1.0,)))
     for _ in range(2):
         session.step()
         state = by_hand.step()

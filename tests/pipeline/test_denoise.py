@@ -241,13 +241,13 @@ def test_selection_pooling_stops_at_the_widest_candidate(monkeypatch):
     c = torch.where(lit, 200.0 * torch.rand(T, 3, H, W, generator=g), torch.zeros(T, 3, H, W))
     f, names = _plane(T, H, W)
     settings = DenoiseSettings()
-    state = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1)
+    pooling = D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).pooling
     widest = settings.sigma_s * max(settings.bandwidths)
-    assert bool((settings.selection_blur * state.pooling > widest).all()), state.pooling
-    blurs = []  # the filter's selections (the pilot's, in prepare_frames, pool over selection_blur)
+    assert bool((settings.selection_blur * pooling > widest).all()), pooling
+    blurs = []
     blend = _fast.cv_blend
     monkeypatch.setattr(_fast, "cv_blend", lambda *a: blurs.append(a[5]) or blend(*a))
-    out = D.denoise_prepared(state, settings, [0.0, 1.0], [0.0, 1.0])
+    out = denoise_frames(c, f, names, settings=settings, samples_per_pixel=1)
     assert blurs and set(blurs) == {widest} and bool(torch.isfinite(out).all())
 
 
@@ -327,11 +327,10 @@ def test_result_scales_with_exposure(clip, exposure):
     assert float((scaled - base).abs().mean() / base.abs().mean()) < 1e-3
 
 
-@pytest.mark.parametrize("name", ["bandwidths", "pilot_bandwidths"])
-def test_bad_bandwidths_named(name):
+def test_bad_bandwidths_named():
     for bad, err in [((), TypeError), ("wide", TypeError), ((1.0, 0.0), ValueError), ((float("nan"),), ValueError)]:
-        with pytest.raises(err, match=name):
-            DenoiseSettings(**{name: bad}).check()
+        with pytest.raises(err, match="bandwidths"):
+            DenoiseSettings(bandwidths=bad).check()
 
 
 def test_nonfinite_samples_counted_and_kept_out(clip):
@@ -771,27 +770,6 @@ def test_a_small_albedo_that_does_not_scale_the_light_draws_no_rings():
         rms = [float(((denoise_frames(color, f, names, settings=s) - truth)[..., ball] ** 2).mean().sqrt())
                for s in (floor, DenoiseSettings(albedo_floor=floor.albedo_eps))]
         assert rms[0] < 0.7 * rms[1], rms
-
-
-def test_the_pilot_blends_its_bandwidths_by_their_error():
-    """The firefly pilot (its log radiance guides the filter) is filtered at ``pilot_bandwidths`` blended by
-    their cross-validated error. On a plane half in shadow, from 4 spp, it comes closer to the truth on the
-    plain parts than the 1x bandwidth alone (measured 0.81-0.85 of its error), and no further from it at the
-    shadow's edge, which no feature shows (0.95-0.97)."""
-    T, H, W = 1, 64, 64
-    f, names = _plane(T, H, W, albedo=0.6)
-    truth = torch.full((T, 3, H, W), 0.6 * 0.5)
-    truth[..., 32:] *= 0.2
-    plain, edge = (..., slice(0, 20)), (..., slice(28, 36))
-    for seed in range(2):
-        g = torch.Generator().manual_seed(seed)
-        color = sum(truth * torch.empty_like(truth).exponential_(generator=g) for _ in range(4)) / 4
-        err = []
-        for bandwidths in ((0.5, 1.0, 2.0), (1.0,)):
-            st = DenoiseSettings(pilot_bandwidths=bandwidths)
-            pilot = D.prepare_frames(color, f, names, None, st, samples_per_pixel=4).level * 0.6
-            err.append([float(((pilot - truth)[at] ** 2).mean().sqrt()) for at in (plain, edge)])
-        assert err[0][0] < 0.9 * err[1][0] and err[0][1] <= err[1][1], err
 
 
 def test_what_a_delta_surface_shows_is_averaged_in_its_own_frame():

@@ -235,16 +235,6 @@ class DenoiseSettings:
             0.65 -> 0.70 and 0.66 -> 0.71, the caustic scene's light ring 0.88 -> 0.92 (8 and 16 gain
             no more on the caustic scene and lose more elsewhere). 2 removed 8% of the energy of
             exponentially distributed samples.
-        pilot_bandwidths: the firefly pilot's spatial sigmas, as multiples of ``sigma_s``, blended per pixel
-            by their cross-validated error as ``bandwidths`` are (the pilot is filtered in the log domain,
-            each frame alone). The pilot sets the clamp and the guide's log-radiance channel, which alone
-            keeps a shadow apart from the lit surface around it. Frames 0-2, the ``denoise`` default, the
-            validation set's clips and four at 256x256 summed against ``(1,)``, from 1 / 4 spp: ``(0.7,)``
-            on three clips +0.09 / +0.11 (``mi_env_thin``), +0.36 / -0.06 (``mi_ceiling_light``), -0.48 /
-            -0.01 (``mi_dark_glossy``, its pilot noisier); ``(0.5, 1)`` +0.24 / +0.80 (worst clip -0.21,
-            ``mi_dark_glossy``); ``(0.5, 1, 2)`` +0.76 / +0.60 (worst -0.08 from 1 spp, ``bl_indirect_dof``,
-            and -0.09 from 4, ``mi_ceiling_light``), the held-out clips +0.54 / +0.56 of it
-            (``benchmarks/validation/findings.md``).
         footprint_sigma: sigma (pixels) of the pixel-footprint average of the result (see
             :mod:`~torchmanifold.pipeline.footprint`); 0 keeps each pixel's own sample position; ``None``
             (default) takes it from the samples per pixel when the caller knows them
@@ -293,7 +283,6 @@ class DenoiseSettings:
     levels_per_doubling: int = 1
     firefly: str = "clamp"
     firefly_k: float = 5.0
-    pilot_bandwidths: Sequence[float] = (0.5, 1.0, 2.0)
     footprint_sigma: float | None = None
     albedo_eps: float = 0.02
     albedo_floor: float = 0.07
@@ -312,12 +301,11 @@ class DenoiseSettings:
 
         for name in ("sigma_s", "firefly_k", "albedo_eps", "albedo_floor", "sigma_t"):
             check_positive(name, getattr(self, name))
-        for name in ("bandwidths", "pilot_bandwidths"):
-            value = getattr(self, name)
-            if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or not value:
-                raise TypeError(f"{name} must be a non-empty sequence of numbers, got {value!r}")
-            for k, b in enumerate(value):
-                check_positive(f"{name}[{k}]", b)
+        if isinstance(self.bandwidths, (str, bytes)) or not isinstance(self.bandwidths, Sequence) or \
+                not self.bandwidths:
+            raise TypeError(f"bandwidths must be a non-empty sequence of numbers, got {self.bandwidths!r}")
+        for k, b in enumerate(self.bandwidths):
+            check_positive(f"bandwidths[{k}]", b)
         for name in ("radiance_sigma", "selection_blur", "selection_softness"):
             check_nonnegative(name, getattr(self, name))
         if self.footprint_sigma is not None:
@@ -667,19 +655,14 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
             pe = pe - em
         pe = pe.clamp_min(0.0) / _footprint_albedo(alb, flat, fp)  # a pixel average
     else:  # log-domain pilot at the frames themselves (spatial only: cheap, fireflies compressed)
-        ps = replace(settings, temporal_radius=0, bandwidths=tuple(settings.pilot_bandwidths))
-        pf = _Filter(guide, sig, ps, ft, ft, base * float(ps.bandwidths[0]), range_scale)
+        pf = _Filter(guide, sig, replace(settings, temporal_radius=0), ft, ft, base, range_scale)
         # the log domain compresses what is bright for the frame, whatever the exposure
         level = _frame_mean(luminance(e), mask).clamp_min(1e-30)
         x = torch.log1p(e.clamp_min(0.0) / level)
         held = {}
 
         def pilot_filter(values, weights):  # keeps the held-out estimate (flat pixels apart have none)
-            if len(ps.bandwidths) == 1:
-                out, held["x"] = pf.with_held_out(values, weights, int(cell.max()))
-            else:
-                out, held["x"] = _select_bandwidth(values, weights, guide, sig, ps, ft, ft, base, range_scale,
-                                                   None, None, int(cell.max()), held_out=True)
+            out, held["x"] = pf.with_held_out(values, weights, int(cell.max()))
             return out
         pe = level * torch.expm1(_filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries))
     state.level = pe

@@ -134,7 +134,7 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
                       range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
-                      cell: int = 1, held_out: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+                      cell: int = 1) -> Tensor:
     """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
 
     The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
@@ -153,11 +153,9 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
             ``None`` (1).
         cell: the halves' checkerboard squares, in pixels (:func:`_cv_cell`).
-        held_out: also return each pixel's prediction from the other half's samples alone by the bandwidth
-            nearest ``sigma_s`` (where every query is a frame).
 
     Returns:
-        ``(Q, 3, H, W)`` at the query times (and the prediction, ``(Q, 3, H, W)``, with ``held_out``).
+        ``(Q, 3, H, W)`` at the query times.
     """
     T = e.shape[0]
     st = settings
@@ -184,12 +182,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         else:
             at_queries = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
             fulls.append(at_queries(e, mask))
-    nearest = min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))
-    if held_out and not at_frames:
-        raise ValueError("held_out: every query must be a frame")
-    held = preds[nearest] if held_out else None
     if level is None:
-        level = cv_outs[nearest]
+        level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
         level = _frames(level, idx)
     # the residuals in units of the brightest frame mean of each query's window (its prediction mixes the
@@ -220,10 +214,9 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
 
     if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
             _fast.enabled(e, weight, mask, *preds, *fulls):
-        out = torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
-                                        blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
-                         for g in groups])
-        return (out, held) if held_out else out
+        return torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
+                                         blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
+                          for g in groups])
     z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]])
                     for g in groups], 1)
     if not at_frames:
@@ -233,8 +226,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     else:  # the least error has z = 0
         w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
         w = w.to(e.dtype)
-    out = (torch.stack(fulls) * w).sum(0)
-    return (out, held) if held_out else out
+    return (torch.stack(fulls) * w).sum(0)
 
 
 def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
