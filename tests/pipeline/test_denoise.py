@@ -1160,6 +1160,22 @@ def test_energy_given_back_is_each_window_s_alone(monkeypatch):
     assert bool((whole.mean((1, 2, 3)) > kept.mean((1, 2, 3))).all())
 
 
+def test_energy_given_back_stays_finite_where_the_filter_left_no_light():
+    """The clamp's energy (here 1e6, the window's mean) comes back in proportion to the light the filter left
+    around a pixel: where it left none (exactly 0 under the kernel, or 1e-38) the result stays finite and
+    black pixels stay black; elsewhere each pixel gains its share."""
+    out = torch.zeros(1, 3, 16, 200)
+    out[..., 150:] = 0.5
+    out[..., 0, 0] = 1e-38
+    clamped = torch.zeros(1, 1, 16, 200)
+    clamped[..., 2:6] = 1e6  # beyond the kernel's reach of any light the filter left
+    clamped[..., 150:152] = 10.0
+    back = D._give_back(out, clamped, torch.tensor([True]), 16.0)
+    assert bool(torch.isfinite(back).all())
+    assert bool((back[..., 1:, :150] == 0).all())
+    assert bool((back[..., 150:] >= out[..., 150:]).all()) and bool((back[..., 150:] > out[..., 150:]).any())
+
+
 def test_excess_error_z_against_explicit_sums():
     """z of a candidate's excess error at one pixel, against the sums written out over the kernel's
     taps; a candidate without support and one with a catastrophic residual are left out."""

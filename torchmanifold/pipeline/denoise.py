@@ -1211,8 +1211,11 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Ten
     q = noisy.nonzero().flatten()
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
-    gain = 1.0 + blurred[:, :1] / blurred[:, 1:].clamp_min(torch.finfo(out.dtype).tiny)
-    return out.index_copy(0, q, out[q] * gain)
+    taken, left = blurred[:, :1], blurred[:, 1:]
+    # out / blur(lum(out)) first: it stays under the inverse of the kernel's centre weight, so the product
+    # stays finite however little light the filter left where the clamp took some
+    back = torch.where(left > 0, out[q] / torch.where(left > 0, left, 1.0) * taken, 0.0)
+    return out.index_copy(0, q, out[q] + back)
 
 
 def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:
