@@ -1189,11 +1189,12 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     thr = thr * _clamp_scale(torch.where(~keep & (mask > 0), L / thr, 0.0), mask)
     scale = torch.where((L > thr) & ~keep, thr / L.clamp_min(1e-30), torch.ones_like(L))
     ec = e * scale
+    taken = ((e - ec) * alb) * mask
     with torch.no_grad():  # counts, not part of a gradient
         stats["energy"] += float(((e * alb) * mask).sum())
-        stats["firefly_energy"] += float((((e - ec) * alb) * mask).sum())
+        stats["firefly_energy"] += float(taken.sum())
         stats["firefly_clamped_samples"] += int(((scale < 1) & (mask > 0)).sum())
-    return ec, luminance((e - ec) * alb) * mask
+    return ec, luminance(taken)
 
 
 def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Tensor:
@@ -1212,8 +1213,8 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Ten
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
     taken, left = blurred[:, :1], blurred[:, 1:]
-    # out / blur(lum(out)) first: it stays under the inverse of the kernel's centre weight, so the product
-    # stays finite however little light the filter left where the clamp took some
+    # out / blur(lum(out)) first: it stays under the inverse of the kernel's centre weight (over the least
+    # luminance coefficient), so the product stays finite however little light the filter left
     back = torch.where(left > 0, out[q] / torch.where(left > 0, left, 1.0) * taken, 0.0)
     return out.index_copy(0, q, out[q] + back)
 
