@@ -1504,13 +1504,13 @@ def test_a_still_view_averages_texture_over_its_frames(monkeypatch):
     assert averaged > own + 0.5, (averaged, own)
 
 
-def _striped_samples(H, W, slide=0.0, seed=0, S=8, period=6.0):
-    """Albedo ``(3, H, W)`` float64 of one jittered sample per pixel of diagonal stripes (``period`` pixels,
-    ``S`` sub-pixel steps) slid by ``slide`` pixels along x, and the pixels' true (box) averages."""
+def _striped_samples(H, W, slide=0.0, seed=0, S=8, period=6.0, spp=1):
+    """Albedo ``(3, H, W)`` float64 of ``spp`` jittered samples per pixel of diagonal stripes (``period``
+    pixels, ``S`` sub-pixel steps) slid by ``slide`` pixels along x, and the pixels' true (box) averages."""
     g = torch.Generator().manual_seed(seed)
     yy, xx = torch.meshgrid(torch.arange(H * S), torch.arange(W * S), indexing="ij")
     stripes = 0.2 + 0.6 * (((((xx + yy).double() / S - slide) % period)) < period / 2).double()
-    return _point_samples(torch.stack([stripes, 0.8 * stripes, 0.5 * stripes]), S, 1, g)
+    return _point_samples(torch.stack([stripes, 0.8 * stripes, 0.5 * stripes]), S, spp, g)
 
 
 @pytest.mark.parametrize("slide,period,expect", [(0.0, 6.0, True),     # a still texture, other jitters
@@ -1535,7 +1535,49 @@ def test_texture_held_tells_a_sliding_texture_from_a_still_one(slide, period, ex
     assert held > 0.9 if expect else held < 0.25, float(held)
 
 
-def _every_texture_held(a, own, others, valid):
+@pytest.mark.parametrize("period", [6.0, 12.0])
+def test_pixel_averages_show_a_texture_that_slid_a_pixel(period):
+    """Stripes slid by a pixel pass the ratio of differences (as much as neighbouring pixels differ); where
+    each pixel averages 4 samples, the other frame's pixels match the own ones better one pixel over, which
+    tells the slide. A still texture holds either way, and half a pixel, which smears little, mostly holds."""
+    H, W = 30, 36
+    own = torch.ones(1, H, W, dtype=torch.bool)
+
+    def held(slide, pixel_averages):
+        a, _ = _striped_samples(H, W, 0.0, seed=0, period=period, spp=4)
+        b, _ = _striped_samples(H, W, slide, seed=1, period=period, spp=4)
+        return float(FP._texture_held(a, own, [b], [own], pixel_averages)[0][0, 3:-3, 3:-3].double().mean())
+
+    assert held(1.0, False) > 0.9 and held(1.0, True) < 0.25
+    assert held(0.0, True) > 0.95 and held(0.5, True) > 0.85
+
+
+def test_a_texture_turning_in_place_by_a_pixel_a_frame_is_not_averaged_over_frames(monkeypatch):
+    """A still camera over stripes that slide within their surface by a pixel a frame (a ball turning in
+    place), 4 samples a pixel: the window's other frames pass the ratio test, and averaged they would smear
+    the stripes; the better match one pixel over keeps each pixel's own samples."""
+    H, W = 40, 48
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    normal = torch.cat([torch.zeros(2, H, W), torch.ones(1, H, W)]).double()
+    frames, truth = [], None
+    for t, slide in enumerate((-1.0, 0.0, 1.0)):
+        a, box = _striped_samples(H, W, slide, seed=t, spp=4)
+        frames.append(torch.cat([a, normal, _plane_positions(H, W, seed=10 + t)]))
+        truth = box if t == 1 else truth
+    f = torch.stack(frames).float()
+    c = f[:, :3].clone()
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=4)
+
+    def error(x):
+        return float(((x[0].double() - truth) ** 2).mean())
+
+    kept = error(denoise_frames(c, f, names, **kw))
+    monkeypatch.setattr(FP, "_SLID", math.inf)  # the ratio alone
+    smeared = error(denoise_frames(c, f, names, **kw))
+    assert kept < 0.8 * smeared, (kept, smeared)
+
+
+def _every_texture_held(a, own, others, valid, pixel_averages=False):
     """``_texture_held`` as before the texture test: every other frame's samples count."""
     return [torch.ones_like(own) for _ in others]
 
