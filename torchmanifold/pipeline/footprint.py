@@ -432,15 +432,15 @@ def _window_albedo(albedo: Tensor, s: FrameState, ft: list[float], qt: list[floa
 #: at 256x256 +0.24 / +1.17, +0.37 / +1.15, +0.16 / +0.93, at 64x64 -0.20 / +0.01, -0.01 / +0.06,
 #: +0.01 / +0.06
 _TEXTURE_HELD = 1.5
-#: where pixels average several samples, a texture also counts as slid where the other frame's samples match the
-#: own ones better one pixel over than in place, by more than this many times the mean squared difference between
-#: 4-neighbours: a slide of a pixel or two a frame, which the ratio above lets through (:func:`_texture_held`).
-#: A checkered ball turning in place under a still camera (a Mitsuba probe, 128x128, 8 frames, from 4 spp):
-#: inside the moving objects' mask the window albedo cost 1.6 dB against none; k = 0.5 / 0.75 / 1 win back
-#: 1.03 / 0.48 / 0.15 of it. Frames 0-2 from 4 spp at 0.5, the still views with world positions:
-#: `mi_ceiling_light` -0.001 (+0.008 at 256x256), `mi_indirect_dof` -0.021, held out `mi_still_textures` +0.011;
-#: the other clips keep their bits. From 1 spp one sample a pixel makes the test too noisy (k = 0.5: the mask
-#: +0.15, the tuning part -0.11 summed): it is not taken there.
+#: where pixels average several samples, a texture also counts as slid where the other frame's samples match
+#: the own ones better one pixel over than in place, by more than this many times the mean squared difference
+#: between 4-neighbours: a slide of a pixel or two a frame, which the ratio above lets through
+#: (:func:`_texture_held`). A checkered ball turning in place under a still camera (a Mitsuba probe, 128x128,
+#: 8 frames, from 4 spp): inside the moving objects' mask the window albedo cost 1.6 dB against none; k = 0.5
+#: / 0.75 / 1 win back 1.03 / 0.48 / 0.15 of it. Frames 0-2 from 4 spp at 0.5, the still views with world
+#: positions: `mi_ceiling_light` -0.001 (+0.008 at 256x256), `mi_indirect_dof` -0.021, held out
+#: `mi_still_textures` +0.011; the other clips keep their bits. From 1 spp one sample a pixel makes the test
+#: too noisy (k = 0.5: the mask +0.15, the tuning part -0.11 summed): it is not taken there.
 _SLID = 0.5
 
 
@@ -479,9 +479,11 @@ def _texture_held(a: Tensor, own: Tensor, others: Sequence[Tensor], valid: Seque
         # mean over the box of each: moved[0] / moved[1] <= c spread[0] / spread[1]
         held = moved[0] * spread[1] <= _TEXTURE_HELD * spread[0] * moved[1]
         if pixel_averages:
-            bp = torch.nn.functional.pad(b[None], (1, 1, 1, 1), mode="replicate")[0]  # one pixel over, each way
-            over = torch.stack([((bp[:, 1 + dy:1 + dy + H, 1 + dx:1 + dx + W] - a) ** 2).sum(0, keepdim=True) * m
-                                for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+            # one pixel over, each way
+            bp = torch.nn.functional.pad(b[None], (1, 1, 1, 1), mode="replicate")[0]
+            shifted = [bp[:, 1 + dy:1 + dy + H, 1 + dx:1 + dx + W] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                       if dy or dx]
+            over = torch.stack([((x - a) ** 2).sum(0, keepdim=True) * m for x in shifted])
             better = moved[0] - _box_mean(over, _STILL_RADIUS).amin(0)
             held = held & (better * spread[1] <= _SLID * spread[0] * moved[1])
         out.append(held)
