@@ -532,6 +532,38 @@ def clip_materials(scene, n: int):
     return animate, desc, ["panel"]
 
 
+def clip_still(scene, n: int, pan: bool = False):
+    """A checkered cube sliding and a checkered ball turning in place (its points keep their positions, its
+    texture moves) before a checkered floor, under a still camera or, ``pan``, one sliding sideways about
+    half a pixel a frame at 128x128: the two cases a window albedo from depth alone (no Position pass) must
+    tell apart."""
+    room(diffuse("floor", (0.6, 0.6, 0.6), ("checker", (0.7, 0.7, 0.7), (0.1, 0.1, 0.12), 8.0)),
+         diffuse("back", (0.6, 0.6, 0.6), ("noise", (0.2, 0.25, 0.35), (0.7, 0.7, 0.65), 4.0)),
+         diffuse("left", (0.6, 0.2, 0.15)), diffuse("right", (0.2, 0.5, 0.3)),
+         diffuse("ceil", (0.75, 0.75, 0.75)))
+    light("AREA", (0, 0, 1.995), 40.0, size=0.5)
+    cube = add("cube", diffuse("box", (0.8, 0.8, 0.8), ("checker", (0.9, 0.85, 0.7), (0.15, 0.2, 0.5), 3.0)),
+               (0, 0, 0.2), scale=(0.2, 0.2, 0.2))
+    checkered = diffuse("ball", (0.8, 0.8, 0.8), ("checker", (0.9, 0.3, 0.2), (0.9, 0.9, 0.85), 6.0))
+    ball = add("uv_sphere", checkered, (0.45, 0.4, 0.3), radius=0.3, segments=48, ring_count=24, smooth=True)
+    cube.pass_index = ball.pass_index = 1
+    black_world()
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        cube.location = (-0.6 + 0.4 * t, -0.3, 0.2)
+        ball.rotation_euler = (0, 0, math.radians(40 * t))
+        dx = 0.012 * f if pan else 0.0
+        camera(scene, (dx, -3.6, 1.0), (dx, 0, 0.9), 40)
+        return {"cube": {"location": list(cube.location)}, "ball": {"rotate_z_deg": 40 * t},
+                "camera": {"origin": [dx, -3.6, 1.0], "target": [dx, 0, 0.9]}}
+
+    desc = ("Box room lit by a 0.5x0.5 area light under the ceiling, checker floor, noise-textured back "
+            "wall: a checkered cube slides, a checkered ball turns 40 degrees in place. " +
+            ("The camera slides sideways 12 mm a frame." if pan else "Static camera."))
+    return animate, desc, ["box", "ball"]
+
+
 CLIPS = {
     # name: (builder, clip id for seeds, hazards, reference spp, frame of the second reference). 256 spp at 128x128
     # keeps a clip near 3 min of rendering on the 2 shared cores here (glass clip: 21 s per 128-spp frame under load).
@@ -559,6 +591,12 @@ CLIPS = {
     # benchmarks/results/validation/probes (the walls lit by the small tube stay grainy).
     "bl_materials": (clip_materials, 17, ["subsurface", "emissive_mesh", "spot_light", "alpha_cutout", "plastic",
                                           "moving_object", "camera_pan"], 512, 4),
+    # Probes of a still camera without a Position pass, and of a camera slower than a still test can tell
+    # from one (benchmarks/validation/findings.md): rendered on demand, not committed.
+    "bl_still": (clip_still, 18, ["still_camera", "texture_turning_in_place", "moving_object", "textures"],
+                 512, None),
+    "bl_slowpan": (lambda scene, n: clip_still(scene, n, pan=True), 19,
+                   ["slow_camera_pan", "texture_turning_in_place", "moving_object", "textures"], 512, None),
 }
 
 

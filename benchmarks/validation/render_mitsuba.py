@@ -253,6 +253,19 @@ def clip_materials(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_spin(f: int, n: int) -> tuple[dict, dict]:
+    """mi_ceiling_light's room with a checkered ball turning in place: its points keep their world positions
+    while its texture moves (a turntable)."""
+    scene, info = clip_ceiling_light(f, n)
+    t = f / max(1, n - 1)
+    turned = T().translate([0.45, -0.7, -0.3]).rotate([0, 1, 0], 40 * t).scale(0.3)
+    scene["ball"] = {"type": "sphere", "to_world": turned,
+                     "bsdf": checker_bsdf([0.9, 0.3, 0.2], [0.9, 0.9, 0.85], 12)}
+    info["description"] += " A checkered ball (radius 0.3) turns 40 degrees in place over the clip."
+    info["moving"]["ball"] = {"rotate_y_deg": 40 * t}
+    return scene, info
+
+
 def clip_fast_motion(f: int, n: int) -> tuple[dict, dict]:
     """The room of ``clip_ceiling_light`` seen by a camera that orbits 32 degrees over the clip (large parallax,
     the open side and the outside coming into view) while a ball rolls across the floor about 11 px a frame:
@@ -504,6 +517,9 @@ CLIPS = {
     "mi_fast_motion": (clip_fast_motion, 9, ["camera_orbit", "parallax", "disocclusion", "fast_moving_object",
                                              "contact_shadow", "area_light_in_ceiling_no_emission_aov"],
                        ["mover"], 512, None),
+    # A turntable, rendered on demand as a probe, not committed: a texture turning in place, a still camera.
+    "mi_spin": (clip_spin, 10, ["texture_turning_in_place", "still_camera", "moving_object", "contact_shadow",
+                                "area_light_in_ceiling_no_emission_aov"], ["mover", "ball"], 512, None),
 }
 
 # Clips rendered with another integrator than ``path`` (inside the ``aov`` integrator for the noisy passes too).
