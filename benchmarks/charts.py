@@ -285,6 +285,7 @@ def validation_section(rel: str) -> list:
               f"**{mean(m1['st'])}** | {gap} | {mean(m4['raw'])} | {mean(m4['classic'])} | {mean(m4['oidn'])} | "
               f"**{mean(m4['ours'])}** | **{mean(m4['st'])}** | |", ""]
     lines += temporal_section(res, rel)
+    lines += iterations_section(rel)
     lines += tradeoff_section(rel)
     lines += fewer_features_section()
     if FINDINGS.exists():
@@ -321,6 +322,21 @@ def temporal_section(res: dict, rel: str) -> list:
             f"![validation temporal PSNR]({rel}/validation/tpsnr.png)", "",
             "| scene | raw | best classic | OIDN | ours | ours +-1 |", "|---" * 6 + "|", *rows,
             f"| **mean** | {mean} |", ""]
+
+
+def iterations_section(rel: str) -> list:
+    """The validation set through progressive iterations (``results/validation/iterations.*``, written by
+    ``validation/iterations.py``)."""
+    path = VALIDATION / "iterations.md"
+    if not path.exists():
+        return []
+    return ["### Through progressive iterations", "",
+            f"![PSNR against iterations per scene]({rel}/validation/iterations.png)", "",
+            "`benchmarks/validation/iterations.py`: what a renderer holds after n samples per pixel, added "
+            "one per iteration (the render scripts' `--iterations`: Mitsuba's mean of n independent 1-spp "
+            "passes, Cycles' n samples of one sequence); ours: the `denoise` command's default on it, the "
+            "count from the header; OIDN on the same frames.", "",
+            path.read_text().strip(), ""]
 
 
 def tradeoff_section(rel: str) -> list:

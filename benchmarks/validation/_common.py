@@ -18,7 +18,11 @@ FRAMES = 8
 WIDTH = HEIGHT = 128
 
 # Passes of one clip, each with its own block of seeds (see ``seed``).
-PASSES = {"noisy1": 1, "noisy4": 2, "reference": 3, "ref_b": 4, "mask": 5}
+PASSES = {"noisy1": 1, "noisy4": 2, "reference": 3, "ref_b": 4, "mask": 5, "iteration": 6}
+
+#: the iterations ``--iterations`` writes as ``iter{n}_XXXX.exr``: what the renderer holds after n samples per
+#: pixel added one per iteration (iteration 1 is ``frame_``)
+ITERATION_LEVELS = (2, 4, 8, 16)
 
 
 def seed(clip_id: int, pass_name: str, frame: int, chunk: int = 0) -> int:
@@ -63,6 +67,52 @@ def read_channel(path: Path, name: str) -> np.ndarray:
         if name in part.channels:
             return part.channels[name].pixels.astype(np.float64)
     raise KeyError(f"{path}: no channel {name!r} in any part")
+
+
+def read_all(path: Path) -> dict:
+    """name -> (H, W) float64 of every channel of every part of an EXR."""
+    out = {}
+    for part in OpenEXR.File(str(path), separate_channels=True).parts:
+        for name, ch in part.channels.items():
+            out[name] = ch.pixels.astype(np.float64)
+    return out
+
+
+class RunningMean:
+    """The progressive loop of a renderer whose passes are independent, one frame: the mean of ``n`` 1-spp
+    passes, each added as a channel dict."""
+
+    def __init__(self):
+        self.sums: dict = {}
+        self.n = 0
+
+    def add(self, channels: dict) -> None:
+        for name, a in channels.items():
+            a = np.asarray(a, dtype=np.float64)
+            if name in self.sums:
+                self.sums[name] += a
+            else:
+                self.sums[name] = a.copy()
+        self.n += 1
+
+    def mean(self) -> dict:
+        return {k: v / self.n for k, v in self.sums.items()}
+
+
+def clip_frames(clip_dir: Path) -> int:
+    """The frame count a rendered clip was made with (its manifest's): the scenes move over the whole clip, so
+    a frame is the same scene only within the same count."""
+    manifest = Path(clip_dir) / "manifest.json"
+    if not manifest.exists():
+        raise FileNotFoundError(f"{manifest}: render the clip first (without --iterations)")
+    return int(json.loads(manifest.read_text())["frames"])
+
+
+def iteration_seeds(clip_id: int, frame: int, count: int) -> list:
+    """Seeds of iterations 2..count of a frame (iteration 1 is the 1-spp frame, seed ``noisy1``)."""
+    if count > 100:
+        raise ValueError(f"iterations: at most 100, got {count}")
+    return [seed(clip_id, "iteration", frame, k) for k in range(2, count + 1)]
 
 
 def value_noise(h: int, w: int, octaves: int, rng: np.random.Generator) -> np.ndarray:
@@ -141,7 +191,7 @@ def _size(v: str) -> tuple[int, int]:
     return w, h
 
 
-def clip_main(description: str, clips, render_clip, argv=None) -> None:
+def clip_main(description: str, clips, render_clip, argv=None, render_iterations=None) -> None:
     """A renderer script's command line: render the named clips (default all of ``clips``) with
     ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=..., size=...) -> clip folder`` and list
     each finished one in READY."""
@@ -158,11 +208,20 @@ def clip_main(description: str, clips, render_clip, argv=None) -> None:
     ap.add_argument("--size", type=_size, default=None, metavar="WxH",
                     help="render at WxH instead of the clip's own size (a probe at another resolution, e.g. "
                          "the 256x256 of the clips the denoiser is scored on outside this set)")
+    ap.add_argument("--iterations", type=int, default=0, metavar="N",
+                    help="render only the progressive loop of clips already rendered in --out: what "
+                         "the renderer holds after n samples per pixel, added one per iteration from "
+                         f"frame_XXXX.exr, as iter<n>_XXXX.exr for n in {ITERATION_LEVELS} up to N (Mitsuba: "
+                         "the mean of n independent 1-spp passes; Cycles: n samples of the frame's own "
+                         "sequence); no reference, nothing else rewritten")
     args = ap.parse_args(argv)
     for name in args.clips:
         if name not in clips:
             ap.error(f"unknown clip {name!r}; known: {list(clips)}")
     for name in args.clips:
+        if args.iterations:
+            print(f"{name}: {render_iterations(name, args.out, args.frames, args.iterations)}")
+            continue
         out = render_clip(name, args.out, args.frames, args.ref_spp, renderer_defaults=args.renderer_defaults,
                           size=args.size)
         if not args.no_ready:

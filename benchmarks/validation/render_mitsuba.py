@@ -657,8 +657,38 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     return out
 
 
+def render_iterations(name: str, out_root: Path, frames: int, count: int) -> Path:
+    """The progressive loop of clip ``name``, already rendered in ``out_root``: per frame, ``count - 1`` more
+    independent 1-spp passes after ``frame_XXXX.exr`` (the set's box filter, the frame's own size), their
+    running means written as ``iter<n>_XXXX.exr`` (``C.ITERATION_LEVELS``, header ``spp`` n): what a user
+    who adds one sample per pixel per iteration holds after n iterations."""
+    builder, clip_id = CLIPS[name][:2]
+    out = Path(out_root) / name
+    pick_variant()
+    noisy = mi.load_dict({"type": "aov", "aovs": AOVS,
+                          "integrator": {"type": INTEGRATOR.get(name, "path"), "max_depth": MAX_DEPTH}})
+    hdr = {"renderer": f"Mitsuba {mi.__version__} (drjit {dr.__version__}), variant {mi.variant()}"}
+    total = C.clip_frames(out)
+    for f in tqdm(range(min(frames, total)), desc=f"{name} iterations", unit="frame"):
+        first = out / f"frame_{f:04d}.exr"
+        if not first.exists():
+            raise FileNotFoundError(f"{first}: render the clip first (without --iterations)")
+        acc = C.RunningMean()
+        acc.add(C.read_all(first))
+        height, width = acc.sums["R"].shape
+        scene_dict, _ = builder(f, total)
+        scene_dict["sensor"]["film"].update(width=width, height=height)
+        scene = mi.load_dict(scene_dict)
+        for k, s in enumerate(C.iteration_seeds(clip_id, f, count), start=2):
+            mi.render(scene, integrator=noisy, seed=s, spp=1)
+            acc.add(_channels(scene))
+            if k in C.ITERATION_LEVELS:
+                C.write_exr(out / f"iter{k}_{f:04d}.exr", acc.mean(), HALF, {**hdr, "spp": k})
+    return out
+
+
 def main(argv=None):
-    C.clip_main(__doc__.split("\n")[0], CLIPS, render_clip, argv)
+    C.clip_main(__doc__.split("\n")[0], CLIPS, render_clip, argv, render_iterations)
 
 
 if __name__ == "__main__":

@@ -67,9 +67,10 @@ def _stack(frames: list, names) -> torch.Tensor:
     return torch.from_numpy(np.stack([np.stack([fr[n] for n in names]) for fr in frames]))
 
 
-def load_scene(path: Path, spp: int) -> tuple[harness.Dataset, dict]:
-    """The clip at ``path`` as the harness' Dataset for its ``spp``-sample frames, and extras (mask, ref_b)."""
-    prefix = "frame" if spp == 1 else f"frame{spp}spp"
+def load_scene(path: Path, spp: int, prefix: str | None = None) -> tuple[harness.Dataset, dict]:
+    """The clip at ``path`` as the harness' Dataset for its ``spp``-sample frames, and extras (mask, ref_b);
+    ``prefix``: other frames' file names (``iter8`` for ``iter8_XXXX.exr``) instead of the ``spp`` ones."""
+    prefix = prefix or ("frame" if spp == 1 else f"frame{spp}spp")
     files = sorted(path.glob(f"{prefix}_*.exr"))
     if not files:
         raise FileNotFoundError(f"{path}: no {prefix}_XXXX.exr")
