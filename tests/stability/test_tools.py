@@ -110,3 +110,55 @@ def test_pareto_front_matches_brute_force():
                  if not any((x2 <= x and y2 >= y) and (x2, y2) != (x, y) for x2, y2 in pts)}
         # Among duplicates of one point the front keeps one; compare the points, not the indices.
         assert {pts[i] for i in charts.pareto(pts)} == {pts[i] for i in brute}
+
+
+def _write_flat_clip(folder, frames, levels, noise, seed=0):
+    """A Mitsuba-layout clip: a smooth reference, and per level n its frames with noise / sqrt(n)."""
+    import json
+
+    import numpy as np
+
+    from torchmanifold.io.exr import write_exr
+
+    rng = np.random.default_rng(seed)
+    h, w = 20, 24
+    yy, xx = np.mgrid[0:h, 0:w] / 24.0
+    folder.mkdir(parents=True)
+    for f in range(frames):
+        ref = {c: (0.2 + 0.5 * xx + 0.1 * k * yy).astype(np.float32) for k, c in enumerate("RGB")}
+        write_exr(folder / f"reference_{f:04d}.exr", ref)
+        geometry = {"albedo.R": np.full((h, w), 0.5), "albedo.G": np.full((h, w), 0.5),
+                    "albedo.B": np.full((h, w), 0.5), "N.X": np.zeros((h, w)), "N.Y": np.zeros((h, w)),
+                    "N.Z": np.ones((h, w)), "Z": np.full((h, w), 2.0), "P.X": xx, "P.Y": yy,
+                    "P.Z": np.zeros((h, w))}
+        for n in levels:
+            name = "frame" if n == 1 else f"iter{n}"
+            color = {c: np.maximum(v + rng.normal(0, noise / n ** 0.5, (h, w)), 0) for c, v in ref.items()}
+            write_exr(folder / f"{name}_{f:04d}.exr", {**color, **geometry}, attributes={"spp": str(n)})
+    (folder / "manifest.json").write_text(json.dumps({"frames": frames}))
+
+
+def test_iterations_scores_every_level_and_names_clips_without_them(tmp_path):
+    """benchmarks/validation/iterations.py: real EXR files, the command's path and OIDN at every iteration; a
+    clip without its iterations is left out by name, not scored from what it has."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "validation"))
+    import iterations
+
+    _write_flat_clip(tmp_path / "full", 2, iterations.ITERATIONS, 0.3)
+    _write_flat_clip(tmp_path / "first_only", 2, (1,), 0.3, seed=1)
+    split = {"scenes": {"full": {"split": "tune", "path": str(tmp_path / "full")},
+                        "first_only": {"split": "test", "path": str(tmp_path / "first_only")}}}
+    (tmp_path / "split.json").write_text(json.dumps(split))
+    res = iterations.main(["--split", str(tmp_path / "split.json"), "--out", str(tmp_path / "out"),
+                           "--threads", "1"])
+    assert list(res["scenes"]) == ["full"] and "first_only" in res["left_out"]
+    sc = res["scenes"]["full"]
+    raw = [sc[str(n)]["raw"] for n in iterations.ITERATIONS]
+    assert all(b > a + 1.5 for a, b in zip(raw, raw[1:]))  # the noise halves its variance per level
+    assert all(sc[str(n)]["ours"] > sc[str(n)]["raw"] + 3 for n in iterations.ITERATIONS)
+    assert (tmp_path / "out" / "iterations.png").stat().st_size > 0
+    assert "first_only" in (tmp_path / "out" / "iterations.md").read_text()
