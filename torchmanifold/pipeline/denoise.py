@@ -79,6 +79,7 @@ __all__ = [
     "FrameState",
     "footprint_width",
     "spatial_sigma",
+    "radiance_sigma_at",
     "adapt_to_features",
     "Denoiser",
     "default_guide_sigmas",
@@ -254,7 +255,8 @@ class DenoiseSettings:
             and what is seen through glass apart where the renderer's features cannot; 0 leaves it out.
             The channel comes from the firefly pilot where there is one, else from the samples
             (:func:`_log_radiance`, at twice this sigma). 0.5 measured best on the tuning part. Where the
-            pilot's own noise is a quarter of it or more, the sigma widens (:func:`_noise_widening`).
+            pilot's own noise is a quarter of it or more, the sigma widens (:func:`_noise_widening`); beyond 4
+            samples per pixel it narrows (:func:`radiance_sigma_at`).
         demodulate: divide by albedo when albedo channels are present.
         keep_sky: pixels whose camera ray left the scene keep their samples (:func:`_escaped`), unless
             their colour is noise (:func:`_noisy_sky`: a scene in a medium, where a ray that meets no surface
@@ -343,6 +345,26 @@ def spatial_sigma(settings: DenoiseSettings, samples_per_pixel: float | None) ->
     if not _known_count(samples_per_pixel):
         return float(settings.sigma_s)
     return float(settings.sigma_s) * float(samples_per_pixel) ** _SIGMA_SPP_EXPONENT
+
+
+#: the most samples per pixel at which the log-radiance channel keeps ``radiance_sigma`` (measured best at 1
+#: and 4 spp); beyond, the pilot is cleaner and a narrower channel keeps the shading that no feature shows, so
+#: the sigma shrinks as the spatial one, ``(spp / 4) ** -0.25``: 0.42 from 8 spp, 0.35 from 16. The set through
+#: progressive iterations (``benchmarks/validation/iterations.py``), frames 0-2 of eleven clips, summed against
+#: 0.5: +0.32 / +1.66 dB from 8 / 16 spp, no clip below -0.07 (``mi_dark_glossy`` and ``mi_still_textures``
+#: from 8; ``bl_env_thin`` +0.18 / +0.50, ``mi_indirect_dof`` +0.04 / +0.46); 0.5 * spp ** -0.25 from every
+#: count cost those two textured clips 0.2 dB from 4 spp (``findings.md``)
+_RADIANCE_SPP = 4
+
+
+def radiance_sigma_at(settings: DenoiseSettings, samples_per_pixel: float | None) -> float:
+    """The log-radiance channel's range sigma for frames of ``samples_per_pixel``: ``settings.radiance_sigma``
+    (or its ``guide_sigmas`` entry, which is taken as given) up to :data:`_RADIANCE_SPP` samples, then
+    shrinking as ``(spp / 4) ** -0.25``."""
+    rs = _radiance_sigma(settings)
+    if RADIANCE_GUIDE in dict(settings.guide_sigmas) or not _known_count(samples_per_pixel):
+        return rs
+    return rs * max(1.0, float(samples_per_pixel) / _RADIANCE_SPP) ** _SIGMA_SPP_EXPONENT
 
 
 #: Where no albedo channel guides (colour alone, a renderer's Combined pass; or geometry alone), the guide
@@ -597,6 +619,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     dt = settings.dtype
     k_ff = settings.firefly_k if firefly_k is None else float(firefly_k)
     base = spatial_sigma(settings, samples_per_pixel) if sigma_s is None else float(sigma_s)
+    settings = replace(settings, radiance_sigma=radiance_sigma_at(settings, samples_per_pixel))
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     alb, flat = _demodulation_albedo(f, names, settings)
