@@ -1800,9 +1800,9 @@ def test_pilot_noise_is_measured_without_albedo(mitsuba_dir):
 
 
 def test_radiance_channel_narrows_beyond_four_samples_per_pixel():
-    """From more samples than 4 a pixel the header's count narrows the log-radiance channel, (spp / 4) ** -0.25,
-    so a shadow that no feature shows keeps its depth; up to 4 it keeps ``radiance_sigma``, and an explicit
-    ``guide_sigmas`` entry is taken as given."""
+    """From more samples than 4 a pixel the header's count narrows the log-radiance channel as
+    (spp / 4) ** -0.25, so a shadow that no feature shows keeps its depth; up to 4 it keeps
+    ``radiance_sigma``, and an explicit ``guide_sigmas`` entry is taken as given."""
     T, H, W = 1, 40, 48
     f, names = _plane(T, H, W)
     light = torch.ones(T, 1, H, W)

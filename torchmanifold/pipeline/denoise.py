@@ -347,13 +347,13 @@ def spatial_sigma(settings: DenoiseSettings, samples_per_pixel: float | None) ->
     return float(settings.sigma_s) * float(samples_per_pixel) ** _SIGMA_SPP_EXPONENT
 
 
-#: the most samples per pixel at which the log-radiance channel keeps ``radiance_sigma`` (measured best at 1
-#: and 4 spp); beyond, the pilot is cleaner and a narrower channel keeps the shading that no feature shows, so
-#: the sigma shrinks as the spatial one, ``(spp / 4) ** -0.25``: 0.42 from 8 spp, 0.35 from 16. The set through
-#: progressive iterations (``benchmarks/validation/iterations.py``), frames 0-2 of eleven clips, summed against
-#: 0.5: +0.32 / +1.66 dB from 8 / 16 spp, no clip below -0.07 (``mi_dark_glossy`` and ``mi_still_textures``
-#: from 8; ``bl_env_thin`` +0.18 / +0.50, ``mi_indirect_dof`` +0.04 / +0.46); 0.5 * spp ** -0.25 from every
-#: count cost those two textured clips 0.2 dB from 4 spp (``findings.md``)
+#: the most samples per pixel at which the log-radiance channel keeps ``radiance_sigma`` (measured best at
+#: 1 and 4 spp); beyond, the pilot is cleaner and a narrower channel keeps the shading that no feature
+#: shows, so the sigma shrinks as the spatial one, ``(spp / 4) ** -0.25``: 0.42 from 8 spp, 0.35 from 16.
+#: The set through progressive iterations (``benchmarks/validation/iterations.py``), frames 0-2 of eleven
+#: clips, summed against 0.5: +0.32 / +1.66 dB from 8 / 16 spp, no clip below -0.07 (``mi_dark_glossy`` and
+#: ``mi_still_textures`` from 8; ``bl_env_thin`` +0.18 / +0.50, ``mi_indirect_dof`` +0.04 / +0.46);
+#: 0.5 * spp ** -0.25 from every count cost those two textured clips 0.2 dB from 4 spp (``findings.md``)
 _RADIANCE_SPP = 4
 
 
