@@ -224,16 +224,19 @@ def test_filter_sky_flag():
 
 
 def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir):
-    """The shared clip's header says 1 spp (footprint 0.7 px); --spp overrides it; a bad count is named."""
+    """The shared clip's header says 1 spp (footprint 0.7 px); --spp overrides it (16: the log-radiance
+    channel narrows); a bad count is named."""
     paths = _link_frames(tmp_path, mitsuba_dir)
     outs = {}
-    for name, extra in (("header", []), ("flag", ["--spp", "4"])):
+    for name, extra in (("header", []), ("flag", ["--spp", "4"]), ("many", ["--spp", "16"])):
         rc = main(["denoise", *map(str, paths), "--out", str(tmp_path / name), "--temporal-radius", "0",
                    "--tree-height", "2", "--quiet", *extra])
         assert rc == 0, capsys.readouterr().err
         outs[name] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert outs["header"]["samples_per_pixel"] == 1 and outs["header"]["footprint_sigma"] == pytest.approx(0.7)
     assert outs["flag"]["samples_per_pixel"] == 4 and outs["flag"]["footprint_sigma"] == pytest.approx(0.5)
+    assert outs["header"]["radiance_sigma"] == outs["flag"]["radiance_sigma"] == 0.5  # narrows beyond 4 spp
+    assert outs["many"]["radiance_sigma"] == pytest.approx(0.5 / 2 ** 0.5)
     assert outs["header"]["sigma_s"] == 4.0 and outs["flag"]["sigma_s"] == pytest.approx(4.0 / 2 ** 0.5)
     a, b = (read_exr(tmp_path / n / paths[0].name)["R"] for n in ("header", "flag"))
     assert not np.array_equal(a, b)

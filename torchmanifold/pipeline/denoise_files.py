@@ -17,7 +17,8 @@ from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
-                                            prepare_frames, spatial_sigma)
+                                            prepare_frames, radiance_sigma_at,
+                                            spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
@@ -48,7 +49,8 @@ def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
             "firefly_energy_removed": total["firefly_energy_removed"] / max(n, 1),
             "noisy_sky_frames": total["noisy_sky_frames"], "samples_per_pixel": samples_per_pixel,
             "sigma_s": spatial_sigma(settings, samples_per_pixel),
-            "footprint_sigma": footprint_width(settings, samples_per_pixel)}
+            "footprint_sigma": footprint_width(settings, samples_per_pixel),
+            "radiance_sigma": radiance_sigma_at(settings, samples_per_pixel)}
 
 
 def _check_inputs(inputs: Sequence, out, output_layout: str) -> tuple[list[Path], Path]:
