@@ -51,16 +51,6 @@ def clip_files(path: Path, n: int) -> list[Path]:
     return sorted(path.glob(f"{prefix(n)}_*.exr"))
 
 
-def run_oidn(path: Path, n: int) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
-    """OIDN on the clip's frames after ``n`` iterations: outputs, the frames themselves, seconds per frame."""
-    ds, _ = score.load_scene(path, n, prefix(n))
-    oidn = next(m for m in score.methods() if m.family == "oidn")
-    clip, alb = harness.clip_for(ds, use=score.GUIDE)
-    out, secs = harness.run_method(oidn, ds, clip, alb, list(range(ds.color.shape[0])), score.SIGMA_S,
-                                   score.SIGMA_R)
-    return out, ds.color, secs
-
-
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--split", type=Path, default=HERE / "split.json")
@@ -85,10 +75,10 @@ def main(argv=None) -> dict:
         sc = {"split": split["scenes"][name]["split"]}
         for n in ITERATIONS:
             files = clip_files(path, n)
-            ref = tradeoff.references(path, files)
-            oidn, raw, secs_oidn = run_oidn(path, n)
+            oidn, ds, secs_oidn = tradeoff.run_oidn(path, n, prefix(n))
+            ref = ds.reference
             outs, secs = tradeoff.run_variant(files, settings)
-            sc[str(n)] = {"raw": tradeoff.psnr(raw, ref), "oidn": tradeoff.psnr(oidn, ref),
+            sc[str(n)] = {"raw": tradeoff.psnr(ds.color, ref), "oidn": tradeoff.psnr(oidn, ref),
                           "ours": tradeoff.psnr(outs, ref), "ms_ours": 1e3 * statistics.median(secs),
                           "ms_oidn": 1e3 * statistics.median(secs_oidn)}
             tqdm.write(f"{name} after {n}: " + ", ".join(f"{k} {v:.2f}" for k, v in sc[str(n)].items()))

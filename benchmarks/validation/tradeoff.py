@@ -80,18 +80,16 @@ def run_variant(files: list[Path], settings) -> tuple[list[np.ndarray], list[flo
     return outs, secs
 
 
-def run_oidn(path: Path, spp: int) -> tuple[torch.Tensor, list[float]]:
-    ds, _ = score.load_scene(path, spp)
+def run_oidn(path: Path, spp: int,
+             prefix: str | None = None) -> tuple[torch.Tensor, harness.Dataset, list[float]]:
+    """OIDN on the clip's ``spp``-sample frames (``prefix``: as :func:`score.load_scene` takes it): its
+    outputs, the clip as read (frames and references) and the seconds per frame."""
+    ds, _ = score.load_scene(path, spp, prefix)
     oidn = next(m for m in score.methods() if m.family == "oidn")
     clip, alb = harness.clip_for(ds, use=score.GUIDE)
     out, secs = harness.run_method(oidn, ds, clip, alb, list(range(ds.color.shape[0])), score.SIGMA_S,
                                    score.SIGMA_R)
-    return out, secs
-
-
-def references(path: Path, files: list[Path]) -> torch.Tensor:
-    idx = [int(p.stem.split("_")[-1]) for p in files]
-    return score._stack([score.read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
+    return out, ds, secs
 
 
 def psnr(outs, ref: torch.Tensor) -> float:
@@ -122,9 +120,9 @@ def main(argv=None) -> dict:
         sc = {"split": split["scenes"][name]["split"]}
         for spp in args.spp:
             files = clip_files(path, spp)
-            ref = references(path, files)
             row = {}
-            out, secs = run_oidn(path, spp)
+            out, ds, secs = run_oidn(path, spp)
+            ref = ds.reference
             row["oidn"] = {"psnr": psnr(out, ref), "ms": 1e3 * statistics.median(secs)}
             for v in args.variants:
                 outs, secs = run_variant(files, settings_of(VARIANTS[v]))
