@@ -78,27 +78,6 @@ def read_all(path: Path) -> dict:
     return out
 
 
-class RunningMean:
-    """The progressive loop of a renderer whose passes are independent, one frame: the mean of ``n`` 1-spp
-    passes, each added as a channel dict."""
-
-    def __init__(self):
-        self.sums: dict = {}
-        self.n = 0
-
-    def add(self, channels: dict) -> None:
-        for name, a in channels.items():
-            a = np.asarray(a, dtype=np.float64)
-            if name in self.sums:
-                self.sums[name] += a
-            else:
-                self.sums[name] = a.copy()
-        self.n += 1
-
-    def mean(self) -> dict:
-        return {k: v / self.n for k, v in self.sums.items()}
-
-
 def clip_frames(clip_dir: Path) -> int:
     """The frame count a rendered clip was made with (its manifest's): the scenes move over the whole clip, so
     a frame is the same scene only within the same count."""
@@ -106,13 +85,6 @@ def clip_frames(clip_dir: Path) -> int:
     if not manifest.exists():
         raise FileNotFoundError(f"{manifest}: render the clip first (without --iterations)")
     return int(json.loads(manifest.read_text())["frames"])
-
-
-def iteration_seeds(clip_id: int, frame: int, count: int) -> list:
-    """Seeds of iterations 2..count of a frame (iteration 1 is the 1-spp frame, seed ``noisy1``)."""
-    if count > 100:
-        raise ValueError(f"iterations: at most 100, got {count}")
-    return [seed(clip_id, "iteration", frame, k) for k in range(2, count + 1)]
 
 
 def value_noise(h: int, w: int, octaves: int, rng: np.random.Generator) -> np.ndarray:

@@ -657,6 +657,34 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
     return out
 
 
+class RunningMean:
+    """Mitsuba's progressive loop, one frame: the mean of ``n`` independent 1-spp passes, each added as a
+    channel dict."""
+
+    def __init__(self):
+        self.sums: dict = {}
+        self.n = 0
+
+    def add(self, channels: dict) -> None:
+        for name, a in channels.items():
+            a = np.asarray(a, dtype=np.float64)
+            if name in self.sums:
+                self.sums[name] += a
+            else:
+                self.sums[name] = a.copy()
+        self.n += 1
+
+    def mean(self) -> dict:
+        return {k: v / self.n for k, v in self.sums.items()}
+
+
+def iteration_seeds(clip_id: int, frame: int, count: int) -> list:
+    """Seeds of iterations 2..count of a frame (iteration 1 is the 1-spp frame, seed ``noisy1``)."""
+    if count > 100:
+        raise ValueError(f"iterations: at most 100, got {count}")
+    return [C.seed(clip_id, "iteration", frame, k) for k in range(2, count + 1)]
+
+
 def render_iterations(name: str, out_root: Path, frames: int, count: int) -> Path:
     """The progressive loop of clip ``name``, already rendered in ``out_root``: per frame, ``count - 1`` more
     independent 1-spp passes after ``frame_XXXX.exr`` (the set's box filter, the frame's own size), their
@@ -673,13 +701,13 @@ def render_iterations(name: str, out_root: Path, frames: int, count: int) -> Pat
         first = out / f"frame_{f:04d}.exr"
         if not first.exists():
             raise FileNotFoundError(f"{first}: render the clip first (without --iterations)")
-        acc = C.RunningMean()
+        acc = RunningMean()
         acc.add(C.read_all(first))
         height, width = acc.sums["R"].shape
         scene_dict, _ = builder(f, total)
         scene_dict["sensor"]["film"].update(width=width, height=height)
         scene = mi.load_dict(scene_dict)
-        for k, s in enumerate(C.iteration_seeds(clip_id, f, count), start=2):
+        for k, s in enumerate(iteration_seeds(clip_id, f, count), start=2):
             mi.render(scene, integrator=noisy, seed=s, spp=1)
             acc.add(_channels(scene))
             if k in C.ITERATION_LEVELS:
