@@ -406,6 +406,23 @@ inline void block_reduce_row_sse(const float* a, const float* b, int64_t w, int6
       }
       _mm256_storeu_ps(acc + bj, _mm256_add_ps(_mm256_loadu_ps(acc + bj), sum_blocks_of_4(v)));
     }
+  // df == 8: a block's halves added make the SSE path's 4-float vector; eight blocks' vectors, paired
+  // into v[0..3], then sum as the df == 4 blocks do (the same operations in the same order)
+  if (df == 8)
+    for (; bj + 8 <= full; bj += 8) {
+      __m256 v[4];
+      for (int q = 0; q < 4; ++q) {
+        const float* p0 = a + (bj + 2 * q) * 8;
+        __m256 x0 = _mm256_loadu_ps(p0), x1 = _mm256_loadu_ps(p0 + 8);
+        if (kDot) {
+          const float* b0 = b + (bj + 2 * q) * 8;
+          x0 = _mm256_mul_ps(x0, _mm256_loadu_ps(b0));
+          x1 = _mm256_mul_ps(x1, _mm256_loadu_ps(b0 + 8));
+        }
+        v[q] = _mm256_add_ps(_mm256_permute2f128_ps(x0, x1, 0x20), _mm256_permute2f128_ps(x0, x1, 0x31));
+      }
+      _mm256_storeu_ps(acc + bj, _mm256_add_ps(_mm256_loadu_ps(acc + bj), sum_blocks_of_4(v)));
+    }
 #endif
   for (; bj + 4 <= full; bj += 4) {
     __m128 s0 = block(bj), s1 = block(bj + 1), s2 = block(bj + 2), s3 = block(bj + 3);
@@ -425,15 +442,48 @@ inline void block_reduce_row_sse(const float* a, const float* b, int64_t w, int6
   }
 }
 
+// df == 2 (the generic loop's strided columns did not vectorise): eight blocks a vector, their even and
+// odd columns apart, added to acc in the generic loop's order (even, then odd) with its operations
+// (vector operators, which the compiler contracts as it does the scalar loop). Returns the blocks done.
+template <bool kDot>
+inline int64_t block_reduce_row_df2(const float* a, const float* b, int64_t w, float* acc) {
+  int64_t bj = 0;
+#if defined(__AVX2__)
+  // the even (odd) floats of x0, x1 in order: per 128-bit lane, then the lanes' 64-bit halves in order
+  auto even = [](__m256 x0, __m256 x1) {
+    return _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(x0, x1, 0x88)), 0xD8));
+  };
+  auto odd = [](__m256 x0, __m256 x1) {
+    return _mm256_castpd_ps(_mm256_permute4x64_pd(_mm256_castps_pd(_mm256_shuffle_ps(x0, x1, 0xDD)), 0xD8));
+  };
+  for (; bj + 8 <= w / 2; bj += 8) {
+    const __m256 a0 = _mm256_loadu_ps(a + 2 * bj), a1 = _mm256_loadu_ps(a + 2 * bj + 8);
+    __m256 s = _mm256_loadu_ps(acc + bj);
+    if (kDot) {
+      const __m256 b0 = _mm256_loadu_ps(b + 2 * bj), b1 = _mm256_loadu_ps(b + 2 * bj + 8);
+      s += even(a0, a1) * even(b0, b1);
+      s += odd(a0, a1) * odd(b0, b1);
+    } else {
+      s += even(a0, a1);
+      s += odd(a0, a1);
+    }
+    _mm256_storeu_ps(acc + bj, s);
+  }
+#endif
+  return bj;
+}
+
 inline void block_sum_row(const float* x, int64_t w, int64_t df, int64_t wl, float* acc) {
   if (df % 4 == 0) return block_reduce_row_sse<false>(x, nullptr, w, df, wl, acc);
-  block_sum_row<float>(x, w, df, wl, acc);
+  const int64_t done = df == 2 ? block_reduce_row_df2<false>(x, nullptr, w, acc) : 0;
+  block_sum_row<float>(x + done * df, w - done * df, df, wl - done, acc + done);
 }
 
 inline void block_dot_row(const float* a, const float* b, int64_t w, int64_t df, int64_t wl,
                           float* acc) {
   if (df % 4 == 0) return block_reduce_row_sse<true>(a, b, w, df, wl, acc);
-  block_dot_row<float>(a, b, w, df, wl, acc);
+  const int64_t done = df == 2 ? block_reduce_row_df2<true>(a, b, w, acc) : 0;
+  block_dot_row<float>(a + done * df, b + done * df, w - done * df, df, wl - done, acc + done);
 }
 #endif
 

@@ -123,15 +123,36 @@ class SpacetimeFilter {
 
   // dist[j] = sum_d (g[d][j] - e[d][j])^2 for a row (g: row of a (D, H, W) guide at offset `row`).
   void distance_row(const T* g, int64_t row, const T* e, T* dist) const {
-    std::fill(dist, dist + W_, T(0));
-    for (int64_t d = 0; d < D_; ++d) {
-      const T* __restrict gr = g + d * N_ + row;
-      const T* __restrict er = e + d * W_;
-      for (int64_t j = 0; j < W_; ++j) {
-        const T x = gr[j] - er[j];
-        dist[j] += x * x;
-      }
+    channel_sum_row<true>(g + row, e, nullptr, dist);
+  }
+
+  // out[j] = sum_d v[d] (g[d][j] - e[d][j]) (g: the (D, H, W) guide from the row's first pixel).
+  void projection_row(const T* g, const T* e, const T* v, T* out) const {
+    channel_sum_row<false>(g, e, v, out);
+  }
+
+  // Four 32-byte vectors of pixels sum every channel in registers, instead of loading and storing out
+  // per channel; each pixel adds its channels in the same order, so the bits are those of a plain loop.
+  template <bool kSquare>
+  void channel_sum_row(const T* g, const T* e, const T* v, T* out) const {
+    typedef T vec __attribute__((vector_size(32)));
+    typedef T vec_u __attribute__((vector_size(32), aligned(sizeof(T)), may_alias));  // unaligned views
+    constexpr int64_t L = 32 / sizeof(T), kTile = 4 * L;
+    auto term = [&](int64_t d, auto x) { return kSquare ? x * x : v[d] * x; };
+    int64_t j0 = 0;
+    for (; j0 + kTile <= W_; j0 += kTile) {
+      vec acc[4] = {};
+      for (int64_t d = 0; d < D_; ++d)
+        for (int q = 0; q < 4; ++q) {
+          const int64_t j = j0 + q * L;
+          acc[q] += term(d, *reinterpret_cast<const vec_u*>(g + d * N_ + j) -
+                                *reinterpret_cast<const vec_u*>(e + d * W_ + j));
+        }
+      for (int q = 0; q < 4; ++q) *reinterpret_cast<vec_u*>(out + j0 + q * L) = acc[q];
     }
+    std::fill(out + j0, out + W_, T(0));
+    for (int64_t d = 0; d < D_; ++d)
+      for (int64_t j = j0; j < W_; ++j) out[j] += term(d, g[d * N_ + j] - e[d * W_ + j]);
   }
 
   std::vector<RowUpsampler<T>> upsamplers(const std::vector<const T*>& low, int64_t planes) const {
@@ -346,13 +367,7 @@ class SpacetimeFilter {
             // the split: side of v . (gs - eta), theta = 1 - w on the cluster
             const int32_t id = static_cast<int32_t>(level[k].id);
             int32_t* lr = label_.size() > 0 ? label_.data() + row : nullptr;
-            std::fill(t0.begin(), t0.end(), T(0));
-            for (int64_t d = 0; d < D_; ++d) {
-              const T vd = v[k][d];
-              const T* g = gs_ + d * N_ + row;
-              const T* er = e.data() + d * W_;
-              for (int64_t j = 0; j < W_; ++j) t0[j] += vd * (g[j] - er[j]);
-            }
+            projection_row(gs_ + row, e.data(), v[k].data(), t0.data());
             split_sides(depth, id, keep_labels, lr, query_mask(row), wr, t0.data(), t1.data(), W_);
             T* q = Q.data() + k * 2 * qside;
             for (int64_t d = 0; d < D_; ++d) {
