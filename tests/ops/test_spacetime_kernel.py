@@ -62,7 +62,7 @@ def test_matches_reference_float64(case, sigmas):
 
 
 @pytest.mark.parametrize("height", [1, 2, 3])
-@pytest.mark.parametrize("sigma_s", [3.0, 8.0, 16.0])  # downsampling factor 1, 2, 4
+@pytest.mark.parametrize("sigma_s", [3.0, 5.0, 8.0, 16.0])  # downsampling factor 1, 2, 4, 8
 def test_matches_reference_float32(height, sigma_s):
     """float32 kernel (vector paths, odd widths for their tails) against the float64 reference."""
     v, g, w, gq = _window(1, 3, 3, 5, 40, 75, 2, seed=int(sigma_s))
