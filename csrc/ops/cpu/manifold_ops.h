@@ -343,6 +343,10 @@ inline T dot_lanes(const T* a, const T* b, int64_t n) {
 // Offset-major so the full blocks vectorise over bj (strided loads); the partial last block after.
 template <typename T>
 inline void block_sum_row(const T* x, int64_t w, int64_t df, int64_t wl, T* acc) {
+  if (df == 1) {  // the same sums; the strided loop below did not vectorise at a runtime stride of 1
+    for (int64_t j = 0; j < w; ++j) acc[j] += x[j];
+    return;
+  }
   const int64_t full = w / df;
   for (int64_t k = 0; k < df; ++k)
     for (int64_t bj = 0; bj < full; ++bj) acc[bj] += x[bj * df + k];
@@ -356,6 +360,10 @@ inline void block_sum_row(const T* x, int64_t w, int64_t df, int64_t wl, T* acc)
 // acc[bj] += sum of a[j] * b[j] over the block's columns.
 template <typename T>
 inline void block_dot_row(const T* a, const T* b, int64_t w, int64_t df, int64_t wl, T* acc) {
+  if (df == 1) {  // as block_sum_row
+    for (int64_t j = 0; j < w; ++j) acc[j] += a[j] * b[j];
+    return;
+  }
   const int64_t full = w / df;
   for (int64_t k = 0; k < df; ++k)
     for (int64_t bj = 0; bj < full; ++bj) acc[bj] += a[bj * df + k] * b[bj * df + k];
