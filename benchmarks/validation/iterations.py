@@ -83,11 +83,8 @@ def main(argv=None) -> dict:
                           "ms_oidn": 1e3 * statistics.median(secs_oidn)}
             tqdm.write(f"{name} after {n}: " + ", ".join(f"{k} {v:.2f}" for k, v in sc[str(n)].items()))
         results["scenes"][name] = sc
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "iterations.json").write_text(json.dumps(results, indent=1))
-    (args.out / "iterations.md").write_text(markdown(results))
-    chart(results, args.out / "iterations.png")
-    print((args.out / "iterations.md").read_text())
+    score.write_results(args.out, "iterations", results, markdown(results),
+                        lambda: chart(results, args.out / "iterations.png"))
     return results
 
 

@@ -67,10 +67,16 @@ def _stack(frames: list, names) -> torch.Tensor:
     return torch.from_numpy(np.stack([np.stack([fr[n] for n in names]) for fr in frames]))
 
 
+def frame_prefix(spp: int) -> str:
+    """The file names of a clip's ``spp``-sample frames: ``frame_XXXX.exr`` from 1 spp, else
+    ``frame<spp>spp_XXXX.exr``."""
+    return "frame" if spp == 1 else f"frame{spp}spp"
+
+
 def load_scene(path: Path, spp: int, prefix: str | None = None) -> tuple[harness.Dataset, dict]:
     """The clip at ``path`` as the harness' Dataset for its ``spp``-sample frames, and extras (mask, ref_b);
     ``prefix``: other frames' file names (``iter8`` for ``iter8_XXXX.exr``) instead of the ``spp`` ones."""
-    prefix = prefix or ("frame" if spp == 1 else f"frame{spp}spp")
+    prefix = prefix or frame_prefix(spp)
     files = sorted(path.glob(f"{prefix}_*.exr"))
     if not files:
         raise FileNotFoundError(f"{path}: no {prefix}_XXXX.exr")
@@ -444,12 +450,18 @@ def main(argv=None):
 
 
 def _write(results: dict, split: dict, out: Path) -> None:
+    write_results(out, "scores", results, markdown(results, split),
+                  lambda: [chart(results, out / name, *how) for name, *how in CHARTS])
+
+
+def write_results(out: Path, stem: str, results: dict, table: str, draw) -> None:
+    """A validation benchmark's outputs in ``out``: ``<stem>.json`` (``results``), ``<stem>.md`` (``table``,
+    also printed) and its charts (``draw()``)."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "scores.json").write_text(json.dumps(results, indent=1))
-    (out / "scores.md").write_text(markdown(results, split))
-    for name, *how in CHARTS:
-        chart(results, out / name, *how)
-    print((out / "scores.md").read_text())
+    (out / f"{stem}.json").write_text(json.dumps(results, indent=1))
+    (out / f"{stem}.md").write_text(table)
+    draw()
+    print(table)
 
 
 if __name__ == "__main__":

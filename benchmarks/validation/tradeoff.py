@@ -58,7 +58,7 @@ def settings_of(variant: dict):
 
 
 def clip_files(path: Path, spp: int) -> list[Path]:
-    files = sorted(path.glob("frame_*.exr" if spp == 1 else f"frame{spp}spp_*.exr"))
+    files = sorted(path.glob(f"{score.frame_prefix(spp)}_*.exr"))
     if not files:
         raise FileNotFoundError(f"{path}: no {spp}-spp frames")
     return files
@@ -131,11 +131,8 @@ def main(argv=None) -> dict:
             tqdm.write(f"{name} {spp} spp: " + ", ".join(f"{k} {r['psnr']:.2f} dB {r['ms']:.0f} ms"
                                                          for k, r in row.items()))
         results["scenes"][name] = sc
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "tradeoff.json").write_text(json.dumps(results, indent=1))
-    (args.out / "tradeoff.md").write_text(markdown(results))
-    chart(results, args.out / "tradeoff.png")
-    print((args.out / "tradeoff.md").read_text())
+    score.write_results(args.out, "tradeoff", results, markdown(results),
+                        lambda: chart(results, args.out / "tradeoff.png"))
     return results
 
 

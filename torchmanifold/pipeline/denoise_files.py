@@ -17,8 +17,7 @@ from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
-                                            prepare_frames, radiance_sigma_at,
-                                            spatial_sigma)
+                                            prepare_frames, radiance_sigma_at, spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
