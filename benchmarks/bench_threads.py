@@ -4,12 +4,15 @@ step, under several thread environments, every configuration in its own fresh pr
 Run: ``.venv/bin/python benchmarks/bench_threads.py [--iterations 4] [--kinds render] [--envs ...]``; writes
 ``benchmarks/results/threads.json``. Each thread environment runs in its own fresh process (OpenMP reads
 its settings once); inside it the thread counts alternate iteration by iteration after one warm-up, so
-the ratios compare runs under the same machine load. Times are medians, never asserted.
+the ratios compare runs under the same machine load. The ``cli`` environment takes its cores as the CLI's
+``--threads`` does (:func:`torchmanifold._threads.set_threads`: llvmpipe's threads too, which a process
+sets once), so there each thread count has processes of its own, alternating round by round
+(``--rounds``). Times are medians, never asserted.
 
 Measured:
 - ``render``: :meth:`ProgressiveRenderer.step` on the render job's defaults (its frames and size,
   ``RENDER_DEFAULTS``, and the loop's own filter settings), split into the tracer's part (llvmpipe, whose
-  threads torch's count does not set) and the rest (filtering, torch); ``render_small``: the same at
+  threads torch's count does not set; ``--threads`` does) and the rest (filtering, torch); ``render_small``: the same at
   128x96, the job's former size, where the Python around each small frame's ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
@@ -42,6 +45,12 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
     if os.environ.get("_IMPORT_FIRST"):
         import torchmanifold  # noqa: F401  (sets its OpenMP default before torch loads libgomp)
     import torch
+
+    if os.environ.get("_SET_THREADS"):  # one count, taken as the CLI takes it, before any GL context
+        from torchmanifold._threads import set_threads
+
+        (n,) = threads
+        set_threads(n)
 
     from torchmanifold.pipeline import DenoiseSettings, denoise_frames
 
@@ -139,18 +148,23 @@ ENVS = {
     "spin (policy unset)": {},
     # workers sleep at once; what torchmanifold/__init__.py sets unless the user set a policy
     "OMP_WAIT_POLICY=PASSIVE": {"OMP_WAIT_POLICY": "PASSIVE"},
-    # as the CLI runs: nothing set, torchmanifold imported before torch (its default applies)
-    "cli (import torchmanifold first)": {"_IMPORT_FIRST": "1"},
+    # as the CLI runs: nothing set, torchmanifold imported before torch (its default applies), the cores
+    # taken by --threads (llvmpipe's threads too): a process per thread count
+    "cli (import torchmanifold first)": {"_IMPORT_FIRST": "1", "_SET_THREADS": "1"},
     # and llvmpipe with one thread instead of one per core
     "PASSIVE + LP_NUM_THREADS=1": {"OMP_WAIT_POLICY": "PASSIVE", "LP_NUM_THREADS": "1"},
 }
 
 
-def _run(kind: str, threads: list[int], env: dict, iterations: int) -> dict:
+def _run(kind: str, threads: list[int], env: dict, iterations: int, rounds: int = 1) -> dict:
     e = dict(os.environ, PYTHONPATH=str(ROOT))
     for k in ("LP_NUM_THREADS", "OMP_WAIT_POLICY", "KMP_BLOCKTIME", "GOMP_SPINCOUNT"):
         e.pop(k, None)
     e.update(env)
+    if env.get("_SET_THREADS") and len(threads) > 1:  # a process per count, alternating round by round
+        runs = [_run(kind, [n], env, iterations) for _ in range(rounds) for n in threads]
+        return {n: {k: statistics.median(r[n][k] for r in runs if n in r) for k in runs[0][threads[0]]}
+                for n in threads}
     out = subprocess.run([sys.executable, __file__, "--child", kind, ",".join(map(str, threads)), str(iterations)],
                          env=e, capture_output=True, text=True, timeout=3600)
     if out.returncode != 0:
@@ -165,12 +179,13 @@ def main() -> None:
     kinds = [*CEILINGS, "frame_step", "clip", "command", *RENDER_SIZES]
     p.add_argument("--kinds", nargs="+", default=kinds, choices=kinds)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--rounds", type=int, default=2, help="rounds of processes in the cli environment")
     p.add_argument("--out", default=str(RESULTS / "threads.json"))
     a = p.parse_args()
     rows = []
     for kind in a.kinds:
         for name in a.envs:
-            res = _run(kind, a.threads, ENVS[name], a.iterations)
+            res = _run(kind, a.threads, ENVS[name], a.iterations, a.rounds)
             base = res[a.threads[0]]["seconds"]
             for n in a.threads:
                 row = {"kind": kind, "env": name, "threads": n, **res[n], "speedup_vs_1": base / res[n]["seconds"],
@@ -184,7 +199,7 @@ def main() -> None:
 
     data = {"machine": {"cpus": os.cpu_count(), "processor": platform.processor() or platform.machine(),
                         "torch": torch.__version__, "parallel": torch.__config__.parallel_info().splitlines()[:6]},
-            "iterations": a.iterations, "rows": rows}
+            "iterations": a.iterations, "rounds": a.rounds, "rows": rows}
     Path(a.out).parent.mkdir(exist_ok=True)
     Path(a.out).write_text(json.dumps(data, indent=1))
 

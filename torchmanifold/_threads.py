@@ -1,4 +1,5 @@
-"""Torch intra-op thread counts for a block or a function: one place for the library and the demo.
+"""Torch intra-op thread counts for a block or a function, and the cores a job takes (:func:`set_threads`):
+one place for the library and the demo.
 
 The pipeline is thousands of small elementwise torch ops around a few C++ ops. With OpenMP workers that
 sleep between parallel regions (``import torchmanifold`` sets ``OMP_WAIT_POLICY=PASSIVE``, see
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import threading
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -20,6 +22,19 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import torch
 
 _caller = threading.local()  # .threads: the count a serial() entry point took away, inside it
+#: llvmpipe's rasterizer threads as the user's environment set them (None: not set); theirs wins
+_USER_LLVMPIPE_THREADS = os.environ.get("LP_NUM_THREADS")
+
+
+def set_threads(n: int) -> None:
+    """Give this process ``n`` cores: torch's intra-op threads and the threads Mesa's llvmpipe renders the
+    path tracer with (``LP_NUM_THREADS``, unless the user set it). llvmpipe reads it when the first GL
+    context is made, so call this before creating a tracer. By default llvmpipe takes every core whatever
+    torch's count: a one-thread ``render`` then traced on two cores, and two jobs of one thread each shared
+    both cores' rasterizers."""
+    torch.set_num_threads(n)
+    if _USER_LLVMPIPE_THREADS is None:
+        os.environ["LP_NUM_THREADS"] = str(int(n))
 
 
 @contextlib.contextmanager

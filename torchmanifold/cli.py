@@ -11,9 +11,8 @@ import json
 import os
 import sys
 
-import torch
-
 from torchmanifold._checks import MAX_TREE_HEIGHT, check_int, check_tree_height
+from torchmanifold._threads import set_threads
 
 __all__ = ["main", "build_parser"]
 
@@ -86,7 +85,8 @@ def _add_threads_arg(p: argparse.ArgumentParser) -> None:
     # Every core this process may run on. Two threads used to be 4-10x slower than one: OpenMP workers
     # spun after each of the pipeline's many small ops; torchmanifold/__init__.py makes them sleep.
     p.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)),
-                   help="torch threads for filtering (default: every core, %(default)s here)")
+                   help="cores to use: torch threads for filtering, and the path tracer's llvmpipe threads "
+                        "unless LP_NUM_THREADS is set (default: every core, %(default)s here)")
 
 
 def _chunk_size(v: str) -> int:
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
         # options whose range argparse does not know; the rest are checked where they are used
         check_int("--threads", args.threads, min=1)
         check_tree_height(args.tree_height, name="--tree-height")
-        torch.set_num_threads(args.threads)
+        set_threads(args.threads)
         _reuse_freed_memory()
         if args.engine == "ray":
             return _main_sharded(args)

@@ -1,4 +1,5 @@
-"""Thread settings: the CLI uses every core by default, OpenMP workers sleep instead of spinning
+"""Thread settings: the CLI uses every core by default, ``--threads`` sets llvmpipe's threads as well as
+torch's, OpenMP workers sleep instead of spinning
 (benchmarks/bench_threads.py measured spinning workers making two threads 4-10x slower than one), and a
 pipeline entry point runs its glue on one thread and hands the caller's threads to the ops it calls."""
 import os
@@ -35,6 +36,34 @@ def test_threads_default_to_every_core():
     args = build_parser().parse_args(["denoise", "a.exr", "--out", "o"])
     assert args.threads == len(os.sched_getaffinity(0))
     assert build_parser().parse_args(["denoise", "a.exr", "--out", "o", "--threads", "1"]).threads == 1
+
+
+def _tracer_threads(threads, lp_env):
+    """The llvmpipe rasterizer threads (named llvmpipe-N) of a process that took ``threads`` cores the way
+    the CLI does and then traced a frame, with LP_NUM_THREADS ``lp_env`` (None: unset) in its environment."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("LP_NUM_THREADS", None)
+    if lp_env is not None:
+        env["LP_NUM_THREADS"] = lp_env
+    code = f"""
+import os, torch, torchmanifold
+from torchmanifold._threads import set_threads
+from torchmanifold.render import PathTracer, default_scene
+set_threads({threads})
+assert torch.get_num_threads() == {threads}
+PathTracer(default_scene(), 8, 8).render(times=[0.0], spp=1, seed=0)
+names = [open(f"/proc/self/task/{{t}}/comm").read().strip() for t in os.listdir("/proc/self/task")]
+print(sum(n.startswith("llvmpipe") for n in names))
+"""
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+def test_threads_set_the_tracers_rasterizer_threads_unless_the_user_did():
+    # llvmpipe takes one thread per core by default: a one-thread job traced on every core
+    assert _tracer_threads(1, None) == 1
+    assert _tracer_threads(3, None) == 3
+    assert _tracer_threads(1, "2") == 2
 
 
 def test_serial_glue_and_parallel_ops():

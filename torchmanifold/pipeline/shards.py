@@ -42,6 +42,7 @@ from typing import Sequence
 
 import torch
 
+from torchmanifold._threads import set_threads
 from torchmanifold.pipeline.denoise import DenoiseSettings, adapt_to_features, denoise_frames
 from torchmanifold.timewindow import frame_at, index_window, window
 
@@ -274,7 +275,7 @@ def _run_chunk(kind: str, job: dict, chunk: Chunk, events) -> dict:
     """On a worker: produce the owned frames of ``chunk`` not yet reported done, reporting each one."""
     import ray
 
-    torch.set_num_threads(job["threads"])
+    set_threads(job["threads"])
     worker = _worker_id()
     done = set(ray.get(events.start.remote(chunk.index, worker)))
     t0 = time.perf_counter()
