@@ -21,6 +21,10 @@
 
 #include "ops/cpu/workspace.h"
 
+#if defined(__AVX2__)
+#include <immintrin.h>
+#endif
+
 // No fused multiply-adds: the PyTorch stages round every product before the sum, and a 3x3 variance
 // that rounds differently can pick another Kuwahara window.
 #pragma GCC optimize("fp-contract=off")
@@ -1332,27 +1336,30 @@ struct ImageAxes {
   }
 
   // denoise._in_image_axes at pixel i of the offset (d0, d1, d2): u, v and whether it lies on the surface
-  bool offset(int64_t i, T d0, T d1, T d2, T& uu, T& vv) const {
-    along(i, d0, d1, d2, uu, vv);
-    return on_surface(i, d0, d1, d2, uu, vv);
-  }
+  bool offset(int64_t i, T d0, T d1, T d2, T& uu, T& vv) const { return pixel(i).offset(d0, d1, d2, uu, vv); }
 
-  void along(int64_t i, T d0, T d1, T d2, T& uu, T& vv) const {
+  // one pixel's terms, loaded once for the offsets tested against it
+  struct Pixel {
+    T gx0, gx1, gx2, gy0, gy1, gy2, a11, a12, a22, det;
+    bool solvable;
+
+    bool offset(T d0, T d1, T d2, T& uu, T& vv) const {
+      const T b1 = gx0 * d0 + gx1 * d1 + gx2 * d2;
+      const T b2 = gy0 * d0 + gy1 * d1 + gy2 * d2;
+      uu = (a22 * b1 - a12 * b2) / det;
+      vv = (a11 * b2 - a12 * b1) / det;
+      const T r0 = (d0 - uu * gx0) - vv * gy0;
+      const T r1 = (d1 - uu * gx1) - vv * gy1;
+      const T r2 = (d2 - uu * gx2) - vv * gy2;
+      return solvable & (r0 * r0 + r1 * r1 + r2 * r2 < T(0.125) * (a11 + a22));
+    }
+  };
+
+  Pixel pixel(int64_t i) const {
     const T* gx = ax.data();
     const T* gy = ax.data() + 3 * HW;
-    const T b1 = gx[i] * d0 + gx[HW + i] * d1 + gx[2 * HW + i] * d2;
-    const T b2 = gy[i] * d0 + gy[HW + i] * d1 + gy[2 * HW + i] * d2;
-    uu = (a22[i] * b1 - a12[i] * b2) / det[i];
-    vv = (a11[i] * b2 - a12[i] * b1) / det[i];
-  }
-
-  bool on_surface(int64_t i, T d0, T d1, T d2, T uu, T vv) const {
-    const T* gx = ax.data();
-    const T* gy = ax.data() + 3 * HW;
-    const T r0 = (d0 - uu * gx[i]) - vv * gy[i];
-    const T r1 = (d1 - uu * gx[HW + i]) - vv * gy[HW + i];
-    const T r2 = (d2 - uu * gx[2 * HW + i]) - vv * gy[2 * HW + i];
-    return solvable[i] && (r0 * r0 + r1 * r1 + r2 * r2 < T(0.125) * (a11[i] + a22[i]));
+    return {gx[i], gx[HW + i], gx[2 * HW + i], gy[i], gy[HW + i], gy[2 * HW + i], a11[i], a12[i], a22[i], det[i],
+            solvable[i] != 0};
   }
 };
 
@@ -1412,6 +1419,104 @@ at::Tensor same_pixel_cpu(const at::Tensor& p_, const at::Tensor& o_, double sam
   return out;
 }
 
+// One pixel (x, y) of _footprint_samples against one other frame: its 3x3 candidates about (qx, qy), where the
+// footprint went (none outside the image), tested in the pixel's axes; nothing where it is not searched.
+template <typename T>
+void footprint_samples_pixel(const ImageAxes<T>& axes, const T* cc, const T* pk, const T* ak, const T* vk,
+                             const bool* rk, int64_t x, int64_t y, int64_t qx, int64_t qy, int64_t H, int64_t W,
+                             T* sk, T* nk) {
+  const int64_t HW = H * W, i = y * W + x;
+  if (!rk[i]) return;
+  const typename ImageAxes<T>::Pixel px = axes.pixel(i);
+  const T c0 = cc[i], c1 = cc[HW + i], c2 = cc[2 * HW + i];
+  T s0 = T(0), s1 = T(0), s2 = T(0), cnt = T(0);
+  for (int64_t dy = -1; dy <= 1; ++dy) {
+    for (int64_t dx = -1; dx <= 1; ++dx) {
+      const int64_t sx = qx + dx, sy = qy + dy;
+      const bool inside = sx >= 0 && sx < W && sy >= 0 && sy < H;
+      const int64_t j = clampi(sy, H) * W + clampi(sx, W);
+      const T d0 = pk[j] - c0, d1 = pk[HW + j] - c1, d2 = pk[2 * HW + j] - c2;
+      T uu, vv;
+      const bool on = px.offset(d0, d1, d2, uu, vv);
+      const bool hit = inside & (vk[j] > T(0)) & (std::abs(uu) < T(0.5)) & (std::abs(vv) < T(0.5)) & on;
+      s0 += hit ? ak[j] : T(0);
+      s1 += hit ? ak[HW + j] : T(0);
+      s2 += hit ? ak[2 * HW + j] : T(0);
+      cnt += hit ? T(1) : T(0);
+    }
+  }
+  sk[i] = s0;
+  sk[HW + i] = s1;
+  sk[2 * HW + i] = s2;
+  nk[i] = cnt;
+}
+
+#if defined(__AVX2__)
+// footprint_samples_pixel of the eight pixels i .. i + 7 of one row whose candidates' centres are the pixels
+// q[0 .. 7], every candidate inside the image (alike: q[l] = q[0] + l): the same float operations in eight
+// lanes (float only).
+template <typename T>
+void footprint_samples_x8(const ImageAxes<T>& axes, const T* cc, const T* pk, const T* ak, const T* vk,
+                          const bool* rk, int64_t i, const int32_t* q, bool alike, int64_t HW, int64_t W, T* sk,
+                          T* nk) {
+  static_assert(std::is_same_v<T, float>, "eight float lanes");
+  const __m256i qv = _mm256_load_si256(reinterpret_cast<const __m256i*>(q));
+  int64_t j = 0;  // the candidate's offset from the centres
+  auto at = [&](const float* plane) {
+    return alike ? _mm256_loadu_ps(plane + q[0] + j) : _mm256_i32gather_ps(plane + j, qv, 4);
+  };
+  const float* gx = axes.ax.data();
+  const float* gy = gx + 3 * HW;
+  const __m256 gx0 = _mm256_loadu_ps(gx + i), gx1 = _mm256_loadu_ps(gx + HW + i), gx2 = _mm256_loadu_ps(gx + 2 * HW + i);
+  const __m256 gy0 = _mm256_loadu_ps(gy + i), gy1 = _mm256_loadu_ps(gy + HW + i), gy2 = _mm256_loadu_ps(gy + 2 * HW + i);
+  const __m256 a11 = _mm256_loadu_ps(axes.a11.data() + i), a12 = _mm256_loadu_ps(axes.a12.data() + i);
+  const __m256 a22 = _mm256_loadu_ps(axes.a22.data() + i), det = _mm256_loadu_ps(axes.det.data() + i);
+  const __m256 lim = _mm256_mul_ps(_mm256_set1_ps(0.125f), _mm256_add_ps(a11, a22));
+  auto byte_mask = [](const void* bytes) {  // eight bools or chars -> lanes all ones where non-zero
+    const __m256i b = _mm256_cvtepu8_epi32(_mm_loadl_epi64(static_cast<const __m128i*>(bytes)));
+    return _mm256_castsi256_ps(_mm256_xor_si256(_mm256_cmpeq_epi32(b, _mm256_setzero_si256()),
+                                                _mm256_set1_epi32(-1)));
+  };
+  const __m256 solvable = byte_mask(axes.solvable.data() + i), searched = byte_mask(rk + i);
+  const __m256 c0 = _mm256_loadu_ps(cc + i), c1 = _mm256_loadu_ps(cc + HW + i), c2 = _mm256_loadu_ps(cc + 2 * HW + i);
+  const __m256 zero = _mm256_setzero_ps(), half = _mm256_set1_ps(0.5f), one = _mm256_set1_ps(1.0f);
+  const __m256 magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fffffff));
+  __m256 s0 = zero, s1 = zero, s2 = zero, cnt = zero;
+  for (int64_t dy = -1; dy <= 1; ++dy) {
+    for (int64_t dx = -1; dx <= 1; ++dx) {
+      j = dy * W + dx;
+      const __m256 d0 = _mm256_sub_ps(at(pk), c0);
+      const __m256 d1 = _mm256_sub_ps(at(pk + HW), c1);
+      const __m256 d2 = _mm256_sub_ps(at(pk + 2 * HW), c2);
+      const __m256 b1 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(gx0, d0), _mm256_mul_ps(gx1, d1)),
+                                      _mm256_mul_ps(gx2, d2));
+      const __m256 b2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(gy0, d0), _mm256_mul_ps(gy1, d1)),
+                                      _mm256_mul_ps(gy2, d2));
+      const __m256 uu = _mm256_div_ps(_mm256_sub_ps(_mm256_mul_ps(a22, b1), _mm256_mul_ps(a12, b2)), det);
+      const __m256 vv = _mm256_div_ps(_mm256_sub_ps(_mm256_mul_ps(a11, b2), _mm256_mul_ps(a12, b1)), det);
+      const __m256 r0 = _mm256_sub_ps(_mm256_sub_ps(d0, _mm256_mul_ps(uu, gx0)), _mm256_mul_ps(vv, gy0));
+      const __m256 r1 = _mm256_sub_ps(_mm256_sub_ps(d1, _mm256_mul_ps(uu, gx1)), _mm256_mul_ps(vv, gy1));
+      const __m256 r2 = _mm256_sub_ps(_mm256_sub_ps(d2, _mm256_mul_ps(uu, gx2)), _mm256_mul_ps(vv, gy2));
+      const __m256 rr = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(r0, r0), _mm256_mul_ps(r1, r1)),
+                                      _mm256_mul_ps(r2, r2));
+      __m256 hit = _mm256_and_ps(solvable, _mm256_cmp_ps(rr, lim, _CMP_LT_OQ));
+      hit = _mm256_and_ps(hit, _mm256_cmp_ps(at(vk), zero, _CMP_GT_OQ));
+      hit = _mm256_and_ps(hit, _mm256_cmp_ps(_mm256_and_ps(uu, magnitude), half, _CMP_LT_OQ));
+      hit = _mm256_and_ps(hit, _mm256_cmp_ps(_mm256_and_ps(vv, magnitude), half, _CMP_LT_OQ));
+      s0 = _mm256_add_ps(s0, _mm256_and_ps(hit, at(ak)));
+      s1 = _mm256_add_ps(s1, _mm256_and_ps(hit, at(ak + HW)));
+      s2 = _mm256_add_ps(s2, _mm256_and_ps(hit, at(ak + 2 * HW)));
+      cnt = _mm256_add_ps(cnt, _mm256_and_ps(hit, one));
+    }
+  }
+  // a pixel not searched keeps its 0
+  _mm256_storeu_ps(sk + i, _mm256_and_ps(searched, s0));
+  _mm256_storeu_ps(sk + HW + i, _mm256_and_ps(searched, s1));
+  _mm256_storeu_ps(sk + 2 * HW + i, _mm256_and_ps(searched, s2));
+  _mm256_storeu_ps(nk + i, _mm256_and_ps(searched, cnt));
+}
+#endif
+
 // denoise._footprint_samples, step by step in its float operations: per other frame, the albedo sum and the
 // count of its samples inside each pixel's footprint, at the pixels searched (0 elsewhere, not computed).
 std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, const at::Tensor& o_,
@@ -1462,40 +1567,43 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
       });
       box_mean_planes(w3.data(), 3, H, W, radius, m3.data());
       at::parallel_for(0, H, row_grain(W * 60), [&](int64_t y0, int64_t y1) {
+        std::vector<int64_t> qxs(W), qys(W);
         for (int64_t y = y0; y < y1; ++y) {
           for (int64_t x = 0; x < W; ++x) {
             const int64_t i = y * W + x;
-            if (!rk[i]) continue;
             const T n = std::max(m3[i], T(1e-6));
             T fx = m3[i] > T(0) ? std::nearbyint(m3[HW + i] / n) : T(0);
             T fy = m3[i] > T(0) ? std::nearbyint(m3[2 * HW + i] / n) : T(0);
             // none where the positions overflow; beyond the image nothing is inside
             fx = std::isfinite(fx) ? std::min(std::max(fx, T(-W - 1)), T(W + 1)) : T(0);
             fy = std::isfinite(fy) ? std::min(std::max(fy, T(-H - 1)), T(H + 1)) : T(0);
-            const int64_t qx = x - static_cast<int64_t>(fx), qy = y - static_cast<int64_t>(fy);
-            T s0 = T(0), s1 = T(0), s2 = T(0), cnt = T(0);
-            for (int64_t dy = -1; dy <= 1; ++dy) {
-              for (int64_t dx = -1; dx <= 1; ++dx) {
-                const int64_t sx = qx + dx, sy = qy + dy;
-                const bool inside = sx >= 0 && sx < W && sy >= 0 && sy < H;
-                const int64_t j = clampi(sy, H) * W + clampi(sx, W);
-                const T d0 = pk[j] - cc[i], d1 = pk[HW + j] - cc[HW + i];
-                const T d2 = pk[2 * HW + j] - cc[2 * HW + i];
-                T uu, vv;
-                axes.along(i, d0, d1, d2, uu, vv);  // the rarer test last: most candidates lie outside
-                const bool hit = inside && vk[j] > T(0) && std::abs(uu) < T(0.5) && std::abs(vv) < T(0.5) &&
-                                 axes.on_surface(i, d0, d1, d2, uu, vv);
-                s0 += hit ? ak[j] : T(0);
-                s1 += hit ? ak[HW + j] : T(0);
-                s2 += hit ? ak[2 * HW + j] : T(0);
-                cnt += hit ? T(1) : T(0);
+            qxs[x] = x - static_cast<int64_t>(fx);
+            qys[x] = y - static_cast<int64_t>(fy);
+          }
+          int64_t x = 0;
+#if defined(__AVX2__)
+          if constexpr (std::is_same_v<T, float>) {
+            // eight pixels at once where their 3x3 candidates lie inside the image (gathered; where the eight
+            // moved alike, eight neighbours in memory)
+            for (; x + 8 <= W && 3 * HW < (int64_t(1) << 31); x += 8) {
+              bool inside = true, alike = true;
+              alignas(32) int32_t q[8];
+              for (int64_t l = 0; l < 8; ++l) {
+                inside = inside && qys[x + l] >= 1 && qys[x + l] + 1 < H && qxs[x + l] >= 1 && qxs[x + l] + 1 < W;
+                q[l] = static_cast<int32_t>(qys[x + l] * W + qxs[x + l]);
+                alike = alike && q[l] == q[0] + l;
+              }
+              if (inside) {
+                footprint_samples_x8(axes, cc, pk, ak, vk, rk, y * W + x, q, alike, HW, W, sk, nk);
+              } else {
+                for (int64_t l = 0; l < 8; ++l)
+                  footprint_samples_pixel(axes, cc, pk, ak, vk, rk, x + l, y, qxs[x + l], qys[x + l], H, W, sk, nk);
               }
             }
-            sk[i] = s0;
-            sk[HW + i] = s1;
-            sk[2 * HW + i] = s2;
-            nk[i] = cnt;
           }
+#endif
+          for (; x < W; ++x)
+            footprint_samples_pixel(axes, cc, pk, ak, vk, rk, x, y, qxs[x], qys[x], H, W, sk, nk);
         }
       });
     }
