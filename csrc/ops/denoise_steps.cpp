@@ -48,6 +48,13 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // denoise._normalised_blur: blur(x w) / blur(w) (footprint_blur, sigma > 0) for x (T, C, H, W) and
   // weights w (T, 1, H, W), x where blur(w) <= 1e-8 -> (T, C, H, W).
   m.def("_normalised_blur(Tensor x, Tensor weight, float sigma) -> Tensor");
+  // _Filter.window_bounds: values (T, C, H, W), mask (T, 1, H, W) -> at each query w the largest valid value of
+  // the frames starts[w] .. starts[w] + lengths[w] - 1 and the largest minus valid value, (Q, C, H, W) each
+  // (-max of the dtype where none is valid; NaN where one is, as torch.amax).
+  m.def("_window_bounds(Tensor values, Tensor mask, int[] starts, int[] lengths) -> (Tensor, Tensor)");
+  // footprint._box_mean: the mean of x (..., H, W) over the (2 radius + 1)^2 box around each pixel, the border
+  // replicated, each plane summed along x, then along y, divided once.
+  m.def("_box_mean(Tensor x, int radius) -> Tensor");
   // denoise._same_pixel: world positions p (3, H, W) against others (K, 3, H, W) -> bool (K, 1, H, W), where
   // the other sample lies within same_pixel pixels along each image axis, on the surface, and the mean
   // offset over the (2 radius + 1)^2 pixels around stays under still pixels.

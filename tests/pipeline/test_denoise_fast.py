@@ -91,6 +91,29 @@ def test_window_normalise_guard_equals_reference_bitwise(dtype):
             _same(out, ref)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_window_bounds_equals_reference_bitwise(dtype):
+    """The window's largest valid value and largest minus valid value at each query, in one C++ pass: the
+    same bits as the PyTorch maxima, with masked and unmasked NaN and infinities, no valid sample in a
+    window, windows of one to three frames and queries between frames."""
+    g = torch.Generator().manual_seed(4)
+    T, H, W = 4, 6, 7
+    e = torch.randn(T, 3, H, W, generator=g, dtype=dtype)
+    m = (torch.rand(T, 1, H, W, generator=g) > 0.3).to(dtype)
+    e[0, 0, 0, :3] = torch.tensor([math.nan, math.inf, -math.inf], dtype=dtype)
+    m[1, 0, 0, 1] = math.nan
+    m[:, 0, 2, 2] = 0.0  # no valid sample anywhere
+    e[2, 1, 3, 3] = math.nan
+    for radius in (0, 1, 2):
+        st = DenoiseSettings(temporal_radius=radius, mode="spacetime")
+        for qt in ([0.0, 1.0, 2.0, 3.0], [0.5, 2.25]):
+            filt = D._Filter(torch.zeros(T, 1, H, W, dtype=dtype), torch.ones(T, 1), st, [0.0, 1.0, 2.0, 3.0], qt,
+                             2.0)
+            (hi, nlo), (ref_hi, ref_nlo) = _both(filt.window_bounds, e, m)
+            _same(hi, ref_hi)
+            _same(nlo, ref_nlo)
+
+
 def test_kuwahara_log_radiance_equals_reference_bitwise(frame):
     for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
         for dtype in (torch.float32, torch.float64):
@@ -282,6 +305,21 @@ def test_same_pixel_equals_reference_bitwise(mitsuba_dir):
     assert bool(_both(FP._same_pixel, plane, [still])[0][0].any())  # a still view is found at all
 
 
+def test_box_mean_equals_reference_bitwise():
+    """_box_mean in C++ sums in the PyTorch stage's order: the same bits for every box, on images down to one
+    pixel wide, stacked planes of any leading shape, both dtypes, with NaN and infinite values."""
+    g = torch.Generator().manual_seed(11)
+    for shape in [(2, 3, 17, 23), (3, 1, 5), (4, 9, 1), (1, 1), (2, 2, 2, 6, 7)]:
+        for dtype in (torch.float32, torch.float64):
+            x = torch.randn(shape, generator=g, dtype=dtype) * 10.0 ** torch.randint(-3, 4, shape, generator=g)
+            x.view(-1)[:: 7] = math.nan
+            x.view(-1)[3:: 11] = math.inf
+            for r in (0, 1, 2, 3):
+                out, ref = _both(FP._box_mean, x, r)
+                assert out.shape == x.shape and out.dtype == dtype
+                _same(out, ref)
+
+
 def test_footprint_samples_equals_reference_bitwise(mitsuba_dir):
     """_footprint_samples in C++, step by step in the PyTorch stage's float operations: the same sums and
     counts, bit for bit, on rendered world positions (a panning clip's frames), on jittered planes panned by
@@ -411,6 +449,7 @@ def _op_samples():
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m)),
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
+            ("_box_mean", (e, 2)), ("_window_bounds", (e, m, [0, 0, 1], [2, 1, 1])),
             ("_same_pixel", (e[0], e + 0.01, 1.0, 0.25, 2)),
             ("_footprint_samples", (e[0], e + 0.01, e, m[:, 0], m[:, 0] > 0, 2)),
             ("_edge_directions", (e, torch.ones(T), 1.0, 3.0)),

@@ -19,8 +19,8 @@ from torch import Tensor
 
 from torchmanifold._threads import call_parallel, parallel
 
-__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "footprint_average", "kuwahara3",
-           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "same_pixel",
+__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds", "footprint_average", "kuwahara3",
+           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "box_mean", "same_pixel",
            "footprint_samples", "edge_directions", "along_edges"]
 
 _FLOATS = (torch.float32, torch.float64)
@@ -77,6 +77,13 @@ def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tenso
     queries), hi and nlo (``_Filter.window_bounds``) ``(N, C, H, W)``, den ``(N, 1, H, W)`` ->
     ``(N, C, H, W)``; ``radius`` 0 skips the guard."""
     return torch.ops.torchmanifold._normalise_guard_bounds(num, den, fallback, hi, nlo, int(radius))
+
+
+@parallel
+def window_bounds(values: Tensor, mask: Tensor, starts: list[int], lengths: list[int]) -> tuple[Tensor, Tensor]:
+    """``_Filter.window_bounds`` where each query's frames are consecutive: values ``(T, C, H, W)``, mask
+    ``(T, 1, H, W)``, each query's first frame and frame count -> hi and nlo ``(Q, C, H, W)``."""
+    return torch.ops.torchmanifold._window_bounds(values, mask, [int(s) for s in starts], [int(n) for n in lengths])
 
 
 @parallel
@@ -166,6 +173,13 @@ def normalised_blur(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
 
 
 @parallel
+def box_mean(x: Tensor, radius: int) -> Tensor:
+    """``footprint._box_mean``: the mean of ``(..., H, W)`` over the ``(2 radius + 1)^2`` box around each
+    pixel, the border replicated."""
+    return torch.ops.torchmanifold._box_mean(x, int(radius))
+
+
+@parallel
 def same_pixel(p: Tensor, others: Tensor, same: float, still: float, radius: int) -> Tensor:
     """``denoise._same_pixel``: positions p ``(3, H, W)`` against others ``(K, 3, H, W)`` -> bool
     ``(K, 1, H, W)``."""
@@ -193,6 +207,15 @@ def _register_fakes() -> None:
     @torch.library.register_fake(lib + "_normalise_guard_bounds")
     def _(num, den, fallback, hi, nlo, radius):
         return torch.empty_like(num, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_window_bounds")
+    def _(values, mask, starts, lengths):
+        shape = (len(starts), *values.shape[1:])
+        return values.new_empty(shape), values.new_empty(shape)
+
+    @torch.library.register_fake(lib + "_box_mean")
+    def _(x, radius):
+        return torch.empty_like(x, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_footprint_average")
     def _(x, k, sigma, range_sigma, unseen_border=0.0):

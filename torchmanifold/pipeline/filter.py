@@ -164,6 +164,9 @@ class _Filter:
     def window_bounds(self, values: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
         """At each query, the largest valid value of its window's frames and the largest minus valid value
         (``-max`` of the dtype where none): what the guard's box maxima start from."""
+        ids = [self._max_frames(q) for q in self.qt]
+        if _fast.enabled(values, mask) and all(f == list(range(f[0], f[0] + len(f))) for f in ids):
+            return _fast.window_bounds(values, mask, [f[0] for f in ids], [len(f) for f in ids])
         big = torch.finfo(values.dtype).max
         return (self.at_queries_max(torch.where(mask > 0, values, -big)),
                 self.at_queries_max(torch.where(mask > 0, -values, -big)))
@@ -185,12 +188,12 @@ class _Filter:
 
     def at_queries_max(self, x: Tensor) -> Tensor:
         """Largest of the window's frames around each query (the bound of what the filter may mix)."""
-        outs = []
-        for q in self.qt:
-            k = frame_at(self.ft, q)
-            ids = self._window(q) if self.st.temporal_radius > 0 or k is None else [k]
-            outs.append(_frames(x, ids).amax(0))
-        return torch.stack(outs)
+        return torch.stack([_frames(x, self._max_frames(q)).amax(0) for q in self.qt])
+
+    def _max_frames(self, q: float) -> list[int]:
+        """The frames :meth:`at_queries_max` takes the largest of at query ``q``."""
+        k = frame_at(self.ft, q)
+        return self._window(q) if self.st.temporal_radius > 0 or k is None else [k]
 
     def at_queries(self, x: Tensor) -> Tensor:
         """Per-frame data ``(T, C, H, W)`` at the query times, linear between bracketing frames."""

@@ -257,6 +257,51 @@ at::Tensor normalise_guard_cpu(const at::Tensor& num_, const at::Tensor& den_, c
   return out;
 }
 
+std::tuple<at::Tensor, at::Tensor> window_bounds_cpu(const at::Tensor& values_, const at::Tensor& mask_,
+                                                     at::IntArrayRef starts, at::IntArrayRef lengths) {
+  const char* op = "_window_bounds";
+  check_shape(values_, "values", op, 4);
+  check_float(values_, "values", op);
+  const int64_t T = values_.size(0), C = values_.size(1), H = values_.size(2), W = values_.size(3), HW = H * W;
+  TORCH_CHECK_VALUE(mask_.sizes() == at::IntArrayRef({T, 1, H, W}) && mask_.scalar_type() == values_.scalar_type(),
+                    op, ": mask must be (T, 1, H, W) = ", at::IntArrayRef({T, 1, H, W}), " of values' dtype, got ",
+                    mask_.sizes(), " ", mask_.scalar_type());
+  TORCH_CHECK_VALUE(starts.size() == lengths.size(), op, ": starts and lengths must have one entry per query, got ",
+                    starts.size(), " and ", lengths.size());
+  const int64_t Q = static_cast<int64_t>(starts.size());
+  for (int64_t w = 0; w < Q; ++w)
+    TORCH_CHECK_VALUE(lengths[w] >= 1 && starts[w] >= 0 && starts[w] + lengths[w] <= T, op, ": query ", w,
+                      "'s frames ", starts[w], " .. ", starts[w] + lengths[w] - 1, " must lie in 0 .. ", T - 1);
+  const at::Tensor values = values_.contiguous(), mask = mask_.contiguous();
+  at::Tensor hi = at::empty({Q, C, H, W}, values.options()), nlo = at::empty({Q, C, H, W}, values.options());
+  if (hi.numel() == 0) return {hi, nlo};
+  const std::vector<int64_t> first(starts.begin(), starts.end()), count(lengths.begin(), lengths.end());
+  AT_DISPATCH_FLOATING_TYPES(values.scalar_type(), "window_bounds_cpu", [&] {
+    using T_ = scalar_t;
+    const T_ *pv = values.data_ptr<T_>(), *pm = mask.data_ptr<T_>();
+    T_ *ph = hi.data_ptr<T_>(), *pl = nlo.data_ptr<T_>();
+    const T_ big = std::numeric_limits<T_>::max();
+    at::parallel_for(0, Q * C * H, row_grain(W * 4), [&](int64_t r0, int64_t r1) {
+      for (int64_t r = r0; r < r1; ++r) {
+        const int64_t w = r / (C * H), c = (r / H) % C, y = r % H;
+        T_* h = ph + r * W;
+        T_* l = pl + r * W;
+        for (int64_t f = first[w]; f < first[w] + count[w]; ++f) {
+          const T_* v = pv + (f * C + c) * HW + y * W;
+          const T_* m = pm + f * HW + y * W;
+          for (int64_t x = 0; x < W; ++x) {
+            const T_ a = m[x] > T_(0) ? v[x] : -big, b = m[x] > T_(0) ? -v[x] : -big;
+            // the first frame's value, then the larger (a NaN stays)
+            h[x] = f == first[w] || a > h[x] || std::isnan(a) ? a : h[x];
+            l[x] = f == first[w] || b > l[x] || std::isnan(b) ? b : l[x];
+          }
+        }
+      }
+    });
+  });
+  return {hi, nlo};
+}
+
 at::Tensor normalise_guard_bounds_cpu(const at::Tensor& num_, const at::Tensor& den_, const at::Tensor& fallback_,
                                       const at::Tensor& hi_, const at::Tensor& nlo_, int64_t radius) {
   const char* op = "_normalise_guard_bounds";
@@ -1297,6 +1342,22 @@ void box_mean_planes(const T* src, int64_t planes, int64_t H, int64_t W, int64_t
   });
 }
 
+// footprint._box_mean: box_mean_planes of every (H, W) plane of x (..., H, W).
+at::Tensor box_mean_cpu(const at::Tensor& x_, int64_t radius) {
+  const char* op = "_box_mean";
+  check_float(x_, "x", op);
+  TORCH_CHECK_VALUE(x_.dim() >= 2, op, ": x must be (..., H, W), got ", x_.sizes());
+  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+  const at::Tensor x = x_.contiguous();
+  at::Tensor out = at::empty_like(x, at::MemoryFormat::Contiguous);
+  const int64_t H = x.size(-2), W = x.size(-1);
+  if (x.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "box_mean_cpu", [&] {
+    box_mean_planes(x.data_ptr<scalar_t>(), x.numel() / (H * W), H, W, radius, out.data_ptr<scalar_t>());
+  });
+  return out;
+}
+
 // denoise._image_axes of world positions p (3, H, W): central differences (0 on the border columns / rows),
 // their 3x3 means, and the normal equations' terms, step by step in the PyTorch stage's float operations.
 template <typename T>
@@ -1625,6 +1686,8 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_cv_split", &cv_split_cpu);
   m.impl("_sanitize", &sanitize_cpu);
   m.impl("_normalised_blur", &normalised_blur_cpu);
+  m.impl("_box_mean", &box_mean_cpu);
+  m.impl("_window_bounds", &window_bounds_cpu);
   m.impl("_same_pixel", &same_pixel_cpu);
   m.impl("_footprint_samples", &footprint_samples_cpu);
   m.impl("_edge_directions", &edge_directions_cpu);
