@@ -40,7 +40,8 @@ def test_threads_default_to_every_core():
 
 def _tracer_threads(threads, lp_env):
     """The llvmpipe rasterizer threads (named llvmpipe-N) of a process that took ``threads`` cores the way
-    the CLI does and then traced a frame, with LP_NUM_THREADS ``lp_env`` (None: unset) in its environment."""
+    the CLI does and then traced two frames, with LP_NUM_THREADS ``lp_env`` (None: unset) in its
+    environment, and the digest of what it traced."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     env.pop("LP_NUM_THREADS", None)
     if lp_env is not None:
@@ -51,19 +52,23 @@ from torchmanifold._threads import set_threads
 from torchmanifold.render import PathTracer, default_scene
 set_threads({threads})
 assert torch.get_num_threads() == {threads}
-PathTracer(default_scene(), 8, 8).render(times=[0.0], spp=1, seed=0)
+import hashlib
+r = PathTracer(default_scene(), 24, 16).render(times=[0.0, 1.0], spp=2, seed=5)
 names = [open(f"/proc/self/task/{{t}}/comm").read().strip() for t in os.listdir("/proc/self/task")]
-print(sum(n.startswith("llvmpipe") for n in names))
+digest = hashlib.sha256(b"".join(x.numpy().tobytes() for x in (r.color, r.features, r.emission))).hexdigest()
+print(sum(n.startswith("llvmpipe") for n in names), digest)
 """
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    return int(out.stdout.strip().splitlines()[-1])
+    count, digest = out.stdout.strip().splitlines()[-1].split()
+    return int(count), digest
 
 
 def test_threads_set_the_tracers_rasterizer_threads_unless_the_user_did():
     # llvmpipe takes one thread per core by default: a one-thread job traced on every core
-    assert _tracer_threads(1, None) == 1
-    assert _tracer_threads(3, None) == 3
-    assert _tracer_threads(1, "2") == 2
+    runs = {key: _tracer_threads(*key) for key in [(1, None), (3, None), (1, "2")]}
+    assert {key: n for key, (n, _) in runs.items()} == {(1, None): 1, (3, None): 3, (1, "2"): 2}
+    # the frames do not depend on how many threads trace them
+    assert len({digest for _, digest in runs.values()}) == 1
 
 
 def test_serial_glue_and_parallel_ops():
