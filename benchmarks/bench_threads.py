@@ -12,8 +12,9 @@ sets once), so there each thread count has processes of its own, alternating rou
 Measured:
 - ``render``: :meth:`ProgressiveRenderer.step` on the render job's defaults (its frames and size,
   ``RENDER_DEFAULTS``, and the loop's own filter settings), split into the tracer's part (llvmpipe, whose
-  threads torch's count does not set; ``--threads`` does) and the rest (filtering, torch); ``render_small``: the same at
-  128x96, the job's former size, where the Python around each small frame's ops weighs most.
+  threads torch's count does not set; ``--threads`` does) and the rest (filtering, torch);
+  ``render_small``: the same at 128x96, the job's former size, where the Python around each small frame's
+  ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
   no GL context in the process.
 - ``clip``: the ``denoise`` command's frame step over the shared clip (12 frames of 256x256), the command's

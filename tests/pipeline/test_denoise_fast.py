@@ -107,8 +107,8 @@ def test_window_bounds_equals_reference_bitwise(dtype):
     for radius in (0, 1, 2):
         st = DenoiseSettings(temporal_radius=radius, mode="spacetime")
         for qt in ([0.0, 1.0, 2.0, 3.0], [0.5, 2.25]):
-            filt = D._Filter(torch.zeros(T, 1, H, W, dtype=dtype), torch.ones(T, 1), st, [0.0, 1.0, 2.0, 3.0], qt,
-                             2.0)
+            filt = D._Filter(torch.zeros(T, 1, H, W, dtype=dtype), torch.ones(T, 1), st,
+                             [0.0, 1.0, 2.0, 3.0], qt, 2.0)
             (hi, nlo), (ref_hi, ref_nlo) = _both(filt.window_bounds, e, m)
             _same(hi, ref_hi)
             _same(nlo, ref_nlo)
@@ -311,7 +311,8 @@ def test_box_mean_equals_reference_bitwise():
     g = torch.Generator().manual_seed(11)
     for shape in [(2, 3, 17, 23), (3, 1, 5), (4, 9, 1), (1, 1), (2, 2, 2, 6, 7)]:
         for dtype in (torch.float32, torch.float64):
-            x = torch.randn(shape, generator=g, dtype=dtype) * 10.0 ** torch.randint(-3, 4, shape, generator=g)
+            scale = 10.0 ** torch.randint(-3, 4, shape, generator=g)
+            x = torch.randn(shape, generator=g, dtype=dtype) * scale
             x.view(-1)[:: 7] = math.nan
             x.view(-1)[3:: 11] = math.inf
             for r in (0, 1, 2, 3):

@@ -19,9 +19,9 @@ from torch import Tensor
 
 from torchmanifold._threads import call_parallel, parallel
 
-__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds", "footprint_average", "kuwahara3",
-           "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize", "normalised_blur", "box_mean", "same_pixel",
-           "footprint_samples", "edge_directions", "along_edges"]
+__all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds",
+           "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize",
+           "normalised_blur", "box_mean", "same_pixel", "footprint_samples", "edge_directions", "along_edges"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -80,10 +80,12 @@ def normalise_guard_bounds(num: Tensor, den: Tensor, fallback: Tensor, hi: Tenso
 
 
 @parallel
-def window_bounds(values: Tensor, mask: Tensor, starts: list[int], lengths: list[int]) -> tuple[Tensor, Tensor]:
+def window_bounds(values: Tensor, mask: Tensor, starts: list[int],
+                  lengths: list[int]) -> tuple[Tensor, Tensor]:
     """``_Filter.window_bounds`` where each query's frames are consecutive: values ``(T, C, H, W)``, mask
     ``(T, 1, H, W)``, each query's first frame and frame count -> hi and nlo ``(Q, C, H, W)``."""
-    return torch.ops.torchmanifold._window_bounds(values, mask, [int(s) for s in starts], [int(n) for n in lengths])
+    return torch.ops.torchmanifold._window_bounds(values, mask, [int(s) for s in starts],
+                                                  [int(n) for n in lengths])
 
 
 @parallel

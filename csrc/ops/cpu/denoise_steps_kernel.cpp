@@ -1528,8 +1528,9 @@ void footprint_samples_x8(const ImageAxes<T>& axes, const T* cc, const T* pk, co
   };
   const float* gx = axes.ax.data();
   const float* gy = gx + 3 * HW;
-  const __m256 gx0 = _mm256_loadu_ps(gx + i), gx1 = _mm256_loadu_ps(gx + HW + i), gx2 = _mm256_loadu_ps(gx + 2 * HW + i);
-  const __m256 gy0 = _mm256_loadu_ps(gy + i), gy1 = _mm256_loadu_ps(gy + HW + i), gy2 = _mm256_loadu_ps(gy + 2 * HW + i);
+  const __m256 gx0 = _mm256_loadu_ps(gx + i), gx1 = _mm256_loadu_ps(gx + HW + i);
+  const __m256 gx2 = _mm256_loadu_ps(gx + 2 * HW + i), gy0 = _mm256_loadu_ps(gy + i);
+  const __m256 gy1 = _mm256_loadu_ps(gy + HW + i), gy2 = _mm256_loadu_ps(gy + 2 * HW + i);
   const __m256 a11 = _mm256_loadu_ps(axes.a11.data() + i), a12 = _mm256_loadu_ps(axes.a12.data() + i);
   const __m256 a22 = _mm256_loadu_ps(axes.a22.data() + i), det = _mm256_loadu_ps(axes.det.data() + i);
   const __m256 lim = _mm256_mul_ps(_mm256_set1_ps(0.125f), _mm256_add_ps(a11, a22));
