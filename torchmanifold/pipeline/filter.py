@@ -165,7 +165,7 @@ class _Filter:
         """At each query, the largest valid value of its window's frames and the largest minus valid value
         (``-max`` of the dtype where none): what the guard's box maxima start from."""
         ids = [self._max_frames(q) for q in self.qt]
-        if _fast.enabled(values, mask) and all(f == list(range(f[0], f[0] + len(f))) for f in ids):
+        if _fast.enabled(values, mask) and all(map(_consecutive, ids)):
             return _fast.window_bounds(values, mask, [f[0] for f in ids], [len(f) for f in ids])
         big = torch.finfo(values.dtype).max
         return (self.at_queries_max(torch.where(mask > 0, values, -big)),
@@ -213,9 +213,14 @@ def _frames(x: Tensor, ids: Sequence[int]) -> Tensor:
     """``x[ids]`` along the frame dimension: a view where the frames are consecutive (a window, one
     query's frame), a copy otherwise."""
     ids = list(ids)
-    if ids and ids == list(range(ids[0], ids[0] + len(ids))):
+    if _consecutive(ids):
         return x[ids[0]:ids[0] + len(ids)]
     return x[ids]
+
+
+def _consecutive(ids: list[int]) -> bool:
+    """``ids`` is a non-empty run of consecutive frames (a window, one query's frame)."""
+    return bool(ids) and ids == list(range(ids[0], ids[0] + len(ids)))
 
 
 def _halves(shape, device, cell: int = 1) -> Tensor:
