@@ -275,7 +275,6 @@ std::tuple<at::Tensor, at::Tensor> window_bounds_cpu(const at::Tensor& values_, 
   const at::Tensor values = values_.contiguous(), mask = mask_.contiguous();
   at::Tensor hi = at::empty({Q, C, H, W}, values.options()), nlo = at::empty({Q, C, H, W}, values.options());
   if (hi.numel() == 0) return {hi, nlo};
-  const std::vector<int64_t> first(starts.begin(), starts.end()), count(lengths.begin(), lengths.end());
   AT_DISPATCH_FLOATING_TYPES(values.scalar_type(), "window_bounds_cpu", [&] {
     using T_ = scalar_t;
     const T_ *pv = values.data_ptr<T_>(), *pm = mask.data_ptr<T_>();
@@ -286,14 +285,14 @@ std::tuple<at::Tensor, at::Tensor> window_bounds_cpu(const at::Tensor& values_, 
         const int64_t w = r / (C * H), c = (r / H) % C, y = r % H;
         T_* h = ph + r * W;
         T_* l = pl + r * W;
-        for (int64_t f = first[w]; f < first[w] + count[w]; ++f) {
+        for (int64_t f = starts[w]; f < starts[w] + lengths[w]; ++f) {
           const T_* v = pv + (f * C + c) * HW + y * W;
           const T_* m = pm + f * HW + y * W;
           for (int64_t x = 0; x < W; ++x) {
             const T_ a = m[x] > T_(0) ? v[x] : -big, b = m[x] > T_(0) ? -v[x] : -big;
             // the first frame's value, then the larger (a NaN stays)
-            h[x] = f == first[w] || a > h[x] || std::isnan(a) ? a : h[x];
-            l[x] = f == first[w] || b > l[x] || std::isnan(b) ? b : l[x];
+            h[x] = f == starts[w] || a > h[x] || std::isnan(a) ? a : h[x];
+            l[x] = f == starts[w] || b > l[x] || std::isnan(b) ? b : l[x];
           }
         }
       }
@@ -1522,8 +1521,8 @@ void footprint_samples_x8(const ImageAxes<T>& axes, const T* cc, const T* pk, co
                           T* nk) {
   static_assert(std::is_same_v<T, float>, "eight float lanes");
   const __m256i qv = _mm256_load_si256(reinterpret_cast<const __m256i*>(q));
-  int64_t j = 0;  // the candidate's offset from the centres
-  auto at = [&](const float* plane) {
+  // the eight candidates at offset j from the centres
+  auto at = [&](const float* plane, int64_t j) {
     return alike ? _mm256_loadu_ps(plane + q[0] + j) : _mm256_i32gather_ps(plane + j, qv, 4);
   };
   const float* gx = axes.ax.data();
@@ -1546,10 +1545,10 @@ void footprint_samples_x8(const ImageAxes<T>& axes, const T* cc, const T* pk, co
   __m256 s0 = zero, s1 = zero, s2 = zero, cnt = zero;
   for (int64_t dy = -1; dy <= 1; ++dy) {
     for (int64_t dx = -1; dx <= 1; ++dx) {
-      j = dy * W + dx;
-      const __m256 d0 = _mm256_sub_ps(at(pk), c0);
-      const __m256 d1 = _mm256_sub_ps(at(pk + HW), c1);
-      const __m256 d2 = _mm256_sub_ps(at(pk + 2 * HW), c2);
+      const int64_t j = dy * W + dx;
+      const __m256 d0 = _mm256_sub_ps(at(pk, j), c0);
+      const __m256 d1 = _mm256_sub_ps(at(pk + HW, j), c1);
+      const __m256 d2 = _mm256_sub_ps(at(pk + 2 * HW, j), c2);
       const __m256 b1 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(gx0, d0), _mm256_mul_ps(gx1, d1)),
                                       _mm256_mul_ps(gx2, d2));
       const __m256 b2 = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(gy0, d0), _mm256_mul_ps(gy1, d1)),
@@ -1562,12 +1561,12 @@ void footprint_samples_x8(const ImageAxes<T>& axes, const T* cc, const T* pk, co
       const __m256 rr = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(r0, r0), _mm256_mul_ps(r1, r1)),
                                       _mm256_mul_ps(r2, r2));
       __m256 hit = _mm256_and_ps(solvable, _mm256_cmp_ps(rr, lim, _CMP_LT_OQ));
-      hit = _mm256_and_ps(hit, _mm256_cmp_ps(at(vk), zero, _CMP_GT_OQ));
+      hit = _mm256_and_ps(hit, _mm256_cmp_ps(at(vk, j), zero, _CMP_GT_OQ));
       hit = _mm256_and_ps(hit, _mm256_cmp_ps(_mm256_and_ps(uu, magnitude), half, _CMP_LT_OQ));
       hit = _mm256_and_ps(hit, _mm256_cmp_ps(_mm256_and_ps(vv, magnitude), half, _CMP_LT_OQ));
-      s0 = _mm256_add_ps(s0, _mm256_and_ps(hit, at(ak)));
-      s1 = _mm256_add_ps(s1, _mm256_and_ps(hit, at(ak + HW)));
-      s2 = _mm256_add_ps(s2, _mm256_and_ps(hit, at(ak + 2 * HW)));
+      s0 = _mm256_add_ps(s0, _mm256_and_ps(hit, at(ak, j)));
+      s1 = _mm256_add_ps(s1, _mm256_and_ps(hit, at(ak + HW, j)));
+      s2 = _mm256_add_ps(s2, _mm256_and_ps(hit, at(ak + 2 * HW, j)));
       cnt = _mm256_add_ps(cnt, _mm256_and_ps(hit, one));
     }
   }
@@ -1644,10 +1643,11 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
           }
           int64_t x = 0;
 #if defined(__AVX2__)
+          // eight pixels at once where their 3x3 candidates lie inside the image (gathered, by 32-bit indices,
+          // where the eight did not move alike; else eight neighbours in memory)
           if constexpr (std::is_same_v<T, float>) {
-            // eight pixels at once where their 3x3 candidates lie inside the image (gathered; where the eight
-            // moved alike, eight neighbours in memory)
-            for (; x + 8 <= W && 3 * HW < (int64_t(1) << 31); x += 8) {
+            const bool indexable = 3 * HW < (int64_t(1) << 31);
+            for (; indexable && x + 8 <= W; x += 8) {
               bool inside = true, alike = true;
               alignas(32) int32_t q[8];
               for (int64_t l = 0; l < 8; ++l) {
