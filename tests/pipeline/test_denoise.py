@@ -1763,6 +1763,72 @@ def test_window_albedo_survives_degenerate_positions(positions):
         assert not bool(counts.any())
 
 
+def _scatter_case(kind: str):
+    """World positions and depth ``(1, 3, H, W)``, ``(1, 1, H, W)`` of 1-spp samples of a plane seen straight
+    on at depth 2 (:func:`_plane_positions`), and the columns where the case differs: ``"sharp"`` none;
+    ``"lens"`` columns 16-31 sample a circle of confusion 8 pixels wide around each pixel (a defocused
+    surface: the same depth, positions anywhere across it); ``"rods"`` every third column of 16-31 hits a rod
+    in front (depth 1.5, a silhouette one pixel wide)."""
+    H, W = 24, 48
+    p = _plane_positions(H, W)
+    p[2] = 2.0
+    z = torch.full((1, H, W), 2.0, dtype=torch.float64)
+    g = torch.Generator().manual_seed(3)
+    if kind == "lens":
+        p[:2, :, 16:32] += (torch.rand(2, H, 16, generator=g, dtype=torch.float64) - 0.5) * 0.8
+    elif kind == "rods":
+        p[2, :, 16:32:3] = 1.5
+        z[:, :, 16:32:3] = 1.5
+    return p[None], z[None]
+
+
+@pytest.mark.parametrize("kind", ["sharp", "lens", "rods"])
+def test_scatter_is_found_where_a_lens_spreads_the_samples(kind):
+    """Samples that a lens spreads over a circle of confusion land anywhere across the surface: their
+    positions scatter against the pixel grid at one depth. A sharp surface's samples follow the grid within
+    their jitter, and a rod thinner than a pixel jumps in depth: neither scatters."""
+    p, z = _scatter_case(kind)
+    w = FP._scattered(p, z)[0, 0]
+    if kind == "lens":
+        assert float(w[2:-2, 19:29].min()) == 1.0
+        assert float(w[:, :12].max()) == 0.0 and float(w[:, 36:].max()) == 0.0
+    else:
+        assert float(w.max()) == 0.0
+
+
+def test_a_defocused_texture_is_averaged_and_a_sharp_one_kept():
+    """The albedo averages where the samples scatter (a lens) and nowhere else: a sharp surface's features
+    come back as they were, the very tensor, and so do features without positions or depth."""
+    p, z = _scatter_case("lens")
+    g = torch.Generator().manual_seed(4)
+    a = (torch.rand(1, 1, *z.shape[-2:], generator=g, dtype=torch.float64) < 0.5).double()
+    a = a.expand(1, 3, -1, -1)
+    names = ["albedo.R", "albedo.G", "albedo.B", "P.X", "P.Y", "P.Z", "Z"]
+    f = torch.cat([0.2 + 0.6 * a, p, z], 1)
+    out = FP._scattered_albedo(f, names)
+    inside, outside = out[0, :3, 4:-4, 20:28], out[0, :3, :, :12]
+    # salt and pepper of 0.2 and 0.8 (spread 0.3) averaged over a 2 px Gaussian: about 0.3 / 3.5
+    assert float(inside.std()) < 0.12 and abs(float(inside.mean()) - 0.5) < 0.05
+    assert torch.equal(outside, f[0, :3, :, :12]) and torch.equal(out[:, 3:], f[:, 3:])
+    sharp = torch.cat([f[:, :3], *_scatter_case("sharp")], 1)
+    assert FP._scattered_albedo(sharp, names) is sharp
+    no_depth = f[:, :6]
+    assert FP._scattered_albedo(no_depth, names[:6]) is no_depth
+
+
+def test_a_defocused_post_loses_its_salt_and_pepper(monkeypatch):
+    """`mi_indirect_dof` (a tuning clip of the set, real Mitsuba frames): a post near the thin lens is out of
+    focus, and each 1-spp sample's albedo is another point of its texture, so the denoised post kept the
+    samples' salt and pepper where the reference shows their average. Measured on its columns."""
+    c, f, names, ref = _validation_clip("mi_indirect_dof", [0, 1, 2])
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
+    post = (slice(None), slice(None), slice(None), slice(112, None))
+    averaged = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
+    monkeypatch.setattr(D, "_scattered_albedo", lambda f, names: f)  # as before the rule
+    kept = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
+    assert averaged > kept + 1.0, (averaged, kept)
+
+
 def test_without_albedo_narrower_bandwidths_and_colour_alone_frame_by_frame(mitsuba_dir):
     """With no albedo channel to guide, the candidates reach a quarter of the narrowest; with no feature
     channel at all, each frame is also filtered alone; with albedo, the settings stay as they are. The shared

@@ -63,8 +63,8 @@ from torchmanifold._checks import (check_choice, check_int, check_nonnegative, c
 from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo, _known_count,
-                                              _normalised_blur, _position, _remodulate, _smooth_surface,
-                                              _window_albedo, footprint_width)
+                                              _normalised_blur, _position, _remodulate, _scattered_albedo,
+                                              _smooth_surface, _window_albedo, footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
                                           luminance)
@@ -622,6 +622,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     settings = replace(settings, radiance_sigma=radiance_sigma_at(settings, samples_per_pixel))
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
+    f = _scattered_albedo(f, names)  # a defocused texture's samples: the reference shows their average
     alb, flat = _demodulation_albedo(f, names, settings)
     sky = _escaped(f, names)
     lone = _lone_flat_samples(c, flat & ~sky)

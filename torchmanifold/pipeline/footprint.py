@@ -352,6 +352,79 @@ def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
     return torch.stack([f[:, canon.index(c)] for c in want], 1)
 
 
+#: Where a pixel's samples spread over more than its square (a thin lens's circle of confusion), their world
+#: positions scatter across the surface against the pixel grid, and each sample's albedo is another point of a
+#: texture that the reference shows averaged: a defocused post in `mi_indirect_dof` kept its samples' salt and
+#: pepper. A pixel scatters where the second differences of its position along x and along y, less their part
+#: in depth, exceed :data:`_SCATTER_SPACINGS` pixel spacings at its depth (1-spp jitter alone gives up to 2
+#: along an axis), and depth holds at most :data:`_SCATTER_ALONG_DEPTH` of them: a depth jump is a silhouette
+#: or a rod thinner than a pixel, which keep their albedo. In that clip a defocused surface's second
+#: difference is about 3.7 spacings, a third of it in depth; in the set's thin-rod clips nearly all of it is.
+#: Frames 0-2 of `mi_indirect_dof` from 1 / 4 spp: the post's features blurred by hand gained +1.1 / +1.0 dB,
+#: the albedo alone +0.9 / +0.9 (findings.md); this rule +0.88 / +0.49 (0.7 / 0.9 of it in depth: +0.82 /
+#: +0.44, +0.90 / +0.53). Every other Mitsuba clip of the set, of the probes and at 256x256 keeps its bits:
+#: its scatter never fills the window below. Without world positions and depth (our tracer, Blender without
+#: its Position pass) nothing changes.
+_SCATTER_SPACINGS = 3.0
+_SCATTER_ALONG_DEPTH = 0.8
+#: the share of a 5x5 window's pixels that scatter from which the albedo starts to average (all of it from
+#: halfway to 1): scatter over an area, not the two columns beside an edge. 0.3 / 0.6 on the clip above:
+#: +0.92 / +0.60 and +0.72 / +0.25 dB
+_SCATTER_DENSITY = 0.4
+#: the averaged albedo's Gaussian, pixels: the hand-blurred post gained as much at 2 and 3 px, 0.2 dB less
+#: at 1
+_SCATTERED_ALBEDO_SIGMA = 2.0
+
+
+def _scattered(position: Tensor, depth: Tensor) -> Tensor:
+    """How surely each pixel's samples scatter over an area, ``(T, 1, H, W)`` in [0, 1], from world positions
+    ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` (0: no hit). A frame's pixel spacing per unit of depth is
+    the median of the horizontal neighbours' distance over their depth; at least half-float precision of
+    the position (a position stored as half cannot tell finer steps). 0 in a frame with no such pair."""
+    if min(position.shape[-2:]) < 3:  # no second difference
+        return torch.zeros_like(depth)
+    hit = depth > 0
+    pairs = hit[..., :, 1:] & hit[..., :, :-1]
+    step = (position[..., :, 1:] - position[..., :, :-1]).norm(dim=1, keepdim=True)
+    step = step / depth[..., :, 1:].clamp_min(1e-30)
+    angle = torch.stack([step[t][pairs[t]].median() if bool(pairs[t].any()) else step.new_zeros(())
+                         for t in range(step.shape[0])]).view(-1, 1, 1, 1)
+    spacing = torch.maximum(depth * angle, position.norm(dim=1, keepdim=True) * 2.0 ** -10)
+
+    def second(axis: int) -> tuple[Tensor, Tensor]:
+        # the squared second differences of position and depth along an image axis, 0 at the border
+        n, pad = position.shape[axis], (1, 1, 0, 0) if axis == 3 else (0, 0, 1, 1)
+        d2 = [x.narrow(axis, 2, n - 2) + x.narrow(axis, 0, n - 2) - 2 * x.narrow(axis, 1, n - 2)
+              for x in (position, depth)]
+        return (torch.nn.functional.pad(d2[0].square().sum(1, keepdim=True), pad),
+                torch.nn.functional.pad(d2[1].square(), pad))
+    (px, zx), (py, zy) = second(3), second(2)
+    across = (px - zx).clamp_min(0.0).sqrt() + (py - zy).clamp_min(0.0).sqrt()
+    along = zx.sqrt() + zy.sqrt()
+    flag = hit & (angle > 0) & (across > _SCATTER_SPACINGS * spacing) & \
+        (along < _SCATTER_ALONG_DEPTH * (px.sqrt() + py.sqrt()))
+    density = _box_mean(flag.to(position.dtype), 2)
+    return ((density - _SCATTER_DENSITY) / (0.5 * (1 - _SCATTER_DENSITY))).clamp(0.0, 1.0)
+
+
+def _scattered_albedo(f: Tensor, names: Sequence[str]) -> Tensor:
+    """Features ``f`` ``(T, D, H, W)`` named ``names`` with the albedo averaged over
+    :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`); ``f``
+    itself without world positions, depth or albedo, or where nothing scatters."""
+    canon = [feature_table.canonical_name(n) for n in names]
+    position = _position(f, names)
+    albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
+    if position is None or "Z" not in canon or len(albedo) != 3:
+        return f
+    w = _scattered(position, f[:, canon.index("Z")][:, None])
+    if not bool((w > 0).any()):
+        return f
+    a = f[:, albedo]
+    f = f.clone()
+    f[:, albedo] = a + w * (footprint_blur(a, _SCATTERED_ALBEDO_SIGMA) - a)
+    return f
+
+
 #: how far (pixels, along each image axis) a sample of another frame may lie from a pixel's own sample to
 #: count as a sample of that pixel: two samples of one pixel of a still view differ by the difference of
 #: their jitters, under a pixel (frames 0-2, the ``denoise`` default, from 1 / 4 spp, the gains of the two
