@@ -385,11 +385,12 @@ def _scattered(position: Tensor, depth: Tensor) -> Tensor:
         return torch.zeros_like(depth)
     hit = depth > 0
     pairs = hit[..., :, 1:] & hit[..., :, :-1]
-    step = (position[..., :, 1:] - position[..., :, :-1]).norm(dim=1, keepdim=True)
+    # (sums of squares: torch's vector norm over channels took 7 ms a 256x256 frame, the sums 1)
+    step = (position[..., :, 1:] - position[..., :, :-1]).square().sum(1, keepdim=True).sqrt()
     step = step / depth[..., :, 1:].clamp_min(1e-30)
     angle = torch.stack([step[t][pairs[t]].median() if bool(pairs[t].any()) else step.new_zeros(())
                          for t in range(step.shape[0])]).view(-1, 1, 1, 1)
-    spacing = torch.maximum(depth * angle, position.norm(dim=1, keepdim=True) * 2.0 ** -10)
+    spacing = torch.maximum(depth * angle, position.square().sum(1, keepdim=True).sqrt() * 2.0 ** -10)
 
     def second(axis: int) -> tuple[Tensor, Tensor]:
         # the squared second differences of position and depth along an image axis, 0 at the border
