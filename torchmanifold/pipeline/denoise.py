@@ -10,7 +10,10 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
    same albedo, so texture stays sharp. Where the albedo is about 0 (delta BSDFs, black surfaces) the
    radiance itself is averaged, among those pixels only and each frame alone: their features do not
-   show what a mirror or glass shows (:func:`_flat_average`).
+   show what a mirror or glass shows (:func:`_flat_average`). Where the samples' world positions scatter
+   across a surface (a lens's circle of confusion), each sample's albedo is another point of a texture the
+   reference shows averaged, and the albedo is averaged first
+   (:func:`~torchmanifold.pipeline.footprint._scattered_albedo`).
 4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
    to it, and the clamped samples are filtered linearly. The energy removed is measured and returned

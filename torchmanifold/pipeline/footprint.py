@@ -9,7 +9,8 @@ edge the footprint reaches further, as far as the few samples' share of either s
 (:func:`_along_edges`), and across a sure edge it starts part-way back from the footprint average
 (:func:`_before_footprint`). Where the renderer gives world positions the window's other frames add their
 samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall in the pixel's
-square (:func:`_window_albedo`).
+square (:func:`_window_albedo`); where they scatter across a surface against the pixel grid (a defocused
+texture), the albedo itself is averaged before the frame step reads it (:func:`_scattered_albedo`).
 """
 from __future__ import annotations
 
@@ -385,7 +386,7 @@ def _scattered(position: Tensor, depth: Tensor) -> Tensor:
         return torch.zeros_like(depth)
     hit = depth > 0
     pairs = hit[..., :, 1:] & hit[..., :, :-1]
-    # (sums of squares: torch's vector norm over channels took 7 ms a 256x256 frame, the sums 1)
+    # sums of squares: torch's vector norm over the channels is several times slower here
     step = (position[..., :, 1:] - position[..., :, :-1]).square().sum(1, keepdim=True).sqrt()
     step = step / depth[..., :, 1:].clamp_min(1e-30)
     angle = torch.stack([step[t][pairs[t]].median() if bool(pairs[t].any()) else step.new_zeros(())
