@@ -165,7 +165,8 @@ def _size(v: str) -> tuple[int, int]:
 
 def clip_main(description: str, clips, render_clip, argv=None, render_iterations=None) -> None:
     """A renderer script's command line: render the named clips (default all of ``clips``) with
-    ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=..., size=...) -> clip folder`` and list
+    ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=..., size=..., position=...) -> clip
+    folder`` and list
     each finished one in READY; with ``--iterations N``, only ``render_iterations(name, out_root, frames, N)
     -> clip folder`` on clips already rendered."""
     ap = argparse.ArgumentParser(description=description)
@@ -181,6 +182,10 @@ def clip_main(description: str, clips, render_clip, argv=None, render_iterations
     ap.add_argument("--size", type=_size, default=None, metavar="WxH",
                     help="render at WxH instead of the clip's own size (a probe at another resolution, e.g. "
                          "the 256x256 of the clips the denoiser is scored on outside this set)")
+    ap.add_argument("--position", action="store_true",
+                    help="Blender: also write the Position pass (world positions, which the denoiser reads "
+                         "for the window albedo and for defocus; off in the set, which is at its 60 MB "
+                         "budget). Mitsuba's clips always carry them")
     ap.add_argument("--iterations", type=int, default=0, metavar="N",
                     help="render only the progressive loop of clips already rendered in --out: what "
                          "the renderer holds after n samples per pixel, added one per iteration from "
@@ -196,7 +201,7 @@ def clip_main(description: str, clips, render_clip, argv=None, render_iterations
             print(f"{name}: {render_iterations(name, args.out, args.frames, args.iterations)}")
             continue
         out = render_clip(name, args.out, args.frames, args.ref_spp, renderer_defaults=args.renderer_defaults,
-                          size=args.size)
+                          size=args.size, position=args.position)
         if not args.no_ready:
             mark_ready(out)
         print(f"{name}: {out}")

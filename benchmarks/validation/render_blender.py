@@ -633,11 +633,13 @@ def setup_render(scene, width: int, height: int, renderer_defaults: bool = False
     img.exr_codec = "ZIP"
 
 
-def set_passes(scene, features: bool, object_index: bool = False, depth: str = "16") -> None:
+def set_passes(scene, features: bool, object_index: bool = False, depth: str = "16",
+               position: bool = False) -> None:
     vl = scene.view_layers[0]
     vl.cycles.denoising_store_passes = features
     vl.use_pass_normal = features
     vl.use_pass_z = features
+    vl.use_pass_position = features and position
     vl.use_pass_object_index = object_index
     scene.render.image_settings.color_depth = depth
 
@@ -651,10 +653,11 @@ def render_to(scene, path: Path, spp: int, seed: int) -> None:
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
                 ref_chunk: int = 128, renderer_defaults: bool = False,
-                size: tuple[int, int] | None = None) -> Path:
+                size: tuple[int, int] | None = None, position: bool = False) -> Path:
     """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Cycles' own pixel filter
     (Blackman-Harris, 1.5 px) and indirect clamp (10) instead of box and none; ``size``: (width, height)
-    instead of the clip's own (a probe at another resolution)."""
+    instead of the clip's own (a probe at another resolution); ``position``: the noisy frames also carry
+    Blender's Position pass (``ViewLayer.Position.X/Y/Z``, world space)."""
     builder, clip_id, hazards, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:
@@ -673,7 +676,7 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         for f in tqdm(range(frames), desc=name, unit="frame"):
             scene.frame_current = f + 1
             per_frame.append(animate(f))
-            set_passes(scene, True)
+            set_passes(scene, True, position=position)
             for pass_name, spp, fname in (("noisy1", 1, "frame"), ("noisy4", 4, "frame4spp")):
                 s = C.seed(clip_id, pass_name, f)
                 seeds[pass_name].append(s)
@@ -719,7 +722,9 @@ def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int 
         "layout": ("frame_/frame4spp_: Blender's multilayer EXR as written (one part per pass in Blender 5): "
                    "ViewLayer.Combined.R/G/B/A (half), ViewLayer.Depth.Z, ViewLayer.Normal.X/Y/Z (world space), "
                    "ViewLayer.Denoising Normal.X/Y/Z (camera space), ViewLayer.Denoising Albedo.R/G/B (half), "
-                   "ViewLayer.Denoising Depth.Z; Blender's 'Half' colour depth (normals and depths stay float32)"),
+                   "ViewLayer.Denoising Depth.Z"
+                   + (", ViewLayer.Position.X/Y/Z (world space)" if position else "")
+                   + "; Blender's 'Half' colour depth (normals and depths stay float32)"),
         "description": desc,
         "hazards": hazards,
         "moving_objects": moving,
