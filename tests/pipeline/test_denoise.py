@@ -1768,7 +1768,9 @@ def _scatter_case(kind: str):
     on at depth 2 (:func:`_plane_positions`), and the columns where the case differs: ``"sharp"`` none;
     ``"lens"`` columns 16-31 sample a circle of confusion 8 pixels wide around each pixel (a defocused
     surface: the same depth, positions anywhere across it); ``"rods"`` every third column of 16-31 hits a rod
-    in front (depth 1.5, a silhouette one pixel wide)."""
+    in front (depth 1.5, a silhouette one pixel wide); ``"mix"`` there each pixel's position is, at random,
+    the plane's or a point 4 units aside and 3 deeper (a wireframe before distant ground, whose pixels mix
+    them: the second differences 30 pixel spacings in depth, 40 across)."""
     H, W = 24, 48
     p = _plane_positions(H, W)
     p[2] = 2.0
@@ -1779,14 +1781,20 @@ def _scatter_case(kind: str):
     elif kind == "rods":
         p[2, :, 16:32:3] = 1.5
         z[:, :, 16:32:3] = 1.5
+    elif kind == "mix":
+        far = torch.rand(H, 16, generator=g, dtype=torch.float64) < 0.5
+        p[0, :, 16:32] += 4.0 * far
+        p[2, :, 16:32] += 3.0 * far
+        z[0, :, 16:32] += 3.0 * far
     return p[None], z[None]
 
 
-@pytest.mark.parametrize("kind", ["sharp", "lens", "rods", "huge", "zero", "tiny"])
+@pytest.mark.parametrize("kind", ["sharp", "lens", "rods", "mix", "huge", "zero", "tiny"])
 def test_scatter_is_found_where_a_lens_spreads_the_samples(kind):
     """Samples that a lens spreads over a circle of confusion land anywhere across the surface: their
     positions scatter against the pixel grid at one depth. A sharp surface's samples follow the grid within
-    their jitter, and a rod thinner than a pixel jumps in depth: neither scatters. Nor do positions that tell
+    their jitter, a rod thinner than a pixel jumps in depth, and pixels that mix a wireframe with the ground
+    far behind jump in depth by many pixel spacings: none of them scatters. Nor do positions that tell
     nothing (1e30 in float32, whose squares overflow; all 0) or frames too small for a second difference."""
     p, z = _scatter_case("lens" if kind in ("huge", "zero") else "sharp" if kind == "tiny" else kind)
     if kind == "huge":
