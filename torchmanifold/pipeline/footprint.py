@@ -362,21 +362,22 @@ def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
 #: or a rod thinner than a pixel, which keep their albedo. In that clip a defocused surface's second
 #: difference is about 3.7 spacings, a third of it in depth; in the set's thin-rod clips nearly all of it is.
 #: Frames 0-2 of `mi_indirect_dof` from 1 / 4 spp: the post's features blurred by hand gained +1.1 / +1.0 dB,
-#: the albedo alone +0.9 / +0.9 (findings.md); this rule +0.88 / +0.49 (0.7 / 0.9 of it in depth: +0.82 /
-#: +0.44, +0.90 / +0.53). Every other Mitsuba clip of the set, of the probes and at 256x256 keeps its bits:
-#: its scatter never fills the window below. Without world positions and depth (our tracer, Blender without
-#: its Position pass) nothing changes.
+#: the albedo alone +0.9 / +0.9 (findings.md); this rule, before the bound on depth below, +0.88 / +0.49 (0.7
+#: / 0.9 of it in depth: +0.82 / +0.44, +0.90 / +0.53). Every other Mitsuba clip of the set, of the probes and
+#: at 256x256 keeps its bits: its scatter never fills the window below. Without world positions and depth (our
+#: tracer, Blender without its Position pass) nothing changes.
 _SCATTER_SPACINGS = 3.0
 _SCATTER_ALONG_DEPTH = 0.8
 #: and depth's own second difference stays under this many spacings: one surface at about one depth. Under a
-#: lens it is 0.3-2 spacings (the quartiles, both rooms, 1 and 4 spp); where a pixel's 4 samples mix a wireframe
-#: ball and the ground far behind it (`bl_env_thin` rendered with Blender's Position pass) 11-59, and without
-#: this bound the rule cost that clip 0.16 dB from 4 spp. All frames of `mi_indirect_dof` from 1 / 4 spp, 4 / 6
-#: / 8 / none: 24.34 / 26.94, 24.47 / 26.99, 24.52 / 27.00, 24.54 / 27.01 dB (23.74 / 26.52 without the rule)
+#: lens it is 0.3-2 spacings (the quartiles, both rooms, 1 and 4 spp); where a pixel's 4 samples mix a
+#: wireframe ball and the ground far behind it (`bl_env_thin` rendered with Blender's Position pass) 11-59,
+#: and without this bound the rule cost that clip 0.16 dB from 4 spp. All frames of `mi_indirect_dof` from 1 /
+#: 4 spp, 4 / 6 / 8 / none: 24.34 / 26.94, 24.47 / 26.99, 24.52 / 27.00, 24.54 / 27.01 dB (23.74 / 26.52
+#: without the rule)
 _SCATTER_DEPTH_SPACINGS = 8.0
 #: the share of a 5x5 window's pixels that scatter from which the albedo starts to average (all of it from
-#: halfway to 1): scatter over an area, not the two columns beside an edge. 0.3 / 0.6 on the clip above:
-#: +0.92 / +0.60 and +0.72 / +0.25 dB
+#: halfway to 1): scatter over an area, not the two columns beside an edge. 0.3 / 0.6 on the clip above
+#: (frames 0-2, before the bound on depth): +0.92 / +0.60 and +0.72 / +0.25 dB
 _SCATTER_DENSITY = 0.4
 #: the averaged albedo's Gaussian, pixels: the hand-blurred post gained as much at 2 and 3 px, 0.2 dB less
 #: at 1
