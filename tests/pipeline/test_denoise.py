@@ -1811,6 +1811,17 @@ def test_scatter_is_found_where_a_lens_spreads_the_samples(kind):
         assert float(w.max()) == 0.0
 
 
+def test_sanitised_positions_are_no_scatter():
+    """Positions that were not finite come to the rule as 0 (`_sanitize`) beside finite depth: they jump
+    across the scene, but they are no samples, so neither they nor the pixels beside them scatter."""
+    p, z = _scatter_case("sharp")
+    p[..., 6:18, 20:30] = 0.0
+    valid = torch.ones_like(z, dtype=torch.bool)
+    valid[..., 6:18, 20:30] = False
+    assert float(FP._scattered(p, z).max()) > 0.5  # taken for samples, the zeros would scatter
+    assert float(FP._scattered(p, z, valid).max()) == 0.0
+
+
 def test_a_defocused_texture_is_averaged_and_a_sharp_one_kept():
     """The albedo averages where the samples scatter (a lens) and nowhere else: a sharp surface's features
     come back as they were, the very tensor, and so do features without positions or depth."""
@@ -1839,7 +1850,7 @@ def test_a_defocused_post_loses_its_salt_and_pepper(monkeypatch):
     kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
     post = (slice(None), slice(None), slice(None), slice(112, None))
     averaged = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
-    monkeypatch.setattr(D, "_scattered_albedo", lambda f, names: f)  # as before the rule
+    monkeypatch.setattr(D, "_scattered_albedo", lambda f, names, mask=None: f)  # as before the rule
     kept = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
     assert averaged > kept + 1.0, (averaged, kept)
 

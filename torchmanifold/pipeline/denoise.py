@@ -625,7 +625,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     settings = replace(settings, radiance_sigma=radiance_sigma_at(settings, samples_per_pixel))
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
-    f = _scattered_albedo(f, names)  # a defocused texture's samples: the reference shows their average
+    f = _scattered_albedo(f, names, mask)  # a defocused texture's samples: the reference shows the average
     alb, flat = _demodulation_albedo(f, names, settings)
     sky = _escaped(f, names)
     lone = _lone_flat_samples(c, flat & ~sky)

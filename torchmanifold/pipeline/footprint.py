@@ -384,14 +384,16 @@ _SCATTER_DENSITY = 0.4
 _SCATTERED_ALBEDO_SIGMA = 2.0
 
 
-def _scattered(position: Tensor, depth: Tensor) -> Tensor:
+def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
     """How surely each pixel's samples scatter over an area, ``(T, 1, H, W)`` in [0, 1], from world positions
-    ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` (0: no hit). A frame's pixel spacing per unit of depth is
-    the median of the horizontal neighbours' distance over their depth; at least half-float precision of
-    the position (a position stored as half cannot tell finer steps). 0 in a frame with no such pair."""
+    ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` (0: no hit), where ``valid`` (bool, like depth; all by
+    default) marks the pixels whose features are samples (not sanitised non-finite ones): a second
+    difference counts where its three pixels are hit and valid. A frame's pixel spacing per unit of depth is
+    the median of the horizontal neighbours' distance over their depth; at least half-float precision of the
+    position (a position stored as half cannot tell finer steps). 0 in a frame with no such pair."""
     if min(position.shape[-2:]) < 3:  # no second difference
         return torch.zeros_like(depth)
-    hit = depth > 0
+    hit = (depth > 0) if valid is None else (depth > 0) & valid
     pairs = hit[..., :, 1:] & hit[..., :, :-1]
     # sums of squares: torch's vector norm over the channels is several times slower here
     step = (position[..., :, 1:] - position[..., :, :-1]).square().sum(1, keepdim=True).sqrt()
@@ -401,12 +403,15 @@ def _scattered(position: Tensor, depth: Tensor) -> Tensor:
     spacing = torch.maximum(depth * angle, position.square().sum(1, keepdim=True).sqrt() * 2.0 ** -10)
 
     def second(axis: int) -> tuple[Tensor, Tensor]:
-        # the squared second differences of position and depth along an image axis, 0 at the border
+        # the squared second differences of position and depth along an image axis; 0 at the border and
+        # where one of the three pixels is no hit or no sample (no evidence along that axis)
         n, pad = position.shape[axis], (1, 1, 0, 0) if axis == 3 else (0, 0, 1, 1)
         d2 = [x.narrow(axis, 2, n - 2) + x.narrow(axis, 0, n - 2) - 2 * x.narrow(axis, 1, n - 2)
               for x in (position, depth)]
-        return (torch.nn.functional.pad(d2[0].square().sum(1, keepdim=True), pad),
-                torch.nn.functional.pad(d2[1].square(), pad))
+        h = hit.to(position.dtype)
+        ok = h.narrow(axis, 2, n - 2) * h.narrow(axis, 0, n - 2) * h.narrow(axis, 1, n - 2)
+        return (torch.nn.functional.pad(d2[0].square().sum(1, keepdim=True) * ok, pad),
+                torch.nn.functional.pad(d2[1].square() * ok, pad))
     (px, zx), (py, zy) = second(3), second(2)
     across = (px - zx).clamp_min(0.0).sqrt() + (py - zy).clamp_min(0.0).sqrt()
     along = zx.sqrt() + zy.sqrt()
@@ -416,16 +421,17 @@ def _scattered(position: Tensor, depth: Tensor) -> Tensor:
     return ((density - _SCATTER_DENSITY) / (0.5 * (1 - _SCATTER_DENSITY))).clamp(0.0, 1.0)
 
 
-def _scattered_albedo(f: Tensor, names: Sequence[str]) -> Tensor:
+def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = None) -> Tensor:
     """Features ``f`` ``(T, D, H, W)`` named ``names`` with the albedo averaged over
-    :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`); ``f``
-    itself without world positions, depth or albedo, or where nothing scatters."""
+    :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`, among
+    the pixels of nonzero ``mask`` ``(T, 1, H, W)``, all by default); ``f`` itself without world positions,
+    depth or albedo, or where nothing scatters."""
     canon = [feature_table.canonical_name(n) for n in names]
     position = _position(f, names)
     albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
     if position is None or "Z" not in canon or len(albedo) != 3:
         return f
-    w = _scattered(position, f[:, canon.index("Z")][:, None])
+    w = _scattered(position, f[:, canon.index("Z")][:, None], None if mask is None else mask > 0)
     if not bool((w > 0).any()):
         return f
     a = f[:, albedo]
