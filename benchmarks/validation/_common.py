@@ -166,9 +166,8 @@ def _size(v: str) -> tuple[int, int]:
 def clip_main(description: str, clips, render_clip, argv=None, render_iterations=None) -> None:
     """A renderer script's command line: render the named clips (default all of ``clips``) with
     ``render_clip(name, out_root, frames, ref_spp, renderer_defaults=..., size=..., position=...) -> clip
-    folder`` and list
-    each finished one in READY; with ``--iterations N``, only ``render_iterations(name, out_root, frames, N)
-    -> clip folder`` on clips already rendered."""
+    folder`` and list each finished one in READY; with ``--iterations N``, only ``render_iterations(name,
+    out_root, frames, N) -> clip folder`` on clips already rendered."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("clips", nargs="*", default=list(clips), help=f"clips to render (default all: {list(clips)})")
     ap.add_argument("--out", type=Path, default=Path("/work/valdata"))

@@ -562,11 +562,11 @@ def _channels(scene) -> dict:
 
 def render_clip(name: str, out_root: Path, frames: int = C.FRAMES, ref_spp: int | None = None,
                 ref_chunk: int = 128, renderer_defaults: bool = False,
-                size: tuple[int, int] | None = None, position: bool = True) -> Path:
+                size: tuple[int, int] | None = None, position: bool = False) -> Path:
     """Render clip ``name`` into ``out_root / name``; ``renderer_defaults``: Mitsuba's own reconstruction
     filter (gaussian, which splats each sample into the pixels around) instead of box; ``size``: (width, height)
-    instead of the clip's own (a probe at another resolution); ``position``: the clips always carry world
-    positions (``P``), so it changes nothing."""
+    instead of the clip's own (a probe at another resolution); ``position``: Blender's flag of the common
+    command line, ignored here: these clips always carry world positions (``P``)."""
     builder, clip_id, hazards, moving, default_ref, ref_b_frame = CLIPS[name]
     ref_spp = ref_spp or default_ref
     if ref_spp % ref_chunk:

@@ -429,9 +429,10 @@ def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = Non
     canon = [feature_table.canonical_name(n) for n in names]
     position = _position(f, names)
     albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
-    if position is None or "Z" not in canon or len(albedo) != 3:
+    (depth,) = feature_table.feature("Z").channels
+    if position is None or depth not in canon or len(albedo) != 3:
         return f
-    w = _scattered(position, f[:, canon.index("Z")][:, None], None if mask is None else mask > 0)
+    w = _scattered(position, f[:, canon.index(depth)][:, None], None if mask is None else mask > 0)
     if not bool((w > 0).any()):
         return f
     a = f[:, albedo]
