@@ -266,6 +266,23 @@ def clip_spin(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_screen(f: int, n: int) -> tuple[dict, dict]:
+    """mi_ceiling_light's room with a screen on its back wall: a rectangle emitting a blotchy two-tone picture
+    (nearest-neighbour texture) whose surface is black, so Mitsuba's albedo there is 0 as on glass, while each
+    sample of it is the picture's exact radiance."""
+    scene, info = clip_ceiling_light(f, n)
+    rng = np.random.default_rng(5)
+    picture = np.stack([C.value_noise(64, 64, 5, rng) for _ in range(3)], -1)
+    picture = ((picture > 0.5) * 0.8 + 0.1).astype(np.float32)
+    radiance = {"type": "bitmap", "bitmap": mi.Bitmap(picture), "raw": True, "filter_type": "nearest"}
+    placed = T().translate([0.0, 0.1, -0.98]).scale([0.5, 0.35, 1])
+    scene["screen"] = {"type": "rectangle", "to_world": placed, "bsdf": diffuse([0.0, 0.0, 0.0]),
+                       "emitter": {"type": "area", "radiance": radiance}}
+    info["description"] += (" A screen (1 x 0.7, black surface) on the back wall emits a two-tone "
+                            "value-noise picture.")
+    return scene, info
+
+
 def clip_fast_motion(f: int, n: int) -> tuple[dict, dict]:
     """The room of ``clip_ceiling_light`` seen by a camera that orbits 32 degrees over the clip (large parallax,
     the open side and the outside coming into view) while a ball rolls across the floor about 11 px a frame:
@@ -520,6 +537,11 @@ CLIPS = {
     # A turntable, rendered on demand as a probe, not committed: a texture turning in place, a still camera.
     "mi_spin": (clip_spin, 10, ["texture_turning_in_place", "still_camera", "moving_object", "contact_shadow",
                                 "area_light_in_ceiling_no_emission_aov"], ["mover", "ball"], 512, None),
+    # A picture on an emitter whose surface is black, rendered on demand as a probe, not committed: flat
+    # pixels (albedo 0, as on glass) whose colour has no noise.
+    "mi_screen": (clip_screen, 11, ["emitter_texture", "flat_pixels_without_noise", "moving_object",
+                                    "area_light_in_ceiling_no_emission_aov", "contact_shadow"],
+                  ["mover"], 512, None),
 }
 
 # Clips rendered with another integrator than ``path`` (inside the ``aov`` integrator for the noisy passes too).

@@ -800,6 +800,47 @@ def test_what_a_delta_surface_shows_is_averaged_in_its_own_frame():
     assert float(out[:, ghost].mean()) < 0.45  # 0.3 plus the stripe's Gaussian tail, no ghost
 
 
+def _black_screen(T, H, W, seed, picture=True):
+    """A wall of albedo 0.6 (1-spp-like samples) with a black screen (albedo 0: flat) from row 8 to 40 and
+    column 12 to 52 that shows a two-tone picture (the same in every sample) or noise: features, names,
+    colour, the truth and the screen."""
+    f, names = _plane(T, H, W, albedo=0.6)
+    screen = torch.zeros(H, W, dtype=torch.bool)
+    screen[8:40, 12:52] = True
+    f[:, 0:3, screen] = 0.0
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    blobs = ((yy // 6 + xx // 9) % 2 == 0) | ((yy - 20) ** 2 + (xx - 30) ** 2 < 30)
+    truth = torch.full((T, 3, H, W), 0.3)
+    truth[:, :, screen] = torch.where(blobs[screen], 2.0, 0.4).to(truth.dtype)
+    color = _noisy(truth, seed)
+    if picture:  # an emitter seen directly: every sample its exact radiance
+        color[:, :, screen] = truth[:, :, screen]
+    return f, names, color, truth, screen
+
+
+def test_a_picture_on_a_black_emitter_keeps_its_samples():
+    """Flat pixels whose colour is no noise (a picture on an emitter whose surface is black, Mitsuba's
+    albedo 0 as on glass) keep their samples, as a clear sky does, and the frames are counted; where what
+    they show is noise (glass, mirrors) they are averaged; a screen too small to judge (under 500 rows of
+    five pixels) is averaged too, and so is a frame with no albedo anywhere."""
+    T, H, W = 2, 48, 64
+    f, names, color, truth, screen = _black_screen(T, H, W, 5)
+    exact = DenoiseSettings(footprint_sigma=0.0)
+    out, st = denoise_frames(color, f, names, settings=exact, return_stats=True)
+    assert torch.equal(out[:, :, screen], color[:, :, screen])  # as the sky's, but for the footprint average
+    assert st["exact_flat_frames"] == T
+    f, names, color, truth, screen = _black_screen(T, H, W, 5, picture=False)
+    out, st = denoise_frames(color, f, names, return_stats=True)
+    err, noise = ((x - truth)[:, :, screen].abs().mean() for x in (out, color))
+    assert err < 0.7 * noise and st["exact_flat_frames"] == 0, (err, noise)
+    f, names, color, truth, screen = _black_screen(T, H, W, 5)
+    f[:, 0:3, 8:40, 12:52] = 0.6
+    f[:, 0:3, 8:20, 12:24] = 0.0  # 2 * 12 * 8 = 192 rows of five
+    assert denoise_frames(color, f, names, return_stats=True)[1]["exact_flat_frames"] == 0
+    f[:, 0:3] = 0.0
+    assert denoise_frames(color, f, names, return_stats=True)[1]["exact_flat_frames"] == 0
+
+
 def test_moving_shadow_leaves_no_ghost():
     """A contact shadow moves 8 pixels a frame over a plane whose features never change: joined in
     space-time, the lit ground where the shadow was a frame earlier or later stays lit."""
@@ -981,26 +1022,37 @@ def _sky_samples(kind: str, H: int = 32, W: int = 32) -> torch.Tensor:
             "stripes": (0.2 + 0.6 * (torch.arange(W) % 2).float()).expand(1, 3, H, W),
             "wide stripes": (0.2 + 0.6 * (torch.arange(W) // 2 % 2).float()).expand(1, 3, H, W),
             "sun": smooth + 500.0 * ((x - 0.5).abs() < 0.02) * (torch.arange(H).view(-1, 1) == 9),
-            "black": torch.zeros(1, 3, H, W)}[kind]
+            "black": torch.zeros(1, 3, H, W),
+            "gentle gradient": (0.5 + 0.04 * x).expand(1, 3, H, W),
+            "blocks": (0.3 + 0.5 * ((torch.arange(W) // 6 + torch.arange(H).view(-1, 1) // 9) % 2))
+            .expand(1, 3, H, W),
+            "sparks on black": 50.0 * (torch.rand(1, 1, H, W, generator=g) < 0.004).expand(1, 3, H, W)}[kind]
 
 
-@pytest.mark.parametrize("kind,expect", [("noise", True), ("splatted noise", True), ("smooth", False),
-                                         ("smooth and slightly noisy", False), ("edges", False),
-                                         ("stripes", False), ("wide stripes", False), ("sun", False),
-                                         ("black", False)])
-def test_noisy_sky_tells_noise_from_the_environment(kind, expect):
+@pytest.mark.parametrize("kind,sky,exact", [("noise", True, False), ("splatted noise", True, False),
+                                            ("smooth", False, False), ("edges", False, False),
+                                            ("smooth and slightly noisy", False, False),
+                                            ("stripes", False, False), ("wide stripes", False, False),
+                                            ("sun", False, False), ("black", False, False),
+                                            ("sparks on black", False, False),
+                                            ("gentle gradient", False, True), ("blocks", False, True)])
+def test_noise_is_told_from_the_environment(kind, sky, exact):
     """Only noise makes a sky noise (R = 1 within a factor sqrt(2)), also where a reconstruction filter
     splats each sample over its neighbours, correlating adjacent pixels: a gradient, edges, stripes one or
-    two pixels wide, a sun of two pixels 600-1000x brighter than the sky and a black sky do not; frames are
-    judged apart, and a sky too small to judge (under 500 rows of five pixels) is not noise."""
+    two pixels wide, a sun of two pixels 600-1000x brighter than the sky, a black sky and bright samples on
+    under 1% of black do not. Flat pixels keep their samples only where they are surely no noise: most
+    adjacent pixels alike (a gradient of 0.2% a pixel, blocks of one colour), not a gradient of 3% a pixel,
+    stripes a pixel or two wide, black or sparks on black. Frames are judged apart; too few pixels to judge
+    (under 500 rows of five) are neither."""
     c = _sky_samples(kind)
-    sky = torch.ones(1, 1, *c.shape[2:], dtype=torch.bool)
-    assert bool(D._noisy_sky(c, sky)) == expect
-    both = torch.cat([c, _sky_samples("smooth")])
-    assert D._noisy_sky(both, sky.expand(2, -1, -1, -1)).flatten().tolist() == [expect, False]
-    small = torch.zeros_like(sky)
+    pixels = torch.ones(1, 1, *c.shape[2:], dtype=torch.bool)
+    small = torch.zeros_like(pixels)
     small[..., :12, :12] = True  # 2 * 12 * 8 = 192 rows of five
-    assert not bool(D._noisy_sky(c, small))
+    for test, expect, other in ((D._noisy_sky, sky, "smooth"), (D._exact_flat, exact, "blocks")):
+        assert bool(test(c, pixels)) == expect
+        both = torch.cat([c, _sky_samples(other)])
+        assert test(both, pixels.expand(2, -1, -1, -1)).flatten().tolist() == [expect, test is D._exact_flat]
+        assert not bool(test(c, small))
 
 
 def test_noisy_sky_in_files_is_counted(tmp_path):

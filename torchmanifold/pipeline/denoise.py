@@ -46,6 +46,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`), unless their colour is noise, as
    in fog (:func:`_noisy_sky`): then they are filtered with the rest, with no albedo or feature of their own.
+   So do a frame's flat pixels (no albedo beside pixels that have one) where their colour is surely no noise,
+   as on a picture on an emitter whose surface is black (:func:`_exact_flat`).
 
 Every statistic comes from the frames of one query's window, so a clip gives the same bytes streamed,
 sharded or all at once.
@@ -548,8 +550,9 @@ class FrameState:
             :func:`~torchmanifold.pipeline.footprint._smooth_surface`), or ``None`` without geometry channels
             in the guide or without a known sample count (then
             :func:`~torchmanifold.pipeline.footprint._remodulate` averages the product alone).
-        escaped: ``(T, 1, H, W)`` bool, pixels whose camera ray left the scene (see :func:`_escaped`) and
-            whose colour is no noise (:func:`_noisy_sky`): they keep their samples.
+        noise_free: ``(T, 1, H, W)`` bool, pixels that keep their samples, their colour no noise
+            (:func:`_difference_ratios`): where the camera ray left the scene (:func:`_escaped`,
+            :func:`_noisy_sky`), and a frame's flat pixels beside demodulated ones (:func:`_exact_flat`).
         emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
         position: ``(T, 3, H, W)`` the samples' world positions (``P``), or ``None`` where the renderer
             gives none or no time window is used: they tell which samples of the window's other frames
@@ -576,7 +579,7 @@ class FrameState:
     flat: Tensor
     albedo: Tensor
     smooth: Tensor | None
-    escaped: Tensor
+    noise_free: Tensor
     emission: Tensor | None
     position: Tensor | None
     guide: Tensor
@@ -597,8 +600,8 @@ class FrameState:
             xs = [getattr(s, name) for s in states]
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
-        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "escaped", "emission", "position",
-                   "guide", "sigmas", "pooling", "cv_cell", "clamped")
+        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "noise_free", "emission",
+                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -651,7 +654,12 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if bool(lit.any()):
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
-    escaped = kept & (mask > 0)
+    # flat pixels beside demodulated ones whose colour is no noise keep it (a frame that is flat alone,
+    # with no albedo, is filtered whole)
+    beside = flat & ~sky & (mask > 0) & ~flat.flatten(1).all(1).view(-1, 1, 1, 1)
+    exact_flat = beside & _exact_flat(c, beside)
+    counts["exact_flat_frames"] = int(exact_flat.flatten(1).any(1).sum())
+    noise_free = (kept & (mask > 0)) | exact_flat
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
@@ -670,7 +678,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
         _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
-    state = FrameState(e, None, mask, flat, alb, smooth, escaped, em, position, guide, sig, pooling, cell,
+    state = FrameState(e, None, mask, flat, alb, smooth, noise_free, em, position, guide, sig, pooling, cell,
                        torch.zeros_like(mask), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
@@ -696,7 +704,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
-    state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, escaped)
+    state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, noise_free)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
@@ -739,8 +747,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
                                          s.level, s.pooling, int(s.cv_cell.max()))
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
-    if bool(s.escaped.any()):  # what the camera sees of the environment has no noise to filter
-        out = torch.where(at_queries(s.escaped.to(out.dtype)) > 0.5, at_queries(s.values), out)
+    if bool(s.noise_free.any()):  # the environment seen directly, a picture on a light: nothing to filter
+        out = torch.where(at_queries(s.noise_free.to(out.dtype)) > 0.5, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None
     if s.position is not None and settings.temporal_radius > 0:
         albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
@@ -886,49 +894,88 @@ def _escaped(f: Tensor, names: Sequence[str]) -> Tensor:
 #: 256x256) 0.25-0.28, the fog probes 0.96-1.03 with box filters. The sky is noise where R is within a
 #: factor sqrt(2) of 1 and adjacent pixels differ by no more than sqrt(2) times as much as pixels two apart:
 #: noise, splatted or not, differs less, stripes a pixel wide (which R cannot see) differ more
-#: (``benchmarks/validation/findings.md``).
-_NOISY_SKY = (2.0 ** -0.5, 2.0 ** 0.5)
-#: the pixel spacings the sky's differences are taken at (see :data:`_NOISY_SKY`)
-_SKY_LAGS = (1, 2, 4)
+#: (``benchmarks/validation/findings.md``). The same test tells a frame's flat pixels (glass, mirrors, black
+#: surfaces: no albedo, averaged apart) whose colour is no noise, :func:`_exact_flat`: a picture on an emitter
+#: whose surface is black (the ``mi_screen`` probe: 26.60 / 29.19 -> 28.46 / 31.76 dB from 1 / 4 spp when
+#: they keep their samples, OIDN 26.86 / 30.46), where glass and mirrors showing lit surfaces are noise (every
+#: clip of the set, its iterations, the Mitsuba probes and four Mitsuba clips at 256x256 keep their bits).
+_NOISE_RATIOS = (2.0 ** -0.5, 2.0 ** 0.5)
+#: the pixel spacings the differences are taken at (see :data:`_NOISE_RATIOS`)
+_NOISE_LAGS = (1, 2, 4)
 #: the largest differences left out of both means: a small sun's rim or a few stars are points, which a
 #: smooth sky around them would make look like noise
-_SKY_OUTLIERS = 0.01
-#: rows of five sky pixels the test needs: for independent noise R's standard error is then about 0.09
-_MIN_SKY_RUNS = 500
+_NOISE_OUTLIERS = 0.01
+#: rows of five pixels the test needs: for independent noise R's standard error is then about 0.09
+_MIN_NOISE_RUNS = 500
+#: Flat pixels keep their samples only where most adjacent ones differ by less than this (luminance
+#: tone-mapped as above: about 1% of a colour near the pixels' mean). More than :data:`_EQUAL_NEIGHBOURS` of
+#: them do on ``mi_screen`` (0.69-0.72 from 1 spp); on the glass and mirror of ``mi_glass_mirror`` 0.06-0.11
+#: from 1 to 16 spp, where the ratios alone came near their bound (adjacent against two apart 0.74-0.78 and
+#: two apart against four apart 0.65-0.70 from 16 spp: kept there, those pixels lost that clip 0.78 dB),
+#: rough glass (``mi_frost``) 0.11-0.13, smoke (``mi_smoke``) 0.15-0.18
+_EQUAL_DIFFERENCE = 0.0025
+_EQUAL_NEIGHBOURS = 0.5
 
 
-def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
-    """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of the sky pixels ``sky`` (bool ``(T, 1, H, W)``,
-    :func:`_escaped`) is noise: ``(T, 1, 1, 1)`` bool, by the ratios of :data:`_NOISY_SKY` (a frame with fewer
-    than :data:`_MIN_SKY_RUNS` rows of five sky pixels, or a black sky, is not). In NumPy float64, whose
-    sums do not depend on the thread count."""
-    out = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)
-    lo, hi = _NOISY_SKY
-    span = _SKY_LAGS[-1]
-    # most frames have no sky to judge: they skip the copy into NumPy
-    for t in torch.nonzero(sky.flatten(1).sum(1) >= _MIN_SKY_RUNS).flatten().tolist():
+def _difference_ratios(c: Tensor, pixels: Tensor) -> Tensor:
+    """Per frame, how the colour ``c`` ``(T, 3, H, W)`` of ``pixels`` (bool ``(T, 1, H, W)``: the sky,
+    :func:`_escaped`, or flat pixels) differs at the spacings of :data:`_NOISE_LAGS`: ``(T, 3)`` float64, the
+    mean square of the differences between adjacent pixels over that of pixels two apart, and of pixels two
+    apart over four apart (1 and 1 for noise, see :data:`_NOISE_RATIOS`), and the share of adjacent pixels
+    that differ by less than :data:`_EQUAL_DIFFERENCE`; NaN for a frame with fewer than
+    :data:`_MIN_NOISE_RUNS` rows of five such pixels, or whose differences are all 0 once the largest are left
+    out (black, or a few bright samples on black). In NumPy float64, whose sums do not depend on the thread
+    count."""
+    out = torch.full((c.shape[0], 3), float("nan"), dtype=torch.float64)
+    span = _NOISE_LAGS[-1]
+    # most frames have no such pixels to judge: they skip the copy into NumPy
+    for t in torch.nonzero(pixels.flatten(1).sum(1) >= _MIN_NOISE_RUNS).flatten().tolist():
         with torch.no_grad():
             x = luminance(c[t:t + 1].detach()).double().clamp_min(0.0)[0, 0].cpu().numpy()
-            s = sky[t, 0].cpu().numpy()
+            s = pixels[t, 0].cpu().numpy()
         y = x / np.maximum(x + x[s].mean(), 1e-300)
-        diffs = {lag: [] for lag in _SKY_LAGS}
+        diffs = {lag: [] for lag in _NOISE_LAGS}
         for yy, ss in ((y, s), (y.T, s.T)):  # rows, then columns
             n = ss.shape[1] - span  # runs start at columns 0..n-1
             if n <= 0:
                 continue
-            run = ss[:, :n].copy()  # every pixel of the run is sky
+            run = ss[:, :n].copy()  # every pixel of the run is one of them
             for k in range(1, span + 1):
                 run &= ss[:, k:n + k]
             for lag, d in diffs.items():
                 d.append((yy[:, :n] - yy[:, lag:n + lag])[run] ** 2)
         count = sum(d.size for d in diffs[span])
-        if count < _MIN_SKY_RUNS:
+        if count < _MIN_NOISE_RUNS:
             continue
-        keep = count - int(_SKY_OUTLIERS * count)  # the largest 1% left out of each mean
+        keep = count - int(_NOISE_OUTLIERS * count)  # the largest 1% left out of each mean
         adjacent, near, far = (np.partition(np.concatenate(diffs[lag]), keep - 1)[:keep].sum()
-                               for lag in _SKY_LAGS)
-        out[t] = bool(lo * far < near < hi * far and adjacent < hi * near)
+                               for lag in _NOISE_LAGS)
+        if far > 0:
+            equal = (np.concatenate(diffs[1]) < _EQUAL_DIFFERENCE ** 2).mean()
+            out[t] = torch.tensor([adjacent / max(near, 1e-300), near / far, equal], dtype=torch.float64)
     return out
+
+
+def _noisy_sky(c: Tensor, sky: Tensor) -> Tensor:
+    """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of the sky pixels ``sky`` (bool ``(T, 1, H, W)``,
+    :func:`_escaped`) is noise, ``(T, 1, 1, 1)`` bool: two apart against four apart within
+    :data:`_NOISE_RATIOS` and adjacent against two apart under its upper bound (:func:`_difference_ratios`; a
+    frame with too few sky pixels, or a black sky, is not)."""
+    lo, hi = _NOISE_RATIOS
+    adjacent, near = _difference_ratios(c, sky)[:, :2].unbind(1)  # NaN compares false
+    return ((near > lo) & (near < hi) & (adjacent < hi)).view(-1, 1, 1, 1)
+
+
+def _exact_flat(c: Tensor, flat: Tensor) -> Tensor:
+    """Per frame, whether the colour ``c`` ``(T, 3, H, W)`` of flat pixels ``flat`` (bool ``(T, 1, H, W)``) is
+    surely no noise, ``(T, 1, 1, 1)`` bool (:func:`_difference_ratios`): most adjacent pixels alike
+    (:data:`_EQUAL_NEIGHBOURS`), and both ratios under the lower bound of :data:`_NOISE_RATIOS`, as edges
+    and gradients give and noise, splatted or sparse on black, does not. Stricter than the sky's test, which
+    keeps what is not surely noise: kept, what glass shows would stay noise; a frame with too few flat pixels
+    to judge is filtered."""
+    lo = _NOISE_RATIOS[0]
+    adjacent, near, equal = _difference_ratios(c, flat).unbind(1)
+    return ((equal > _EQUAL_NEIGHBOURS) & (adjacent < lo) & (near < lo)).view(-1, 1, 1, 1)
 
 
 #: a frame's filtered sky lies among its surfaces where at least this share of its pixels have half their

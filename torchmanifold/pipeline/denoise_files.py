@@ -29,13 +29,14 @@ __all__ = ["denoise_files", "clip_summary", "denoised_frames", "denoise_window",
 #: ``"plain"``: ``R, G, B``
 OUTPUT_LAYOUTS = ("input", "plain")
 #: what each frame's record counts, summed over the clip in the summary
-FRAME_STATS = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed", "noisy_sky_frames")
+FRAME_STATS = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed", "noisy_sky_frames",
+               "exact_flat_frames")
 
 
 def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
                  samples_per_pixel: float | None) -> dict:
     """What a clip's summary says of its frames: the non-finite counts and sky frames of the frames'
-    records (:data:`FRAME_STATS`; a record of an earlier version without ``noisy_sky_frames`` counts 0)
+    records (:data:`FRAME_STATS`; a record of an earlier version without one of them counts 0)
     summed in frame order, the mean share of firefly energy removed, and the samples per pixel with the
     bandwidth and footprint they set. The one-process and the sharded command both report it."""
     total, n = dict.fromkeys(FRAME_STATS, 0), 0
@@ -46,7 +47,8 @@ def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
     return {"nonfinite_samples": total["nonfinite_color"] + total["nonfinite_features"],
             "nonfinite_color": total["nonfinite_color"], "nonfinite_features": total["nonfinite_features"],
             "firefly_energy_removed": total["firefly_energy_removed"] / max(n, 1),
-            "noisy_sky_frames": total["noisy_sky_frames"], "samples_per_pixel": samples_per_pixel,
+            "noisy_sky_frames": total["noisy_sky_frames"], "exact_flat_frames": total["exact_flat_frames"],
+            "samples_per_pixel": samples_per_pixel,
             "sigma_s": spatial_sigma(settings, samples_per_pixel),
             "footprint_sigma": footprint_width(settings, samples_per_pixel),
             "radiance_sigma": radiance_sigma_at(settings, samples_per_pixel)}
@@ -251,7 +253,9 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         ``{"frames": n, "size": [H, W], "layout": "flat" | "blender", "layer": ..., "feature_channels":
         [canonical names], "sources": {name: first frame's channel}, "notes": [...], "nonfinite_samples": n,
         "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "noisy_sky_frames": n
-        (frames whose pixels of depth 0 were filtered as noise, a scene in fog), "samples_per_pixel":
+        (frames whose pixels of depth 0 were filtered as noise, a scene in fog), "exact_flat_frames": n
+        (frames whose flat pixels, no albedo beside pixels with one, kept their samples, their colour no
+        noise: a picture on a black emitter), "samples_per_pixel":
         n or None (the first frame's header), "sigma_s": s (the spatial sigma used), "footprint_sigma": s (the
         footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader
         changed or found missing (deduplicated).
