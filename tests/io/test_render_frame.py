@@ -30,6 +30,10 @@ def test_flat_file_features_in_table_order(tmp_path):
     np.testing.assert_array_equal(fr.color[1], chans["G"])
     np.testing.assert_array_equal(fr.stack(["P.Z", "Z"]), np.stack([chans["P.Z"], chans["Z"]]))
     np.testing.assert_array_equal(fr.emission[2], chans["emission.B"])
+    # an AOV under a name the table does not know is not read, and the notes say so
+    mitsuba_like(tmp_path / "nn.exr", **_rand("nn.X", "nn.Y", "nn.Z"))
+    fr = read_render_frame(tmp_path / "nn.exr")
+    assert "nn.X" not in fr.feature_names and any("not read" in n and "nn.X, nn.Y, nn.Z" in n for n in fr.notes)
     # chosen by any alias; a channel the table does not know is read under its own name
     fr = read_render_frame(tmp_path / "m.exr", feature_channels=["Mg", "Normal.X", "emission.R"])
     assert fr.feature_names == ["albedo.G", "N.X", "emission.R"]

@@ -292,6 +292,10 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
         frame.emission = np.stack([chans[frame.sources[c]] for c in _EMISSION])
     if not frame.features:
         frame.notes.append("no feature channels: the colour is all there is to go by")
+    unread = sorted(set(chans) - set(frame.sources.values())) if feature_channels is None else []
+    if unread:  # an AOV under a name the table does not know guides nothing: say so, not silently
+        frame.notes.append(f"channels not read, names the feature table does not know (name them as "
+                           f"torchmanifold.features does, or register them there): {', '.join(unread)}")
     _check_feature_values(path, frame)
     if frame.samples_per_pixel is None:
         frame.samples_per_pixel = samples_per_pixel_shown(frame.features)
