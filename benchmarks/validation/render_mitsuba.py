@@ -283,6 +283,16 @@ def clip_screen(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_chrome(f: int, n: int) -> tuple[dict, dict]:
+    """mi_env_thin's open scene with a smooth silver ball: flat pixels (albedo 0, as on glass) whose top shows
+    the sky and whose bottom shows the ground's texture compressed into fine detail."""
+    scene, info = clip_env_thin(f, n)
+    scene["chrome"] = {"type": "sphere", "center": [-0.3, -0.6, 0.0], "radius": 0.4,
+                       "bsdf": {"type": "conductor", "material": "Ag"}}
+    info["description"] += " A smooth silver ball (radius 0.4) stands on the ground left of centre."
+    return scene, info
+
+
 def clip_fast_motion(f: int, n: int) -> tuple[dict, dict]:
     """The room of ``clip_ceiling_light`` seen by a camera that orbits 32 degrees over the clip (large parallax,
     the open side and the outside coming into view) while a ball rolls across the floor about 11 px a frame:
@@ -539,6 +549,10 @@ CLIPS = {
                                 "area_light_in_ceiling_no_emission_aov"], ["mover", "ball"], 512, None),
     # A picture on an emitter whose surface is black, rendered on demand as a probe, not committed: flat
     # pixels (albedo 0, as on glass) whose colour has no noise.
+    # A mirror ball in the open scene, rendered on demand as a probe, not committed: flat pixels that show
+    # detail.
+    "mi_chrome": (clip_chrome, 12, ["mirror_ball", "flat_pixels_with_detail", "environment_lit_open_scene",
+                                    "thin_geometry", "moving_object", "camera_pan"], ["ball"], 512, None),
     "mi_screen": (clip_screen, 11, ["emitter_texture", "flat_pixels_without_noise", "moving_object",
                                     "area_light_in_ceiling_no_emission_aov", "contact_shadow"],
                   ["mover"], 512, None),

@@ -96,7 +96,7 @@ def test_denoise_sharded_is_bitwise_one_process(cluster, clip, denoise_reference
                                chunk=chunk, progress=False)
     _same_files(ref_out, tmp_path / "out", [p.name for p in clip])
     for k in ("frames", "size", "feature_channels", "nonfinite_samples", "nonfinite_color", "nonfinite_features",
-              "firefly_energy_removed", "noisy_sky_frames", "exact_flat_frames",
+              "firefly_energy_removed", "noisy_sky_frames", "kept_flat_frames",
               "samples_per_pixel", "sigma_s", "footprint_sigma"):
         assert res[k] == ref[k], k
     s = res["shards"]

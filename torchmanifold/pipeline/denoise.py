@@ -431,14 +431,20 @@ def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
 
 
 def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
-                       at_queries) -> Tensor:
+                       at_queries, cell: Tensor | None = None) -> Tensor:
     """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
     ones are left out of it (weight 0) and take :func:`_flat_average` at ``flat_sigma``, brought to the
-    queries by ``at_queries``. A frame of flat pixels alone (no albedo) is filtered whole."""
+    queries by ``at_queries``; given each frame's cross-validation cell ``cell`` ``(T,)``, a frame's flat
+    pixels may take :data:`_FLAT_NARROW_SIGMA` instead (:func:`_narrow_flat`). A frame of flat pixels alone
+    (no albedo) is filtered whole."""
     if not (bool(flat.any()) and not bool(flat.all())):
         return filt(values, mask)
     out = filt(values, mask * ~flat)
     own = _flat_average(values, mask * flat, flat_sigma)
+    if cell is not None:
+        narrow = _narrow_flat(values, mask * flat, flat_sigma, cell)
+        if bool(narrow.any()):
+            own = torch.where(narrow, _flat_average(values, mask * flat, _FLAT_NARROW_SIGMA), own)
     return torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
 
 
@@ -449,12 +455,55 @@ def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
     Flat pixels beside demodulated ones are delta surfaces and black ones (:func:`_demodulation_albedo`).
     Their guide is the surface's own features, which do not show what a mirror or glass shows, nor how
     that moves between frames, so they are not guided, selected or joined in time: the result takes this
-    average at the narrowest bandwidth, the firefly pilot at its own. On the validation set that did
-    better than the guided, selected space-time filter of the other pixels, and the op no longer carries
-    a second class's channels (``benchmarks/validation/findings.md``). It tends to the samples as
-    ``sigma`` shrinks.
+    average at the narrowest bandwidth, or narrower (:func:`_narrow_flat`), the firefly pilot at its own. On
+    the validation set that did better than the guided, selected space-time filter of the other pixels, and
+    the op no longer carries a second class's channels (``benchmarks/validation/findings.md``). It tends to
+    the samples as ``sigma`` shrinks.
     """
     return _normalised_blur(e, weight, sigma)
+
+
+#: A mirror ball's flat pixels show what it reflects compressed into detail finer than the flat average's
+#: width. Where, cross-validated over a frame's flat pixels, each checkerboard half's samples predict the
+#: other's better from a Gaussian of this width (pixels) than from the flat average's, the frame's flat
+#: pixels take this width: the ``mi_chrome`` probe (``mi_env_thin``'s scene with a smooth silver ball)
+#: 28.32 / 29.87 -> 28.56 / 30.27 dB from 1 / 4 spp (OIDN 28.71 / 30.32; 0.8 px on an ad hoc 4-frame render:
+#: 0.02 more from 1 spp, 0.12 less from 4). Glass and smoke, whose samples are noise, predict worse from it
+#: (1.12-1.21 times the wide errors on ``mi_glass_mirror``, ``mi_frost`` and ``mi_smoke``), and every clip of
+#: the set, of the probes and at 256x256 keeps its bits, within 0.001 dB on two (0.004 through the set's
+#: iterations); keeping their samples instead had cost glass and smoke 1.2-5 dB
+#: (``benchmarks/validation/findings.md``).
+_FLAT_NARROW_SIGMA = 0.5
+
+
+def _narrow_flat(e: Tensor, weight: Tensor, sigma: float, cell: Tensor) -> Tensor:
+    """Per frame, whether the flat pixels (nonzero ``weight`` ``(T, 1, H, W)``) of ``e`` ``(T, 3, H, W)`` are
+    better averaged at :data:`_FLAT_NARROW_SIGMA` than at ``sigma`` (pixels), ``(T, 1, 1, 1)`` bool: the
+    luminance of each checkerboard half (squares of ``cell`` ``(T,)`` pixels,
+    :func:`~torchmanifold.pipeline.selection._cv_cell`) is predicted from the other half's at either width,
+    and the narrow one's summed relative squared error (against the wide average plus a tenth of the flat
+    pixels' mean, as the bandwidth selection weighs its errors) is the smaller. A frame with fewer than
+    :data:`_MIN_NOISE_RUNS` flat pixels is not judged: no. Sums in NumPy float64, whose order does not
+    depend on the thread count."""
+    out = torch.zeros(e.shape[0], 1, 1, 1, dtype=torch.bool)
+    if sigma <= _FLAT_NARROW_SIGMA:
+        return out
+    with torch.no_grad():
+        for t in torch.nonzero((weight > 0).flatten(1).sum(1) >= _MIN_NOISE_RUNS).flatten().tolist():
+            x = luminance(e[t:t + 1].detach()).clamp_min(0.0)
+            w = (weight[t:t + 1] > 0).to(x.dtype)
+            k = int(cell[t])
+            yy, xx = torch.meshgrid(torch.arange(x.shape[2]), torch.arange(x.shape[3]), indexing="ij")
+            half = ((yy // k + xx // k) % 2 == 0).view(1, 1, *x.shape[2:])
+            mean = (x * w).sum() / w.sum()
+            rel = w / (_normalised_blur(x, w, sigma) ** 2 + (0.1 * mean) ** 2)
+            err = [0.0, 0.0]
+            for h in (half, ~half):
+                for i, s in enumerate((_FLAT_NARROW_SIGMA, sigma)):
+                    r = (x - _normalised_blur(x, w * ~h, s)) ** 2 * rel * h
+                    err[i] += float(np.sum(r.double().cpu().numpy()))
+            out[t] = err[0] < err[1]
+    return out
 
 
 @serial
@@ -550,9 +599,9 @@ class FrameState:
             :func:`~torchmanifold.pipeline.footprint._smooth_surface`), or ``None`` without geometry channels
             in the guide or without a known sample count (then
             :func:`~torchmanifold.pipeline.footprint._remodulate` averages the product alone).
-        noise_free: ``(T, 1, H, W)`` bool, pixels that keep their samples, their colour no noise
-            (:func:`_difference_ratios`): where the camera ray left the scene (:func:`_escaped`,
-            :func:`_noisy_sky`), and a frame's flat pixels beside demodulated ones (:func:`_exact_flat`).
+        keep_samples: ``(T, 1, H, W)`` bool, pixels that keep their samples: where the camera ray left the
+            scene (:func:`_escaped`) and the colour is no noise (:func:`_noisy_sky`), and a frame's flat
+            pixels beside demodulated ones whose colour is no noise (:func:`_exact_flat`).
         emission: ``(T, 3, H, W)`` emitted radiance added back after filtering, or ``None``.
         position: ``(T, 3, H, W)`` the samples' world positions (``P``), or ``None`` where the renderer
             gives none or no time window is used: they tell which samples of the window's other frames
@@ -579,7 +628,7 @@ class FrameState:
     flat: Tensor
     albedo: Tensor
     smooth: Tensor | None
-    noise_free: Tensor
+    keep_samples: Tensor
     emission: Tensor | None
     position: Tensor | None
     guide: Tensor
@@ -600,7 +649,7 @@ class FrameState:
             xs = [getattr(s, name) for s in states]
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
-        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "noise_free", "emission",
+        tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
                    "position", "guide", "sigmas", "pooling", "cv_cell", "clamped")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
@@ -654,12 +703,6 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if bool(lit.any()):
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
-    # flat pixels beside demodulated ones whose colour is no noise keep it (a frame that is flat alone,
-    # with no albedo, is filtered whole)
-    beside = flat & ~sky & (mask > 0) & ~flat.flatten(1).all(1).view(-1, 1, 1, 1)
-    exact_flat = beside & _exact_flat(c, beside)
-    counts["exact_flat_frames"] = int(exact_flat.flatten(1).any(1).sum())
-    noise_free = (kept & (mask > 0)) | exact_flat
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
@@ -677,9 +720,15 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         else []
     cell = torch.ones(c.shape[0], dtype=torch.int64) if own_pixels else \
         _cv_cell(e, (mask > 0) & demodulated, guide[:, plain], sig[:, plain])
+    # flat pixels beside demodulated ones whose colour is no noise keep it (a frame that is flat alone,
+    # with no albedo, is filtered whole)
+    beside = flat & ~sky & (mask > 0) & ~demodulated
+    kept_flat = beside & _exact_flat(c, beside)
+    counts["kept_flat_frames"] = int(kept_flat.flatten(1).any(1).sum())
+    keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
-    state = FrameState(e, None, mask, flat, alb, smooth, noise_free, em, position, guide, sig, pooling, cell,
-                       torch.zeros_like(mask), False, point, counts, fp, base)
+    state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
+                       cell, torch.zeros_like(mask), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -704,7 +753,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if settings.firefly == "log" and pilot is None:
         state.pilot_only = True
         return state
-    state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, noise_free)
+    state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, keep_samples)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
@@ -746,9 +795,10 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             def filt(values, mask):
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
                                          s.level, s.pooling, int(s.cv_cell.max()))
-        out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries)
-    if bool(s.noise_free.any()):  # the environment seen directly, a picture on a light: nothing to filter
-        out = torch.where(at_queries(s.noise_free.to(out.dtype)) > 0.5, at_queries(s.values), out)
+        out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
+                                 s.cv_cell)
+    if bool(s.keep_samples.any()):  # the environment seen directly, a picture on a light: nothing to filter
+        out = torch.where(at_queries(s.keep_samples.to(out.dtype)) > 0.5, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None
     if s.position is not None and settings.temporal_radius > 0:
         albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)

@@ -529,7 +529,7 @@ def shard_denoise(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     Returns:
         The keys of :func:`~torchmanifold.pipeline.denoise_files.denoise_files` (``frames``, ``size``,
         ``feature_channels``, non-finite counts, ``firefly_energy_removed``, ``noisy_sky_frames`` and
-        ``exact_flat_frames`` (0 for frames a manifest of an earlier version lists), ``seconds_per_frame``,
+        ``kept_flat_frames`` (0 for frames a manifest of an earlier version lists), ``seconds_per_frame``,
         ``outputs``) over all frames of the clip, and ``"shards"``: ``chunks``, ``written`` (this run),
         ``reports`` (frame writes reported, retries included), ``skipped`` (finished before),
         ``seconds``, ``frames_per_second``, ``retries``, ``frames_read``
