@@ -431,20 +431,17 @@ def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
 
 
 def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
-                       at_queries, cell: Tensor | None = None) -> Tensor:
+                       at_queries, narrow: Tensor | None = None) -> Tensor:
     """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
-    ones are left out of it (weight 0) and take :func:`_flat_average` at ``flat_sigma``, brought to the
-    queries by ``at_queries``; given each frame's cross-validation cell ``cell`` ``(T,)``, a frame's flat
-    pixels may take :data:`_FLAT_NARROW_SIGMA` instead (:func:`_narrow_flat`). A frame of flat pixels alone
-    (no albedo) is filtered whole."""
+    ones are left out of it (weight 0) and take :func:`_flat_average` at ``flat_sigma``, or at
+    :data:`_FLAT_NARROW_SIGMA` in the frames ``narrow`` marks (bool ``(T, 1, 1, 1)``, :func:`_narrow_flat`),
+    brought to the queries by ``at_queries``. A frame of flat pixels alone (no albedo) is filtered whole."""
     if not (bool(flat.any()) and not bool(flat.all())):
         return filt(values, mask)
     out = filt(values, mask * ~flat)
     own = _flat_average(values, mask * flat, flat_sigma)
-    if cell is not None:
-        narrow = _narrow_flat(values, mask * flat, flat_sigma, cell)
-        if bool(narrow.any()):
-            own = torch.where(narrow, _flat_average(values, mask * flat, _FLAT_NARROW_SIGMA), own)
+    if narrow is not None and bool(narrow.any()):
+        own = torch.where(narrow, _flat_average(values, mask * flat, _FLAT_NARROW_SIGMA), own)
     return torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
 
 
@@ -611,6 +608,8 @@ class FrameState:
             noisy, :func:`_selection_pooling`).
         cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
             neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
+        narrow_flat: ``(T, 1, 1, 1)`` bool, frames whose flat pixels take the narrow average
+            (:func:`_narrow_flat`, judged on ``values`` at the bandwidth the frames were prepared with).
         clamped: ``(T, 1, H, W)`` the luminance of the radiance the firefly clamp took (0 without a clamp).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
@@ -635,6 +634,7 @@ class FrameState:
     sigmas: Tensor
     pooling: Tensor
     cv_cell: Tensor
+    narrow_flat: Tensor
     clamped: Tensor
     pilot_only: bool
     point_samples: bool
@@ -650,7 +650,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
-                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped")
+                   "position", "guide", "sigmas", "pooling", "cv_cell", "narrow_flat", "clamped")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -727,9 +727,12 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts["kept_flat_frames"] = int(kept_flat.flatten(1).any(1).sum())
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
+    narrow = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)  # judged once the values are final
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
-                       cell, torch.zeros_like(mask), False, point, counts, fp, base)
+                       cell, narrow, torch.zeros_like(mask), False, point, counts, fp, base)
+    flat_sigma = base * min(settings.bandwidths)
     if settings.firefly == "none":
+        state.narrow_flat = _narrow_flat(e, mask * flat, flat_sigma, cell)
         return state
     ft = [float(t) for t in range(c.shape[0])]
     if pilot is not None:
@@ -762,6 +765,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
+    state.narrow_flat = _narrow_flat(state.values, mask * flat, flat_sigma, cell)
     return state
 
 
@@ -796,7 +800,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
                                          s.level, s.pooling, int(s.cv_cell.max()))
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
-                                 s.cv_cell)
+                                 s.narrow_flat)
     if bool(s.keep_samples.any()):  # the environment seen directly, a picture on a light: nothing to filter
         out = torch.where(at_queries(s.keep_samples.to(out.dtype)) > 0.5, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None
