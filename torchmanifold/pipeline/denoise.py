@@ -70,7 +70,7 @@ from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo, _known_count,
                                               _normalised_blur, _position, _remodulate, _scattered_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
-from torchmanifold.pipeline.filter import _Filter, tree_height_at
+from torchmanifold.pipeline.filter import _Filter, _halves, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
                                           luminance)
 from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth
@@ -476,10 +476,11 @@ _FLAT_NARROW_SIGMA = 0.5
 def _narrow_flat(e: Tensor, weight: Tensor, sigma: float, cell: Tensor) -> Tensor:
     """Per frame, whether the flat pixels (nonzero ``weight`` ``(T, 1, H, W)``) of ``e`` ``(T, 3, H, W)`` are
     better averaged at :data:`_FLAT_NARROW_SIGMA` than at ``sigma`` (pixels), ``(T, 1, 1, 1)`` bool: the
-    luminance of each checkerboard half (squares of ``cell`` ``(T,)`` pixels,
-    :func:`~torchmanifold.pipeline.selection._cv_cell`) is predicted from the other half's at either width,
-    and the narrow one's summed relative squared error (against the wide average plus a tenth of the flat
-    pixels' mean, as the bandwidth selection weighs its errors) is the smaller. A frame with fewer than
+    luminance of each checkerboard half (:func:`~torchmanifold.pipeline.filter._halves` of ``cell`` ``(T,)``
+    pixels, :func:`~torchmanifold.pipeline.selection._cv_cell`) is predicted from the other half's at either
+    width, and the narrow one's summed relative squared error is the smaller (relative to the wide average
+    and, added in quadrature, :data:`~torchmanifold.pipeline.image._LOG_RADIANCE_OFFSET` of the flat pixels'
+    mean, the offset the bandwidth selection's relative errors take). A frame with fewer than
     :data:`_MIN_NOISE_RUNS` flat pixels is not judged: no. Sums in NumPy float64, whose order does not
     depend on the thread count."""
     out = torch.zeros(e.shape[0], 1, 1, 1, dtype=torch.bool)
@@ -489,11 +490,9 @@ def _narrow_flat(e: Tensor, weight: Tensor, sigma: float, cell: Tensor) -> Tenso
         for t in torch.nonzero((weight > 0).flatten(1).sum(1) >= _MIN_NOISE_RUNS).flatten().tolist():
             x = luminance(e[t:t + 1].detach()).clamp_min(0.0)
             w = (weight[t:t + 1] > 0).to(x.dtype)
-            k = int(cell[t])
-            yy, xx = torch.meshgrid(torch.arange(x.shape[2]), torch.arange(x.shape[3]), indexing="ij")
-            half = ((yy // k + xx // k) % 2 == 0).view(1, 1, *x.shape[2:])
+            half = _halves(x.shape, x.device, int(cell[t]))
             mean = (x * w).sum() / w.sum()
-            rel = w / (_normalised_blur(x, w, sigma) ** 2 + (0.1 * mean) ** 2)
+            rel = w / (_normalised_blur(x, w, sigma) ** 2 + (_LOG_RADIANCE_OFFSET * mean) ** 2)
             err = [0.0, 0.0]
             for h in (half, ~half):
                 for i, s in enumerate((_FLAT_NARROW_SIGMA, sigma)):
