@@ -70,10 +70,11 @@ from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo, _known_count,
                                               _normalised_blur, _position, _remodulate, _scattered_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
-from torchmanifold.pipeline.filter import _Filter, _halves, tree_height_at
+from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
                                           luminance)
-from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth
+from torchmanifold.pipeline.selection import (_MIN_FLAT_PIXELS, _PLAIN_GROUPS, _cv_cell, _select_bandwidth,
+                                              _select_flat_width)
 from torchmanifold.timewindow import frame_at, window
 
 __all__ = [
@@ -431,17 +432,15 @@ def _select_guide(names: Sequence[str], settings: DenoiseSettings) -> list[int]:
 
 
 def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_sigma: float,
-                       at_queries, narrow: Tensor | None = None) -> Tensor:
+                       at_queries, average=None) -> Tensor:
     """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
-    ones are left out of it (weight 0) and take :func:`_flat_average` at ``flat_sigma``, or at
-    :data:`_FLAT_NARROW_SIGMA` in the frames ``narrow`` marks (bool ``(T, 1, 1, 1)``, :func:`_narrow_flat`),
-    brought to the queries by ``at_queries``. A frame of flat pixels alone (no albedo) is filtered whole."""
+    ones are left out of it (weight 0) and take ``average(values, weights, flat_sigma)`` (default
+    :func:`_flat_average`), brought to the queries by ``at_queries``. A frame of flat pixels alone (no
+    albedo) is filtered whole."""
     if not (bool(flat.any()) and not bool(flat.all())):
         return filt(values, mask)
     out = filt(values, mask * ~flat)
-    own = _flat_average(values, mask * flat, flat_sigma)
-    if narrow is not None and bool(narrow.any()):
-        own = torch.where(narrow, _flat_average(values, mask * flat, _FLAT_NARROW_SIGMA), own)
+    own = (average or _flat_average)(values, mask * flat, flat_sigma)
     return torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
 
 
@@ -451,55 +450,14 @@ def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
 
     Flat pixels beside demodulated ones are delta surfaces and black ones (:func:`_demodulation_albedo`).
     Their guide is the surface's own features, which do not show what a mirror or glass shows, nor how
-    that moves between frames, so they are not guided, selected or joined in time: the result takes this
-    average at the narrowest bandwidth, or narrower (:func:`_narrow_flat`), the firefly pilot at its own. On
-    the validation set that did better than the guided, selected space-time filter of the other pixels, and
-    the op no longer carries a second class's channels (``benchmarks/validation/findings.md``). It tends to
-    the samples as ``sigma`` shrinks.
+    that moves between frames, so they are not guided or joined in time: the result blends this average at
+    a few widths about the narrowest bandwidth, chosen per pixel by cross-validation
+    (:func:`~torchmanifold.pipeline.selection._select_flat_width`); the firefly pilot takes it at its own
+    width. On the validation set that did better than the guided, selected space-time filter of the other
+    pixels, and the op no longer carries a second class's channels (``benchmarks/validation/findings.md``).
+    It tends to the samples as ``sigma`` shrinks.
     """
     return _normalised_blur(e, weight, sigma)
-
-
-#: A mirror ball's flat pixels show what it reflects compressed into detail finer than the flat average's
-#: width. Where, cross-validated over a frame's flat pixels, each checkerboard half's samples predict the
-#: other's better from a Gaussian of this width (pixels) than from the flat average's, the frame's flat
-#: pixels take this width: the ``mi_chrome`` probe (``mi_env_thin``'s scene with a smooth silver ball)
-#: 28.32 / 29.87 -> 28.56 / 30.27 dB from 1 / 4 spp (OIDN 28.71 / 30.32; 0.8 px on an ad hoc 4-frame render:
-#: 0.02 more from 1 spp, 0.12 less from 4). Glass and smoke, whose samples are noise, predict worse from it
-#: (1.12-1.21 times the wide errors on ``mi_glass_mirror``, ``mi_frost`` and ``mi_smoke``), and every clip of
-#: the set, of the probes and at 256x256 keeps its bits, within 0.001 dB on two (0.004 through the set's
-#: iterations); keeping their samples instead had cost glass and smoke 1.2-5 dB
-#: (``benchmarks/validation/findings.md``).
-_FLAT_NARROW_SIGMA = 0.5
-
-
-def _narrow_flat(e: Tensor, weight: Tensor, sigma: float, cell: Tensor) -> Tensor:
-    """Per frame, whether the flat pixels (nonzero ``weight`` ``(T, 1, H, W)``) of ``e`` ``(T, 3, H, W)`` are
-    better averaged at :data:`_FLAT_NARROW_SIGMA` than at ``sigma`` (pixels), ``(T, 1, 1, 1)`` bool: the
-    luminance of each checkerboard half (:func:`~torchmanifold.pipeline.filter._halves` of ``cell`` ``(T,)``
-    pixels, :func:`~torchmanifold.pipeline.selection._cv_cell`) is predicted from the other half's at either
-    width, and the narrow one's summed relative squared error is the smaller (relative to the wide average
-    and, added in quadrature, :data:`~torchmanifold.pipeline.image._LOG_RADIANCE_OFFSET` of the flat pixels'
-    mean, the offset the bandwidth selection's relative errors take). A frame with fewer than
-    :data:`_MIN_NOISE_RUNS` flat pixels is not judged: no. Sums in NumPy float64, whose order does not
-    depend on the thread count."""
-    out = torch.zeros(e.shape[0], 1, 1, 1, dtype=torch.bool)
-    if sigma <= _FLAT_NARROW_SIGMA:
-        return out
-    with torch.no_grad():
-        for t in torch.nonzero((weight > 0).flatten(1).sum(1) >= _MIN_NOISE_RUNS).flatten().tolist():
-            x = luminance(e[t:t + 1].detach()).clamp_min(0.0)
-            w = (weight[t:t + 1] > 0).to(x.dtype)
-            half = _halves(x.shape, x.device, int(cell[t]))
-            mean = (x * w).sum() / w.sum()
-            rel = w / (_normalised_blur(x, w, sigma) ** 2 + (_LOG_RADIANCE_OFFSET * mean) ** 2)
-            err = [0.0, 0.0]
-            for h in (half, ~half):
-                for i, s in enumerate((_FLAT_NARROW_SIGMA, sigma)):
-                    r = (x - _normalised_blur(x, w * ~h, s)) ** 2 * rel * h
-                    err[i] += float(np.sum(r.double().cpu().numpy()))
-            out[t] = err[0] < err[1]
-    return out
 
 
 @serial
@@ -607,8 +565,6 @@ class FrameState:
             noisy, :func:`_selection_pooling`).
         cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
             neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
-        narrow_flat: ``(T, 1, 1, 1)`` bool, frames whose flat pixels take the narrow average
-            (:func:`_narrow_flat`, judged on ``values`` at the bandwidth the frames were prepared with).
         clamped: ``(T, 1, H, W)`` the luminance of the radiance the firefly clamp took (0 without a clamp).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
@@ -633,7 +589,6 @@ class FrameState:
     sigmas: Tensor
     pooling: Tensor
     cv_cell: Tensor
-    narrow_flat: Tensor
     clamped: Tensor
     pilot_only: bool
     point_samples: bool
@@ -649,7 +604,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
-                   "position", "guide", "sigmas", "pooling", "cv_cell", "narrow_flat", "clamped")
+                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -726,12 +681,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts["kept_flat_frames"] = int(kept_flat.flatten(1).any(1).sum())
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
-    narrow = torch.zeros(c.shape[0], 1, 1, 1, dtype=torch.bool)  # judged once the values are final
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
-                       cell, narrow, torch.zeros_like(mask), False, point, counts, fp, base)
-    flat_sigma = base * min(settings.bandwidths)
+                       cell, torch.zeros_like(mask), False, point, counts, fp, base)
     if settings.firefly == "none":
-        state.narrow_flat = _narrow_flat(e, mask * flat, flat_sigma, cell)
         return state
     ft = [float(t) for t in range(c.shape[0])]
     if pilot is not None:
@@ -764,7 +716,6 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
-    state.narrow_flat = _narrow_flat(state.values, mask * flat, flat_sigma, cell)
     return state
 
 
@@ -798,8 +749,20 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             def filt(values, mask):
                 return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
                                          s.level, s.pooling, int(s.cv_cell.max()))
+
+        def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
+            # blended at the frames the queries take it from (all where a query lies between frames) that
+            # hold enough flat pixels; the window's other frames are not read
+            out = _flat_average(e, weight, sigma)
+            at = [frame_at(ft, q) for q in qt]
+            ids = [k for k in (sorted(set(at)) if None not in at else range(len(ft)))
+                   if int((weight[k] > 0).sum()) >= _MIN_FLAT_PIXELS]
+            if ids:
+                out[ids] = _select_flat_width(e[ids], weight[ids], sigma, int(s.cv_cell.max()),
+                                              settings.selection_blur, settings.selection_softness)
+            return out
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
-                                 s.narrow_flat)
+                                 flat_widths)
     if bool(s.keep_samples.any()):  # the environment seen directly, a picture on a light: nothing to filter
         out = torch.where(at_queries(s.keep_samples.to(out.dtype)) > 0.5, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.filter import _Filter, _frames, _halves_stack, _split_halves, tree_height_at
+from torchmanifold.pipeline.footprint import _normalised_blur
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _gaussian_taps, footprint_blur,
                                           luminance)
 from torchmanifold.timewindow import frame_at, window
@@ -224,6 +225,53 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     if st.selection_softness > 0:
         w = torch.softmax(-z2 / (2 * st.selection_softness ** 2), 0)
     else:  # the least error has z = 0
+        w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
+        w = w.to(e.dtype)
+    return (torch.stack(fulls) * w).sum(0)
+
+
+#: the Gaussian widths flat pixels choose among, as multiples of the flat average's width (factor-2 steps):
+#: 0.25 reaches the samples themselves (0.5 px from 1 spp), 2 a smooth reflection's width. Set on the
+#: ``mi_glass_room`` probe (256x256: ``mi_ceiling_light``'s room with a glass ball, a glass pane and a
+#: mirror), from 1 / 4 spp against the plain flat average: (0.5, 1, 2) +0.30 / +0.39 dB, (0.25, 0.5, 1)
+#: +0.38 / +0.32, these four +0.33 / +0.47 (``benchmarks/validation/findings.md``)
+_FLAT_WIDTHS = (0.25, 0.5, 1.0, 2.0)
+
+
+#: the fewest flat pixels a frame needs to blend their widths: below, the flat average's width alone. The
+#: blend costs about 25 ms a 256x256 frame (one thread) however few they are, and the shared clip's 190
+#: scattered dark pixels a frame gained nothing from it (within 0.001 dB from 1 and 4 spp)
+_MIN_FLAT_PIXELS = 500
+
+
+def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur: float,
+                       softness: float) -> Tensor:
+    """Flat pixels' average, ``(T, 3, H, W)``: Gaussians of :data:`_FLAT_WIDTHS` times ``sigma`` pixels over
+    the samples ``e`` ``(T, 3, H, W)`` of nonzero ``weight`` ``(T, 1, H, W)``, blended per pixel as
+    :func:`_select_bandwidth` blends its bandwidths: each checkerboard half (squares of ``cell`` pixels) is
+    predicted from the other's samples at each width, the residuals relative to the average at ``sigma``
+    are pooled over ``blur`` pixels and a width weighs ``exp(-z^2 / (2 softness^2))`` (``softness`` 0: the
+    least error alone). What glass or a mirror shows is sharp detail in one place (a refracted checkerboard,
+    1 px wanted) and smooth light in another (a reflected wall, 4 px): one width for all loses either.
+    ``e`` itself where no weight lies under the kernel."""
+    m = (weight > 0).to(e.dtype)
+    stack, ones = _halves_stack(e, weight, cell), torch.ones_like(weight)
+    preds, fulls = [], []
+    for f in _FLAT_WIDTHS:  # a Gaussian of both halves' sums: each half's prediction of the other, and both
+        pred, num, den = _split_halves(_normalised_blur(stack, ones, sigma * f), cell)
+        preds.append(pred)
+        fulls.append(torch.where(den > 1e-8, num / den.clamp_min(1e-8), e))
+    level = luminance(fulls[_FLAT_WIDTHS.index(1.0)]).clamp_min(0.0)
+    mean = _frame_mean(level, m)
+    unit = torch.where(mean > 0, mean, torch.ones_like(mean))  # a frame unit: z^2 squares squares
+    rel = m / (level / unit + _LOG_RADIANCE_OFFSET) ** 2
+    e, preds = e / unit, [p / unit for p in preds]
+    if softness > 0 and blur > 0 and _fast.enabled(e, rel, m, *preds, *fulls):
+        return _fast.cv_blend(preds, fulls, e, rel, m, blur, softness, _SELECTION_ERROR_CUT)
+    z2 = _candidate_z2(preds, e, rel, m, blur)
+    if softness > 0:
+        w = torch.softmax(-z2 / (2 * softness ** 2), 0)
+    else:
         w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
         w = w.to(e.dtype)
     return (torch.stack(fulls) * w).sum(0)
