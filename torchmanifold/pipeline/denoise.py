@@ -752,11 +752,11 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
             # blended at the frames the queries take it from (all where a query lies between frames) that
-            # hold enough flat pixels; the window's other frames are not read
+            # hold enough flat pixels that keep no samples (a clear sky does); the other frames are not read
             out = _flat_average(e, weight, sigma)
             at = [frame_at(ft, q) for q in qt]
             ids = [k for k in (sorted(set(at)) if None not in at else range(len(ft)))
-                   if int((weight[k] > 0).sum()) >= _MIN_FLAT_PIXELS]
+                   if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
             if ids:
                 out[ids] = _select_flat_width(e[ids], weight[ids], sigma, int(s.cv_cell.max()),
                                               settings.selection_blur, settings.selection_softness)
