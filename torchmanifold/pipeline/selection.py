@@ -238,9 +238,10 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
 _FLAT_WIDTHS = (0.25, 0.5, 1.0, 2.0)
 
 
-#: the fewest flat pixels a frame needs to blend their widths: below, the flat average's width alone. The
-#: blend costs about 25 ms a 256x256 frame (one thread) however few they are, and the shared clip's 190
-#: scattered dark pixels a frame gained nothing from it (within 0.001 dB from 1 and 4 spp)
+#: the fewest flat pixels (those that keep no samples) a frame needs to blend their widths: below, the flat
+#: average's width alone. The blend costs about 25 ms a 256x256 frame (one thread) however few they are,
+#: and the shared clip's 190 scattered dark pixels a frame gained nothing from it (within 0.001 dB from 1
+#: and 4 spp)
 _MIN_FLAT_PIXELS = 500
 
 
