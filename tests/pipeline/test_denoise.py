@@ -786,7 +786,7 @@ def test_what_a_delta_surface_shows_is_averaged_in_its_own_frame():
     f, names = _plane(T, H, W, albedo=0.6)
     yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     disc = ((yy - 24) ** 2 + (xx - 32) ** 2) < 14 ** 2  # enough flat pixels to blend widths
-    assert int(disc.sum()) >= SEL._MIN_FLAT_PIXELS
+    assert int(disc.sum()) >= D._MIN_FLAT_PIXELS
     f[:, 0:3, disc] = 0.0
     truth = torch.full((T, 3, H, W), 0.3)
     for t in range(T):  # a bright stripe seen through the glass, 10 px further each frame

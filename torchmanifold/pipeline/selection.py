@@ -195,12 +195,7 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
     scale = torch.where(top > 0, top, torch.ones_like(top))
     e, mask = _frames(e, idx), _frames(mask, idx)
-    lum = luminance(level).clamp_min(0.0)
-    mean = _frame_mean(lum, mask)
-    # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
-    # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
-    unit = torch.where(mean > 0, mean, torch.ones_like(mean))
-    weight = mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2
+    weight = _relative_weight(level, mask)[0]
     e, preds = e / scale, [p / scale for p in preds]
     # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
     # varies on its own scale: pooling wider mixes places where it differs); frames pool apart, so
@@ -222,11 +217,30 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                     for g in groups], 1)
     if not at_frames:
         z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
-    if st.selection_softness > 0:
-        w = torch.softmax(-z2 / (2 * st.selection_softness ** 2), 0)
+    return _blend(fulls, z2, st.selection_softness)
+
+
+def _relative_weight(level: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The weight of each pixel's squared residuals, ``(T, 1, H, W)``, as a relative error against ``level``
+    ``(T, 3, H, W)``'s luminance plus :data:`~torchmanifold.pipeline.image._LOG_RADIANCE_OFFSET` of the
+    frame's mean over ``mask`` (``(T, 1, H, W)``, which it multiplies), and that mean, ``(T, 1, 1, 1)`` (1
+    where it is 0)."""
+    lum = luminance(level).clamp_min(0.0)
+    mean = _frame_mean(lum, mask)
+    # relative errors, in units of the frame's mean: a per-frame factor leaves every z unchanged, and
+    # the weights stay at most 1 / offset^2 on a frame whose mean is tiny or 0 (a black frame)
+    unit = torch.where(mean > 0, mean, torch.ones_like(mean))
+    return mask / (lum / unit + _LOG_RADIANCE_OFFSET) ** 2, unit
+
+
+def _blend(fulls: list, z2: Tensor, softness: float) -> Tensor:
+    """The candidates ``fulls`` (each ``(T, 3, H, W)``) blended per pixel by their ``z2`` ``(K, T, 1, H,
+    W)``: weights ``exp(-z^2 / (2 softness^2))`` normalised, or the least error alone for ``softness`` 0."""
+    if softness > 0:
+        w = torch.softmax(-z2 / (2 * softness ** 2), 0)
     else:  # the least error has z = 0
         w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
-        w = w.to(e.dtype)
+        w = w.to(fulls[0].dtype)
     return (torch.stack(fulls) * w).sum(0)
 
 
@@ -236,13 +250,6 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
 #: mirror), from 1 / 4 spp against the plain flat average: (0.5, 1, 2) +0.30 / +0.39 dB, (0.25, 0.5, 1)
 #: +0.38 / +0.32, these four +0.33 / +0.47 (``benchmarks/validation/findings.md``)
 _FLAT_WIDTHS = (0.25, 0.5, 1.0, 2.0)
-
-
-#: the fewest flat pixels (those that keep no samples) a frame needs to blend their widths: below, the flat
-#: average's width alone. The blend costs about 25 ms a 256x256 frame (one thread) however few they are,
-#: and the shared clip's 190 scattered dark pixels a frame gained nothing from it (within 0.001 dB from 1
-#: and 4 spp)
-_MIN_FLAT_PIXELS = 500
 
 
 def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur: float,
@@ -262,20 +269,11 @@ def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur:
         pred, num, den = _split_halves(_normalised_blur(stack, ones, sigma * f), cell)
         preds.append(pred)
         fulls.append(torch.where(den > 1e-8, num / den.clamp_min(1e-8), e))
-    level = luminance(fulls[_FLAT_WIDTHS.index(1.0)]).clamp_min(0.0)
-    mean = _frame_mean(level, m)
-    unit = torch.where(mean > 0, mean, torch.ones_like(mean))  # a frame unit: z^2 squares squares
-    rel = m / (level / unit + _LOG_RADIANCE_OFFSET) ** 2
-    e, preds = e / unit, [p / unit for p in preds]
+    rel, unit = _relative_weight(fulls[_FLAT_WIDTHS.index(1.0)], m)
+    e, preds = e / unit, [p / unit for p in preds]  # in frame units: z^2 squares squares
     if softness > 0 and blur > 0 and _fast.enabled(e, rel, m, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, rel, m, blur, softness, _SELECTION_ERROR_CUT)
-    z2 = _candidate_z2(preds, e, rel, m, blur)
-    if softness > 0:
-        w = torch.softmax(-z2 / (2 * softness ** 2), 0)
-    else:
-        w = torch.nn.functional.one_hot(z2.argmin(0)[:, :, 0], len(z2)).permute(3, 0, 1, 2)[:, :, None]
-        w = w.to(e.dtype)
-    return (torch.stack(fulls) * w).sum(0)
+    return _blend(fulls, _candidate_z2(preds, e, rel, m, blur), softness)
 
 
 def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
