@@ -430,6 +430,44 @@ def test_light_through_rare_bright_samples_is_not_clamped_away():
     assert float(out.mean()) > 0.9 * float(color.mean())
 
 
+def test_a_caustic_s_clamped_light_comes_back_where_it_fell(monkeypatch):
+    """A plane lit directly (a pilot that can be trusted) whose lower half also takes a caustic: 3% of its
+    samples carry light through rare paths, exponentially distributed. The clamp takes the brightest of
+    them; their energy comes back over the lower half (a part of the darkening the clamp made there) and
+    the upper half, which had none, keeps its light."""
+    g = torch.Generator().manual_seed(5)
+    T, H, W = 3, 96, 96
+    feats, names = _plane(T, H, W, albedo=0.5, normal=(0.0, 0.0, 1.0))
+    direct = 1.0 + 0.1 * torch.randn(T, 1, H, W, generator=g)
+    hit = (torch.rand(T, 1, H, W, generator=g) < 0.03).float()
+    hit[..., : H // 2, :] = 0
+    caustic = hit * torch.empty(T, 1, H, W).exponential_(generator=g) / 0.03
+    color = 0.5 * (direct + caustic).expand(T, 3, H, W)
+    lower, upper = (..., slice(H // 2 + 8, H - 8), slice(8, W - 8)), (..., slice(8, H // 2 - 8), slice(8, W - 8))
+    out, st = denoise_frames(color, feats, names, samples_per_pixel=1, return_stats=True)
+    assert not bool(D._noisy_pilot(D.prepare_frames(color, feats, names, None, DenoiseSettings()),
+                                   [0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).any())
+    monkeypatch.setattr(D, "_lone_fireflies", torch.zeros_like)
+    kept = denoise_frames(color, feats, names, samples_per_pixel=1)
+    truth = 1.0  # albedo 0.5 times irradiance 1 + 1
+    assert st["firefly_energy_removed"] > 0.05
+    assert float(out[lower].mean()) - float(kept[lower].mean()) > 0.1 * (truth - float(kept[lower].mean()))
+    assert abs(float(out[upper].mean()) - float(kept[upper].mean())) < 0.005
+
+
+def test_clamped_pixels_side_by_side_are_detail_not_fireflies():
+    """A lone clamped pixel is a firefly (its energy may be spread); a block of them (a light's rim, a
+    highlight the pilot blurred) keeps none to spread, and neither does a pixel with one clamped neighbour,
+    diagonal included."""
+    c = torch.zeros(1, 1, 12, 12)
+    c[..., 2, 2] = 3.0
+    c[..., 6:9, 6:9] = 1.0
+    c[..., 0, 10], c[..., 1, 11] = 2.0, 2.0
+    lone = D._lone_fireflies(c)
+    assert float(lone[..., 2, 2]) == 3.0
+    assert float(lone.sum()) == 3.0
+
+
 @pytest.mark.parametrize("path", ["fast", "torch"])
 def test_exposure_from_1e_minus_20_to_1e30_scales_the_result(path):
     """The denoiser sets its levels relative to each frame's mean, so any exposure gives the same image

@@ -18,7 +18,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
    to it, and the clamped samples are filtered linearly. The energy removed is measured and returned
    (``stats["firefly_energy_removed"]``); where the pilot is too noisy to trust, it comes back after
-   filtering, in proportion to the result over a wide reach (:func:`_give_back`).
+   filtering, in proportion to the result over a wide reach (:func:`_give_back`). Elsewhere what lone
+   fireflies took (a caustic's rare paths) comes back as far as enough of them fall within the reach to
+   know its mean (:func:`_lone_fireflies`).
 5. **Guide**: each feature group gets its own range sigma (albedo, normals, world position or depth
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
@@ -157,6 +159,15 @@ _FIREFLY_MAX_SHARE = 0.005
 #: the pilots that can be trusted lose: from 4 spp ``mi_dark_glossy`` -6 dB (its small lights' real
 #: highlights spread over the floor), ``mi_still_textures`` -1.5 (``benchmarks/validation/findings.md``).
 _GIVE_BACK_REACH = 2.0
+#: where the pilot can be trusted, lone clamped samples (:func:`_lone_fireflies`) are light that reaches a
+#: surface through rare paths (a caustic under glass); their energy comes back over this reach (in sigmas
+#: of the widest candidate bandwidth), in full only where many of them fall within it: the share is
+#: ``n / (n + count)``, ``n`` their effective number under the kernel. A few lone fireflies (a small light's
+#: rare paths) would come back as a halo. ``mi_glass_room`` (256x256), from 1 / 4 spp, reach / count
+#: 1 / 64: +0.58 / +0.27 dB; 0.5 / 16: +0.91 / +0.48, but ``mi_dark_glossy`` -1.2 from 4 spp (its small
+#: lights' halos); without the count, or with clustered samples too, halos (``benchmarks/validation/findings.md``)
+_FIREFLY_BACK_REACH = 1.0
+_FIREFLY_BACK_COUNT = 64.0
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 #: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
@@ -778,9 +789,14 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
     noisy = _noisy_pilot(s, ft, qt)
+    widest, kept = base * max(settings.bandwidths), at_queries(s.keep_samples.to(out.dtype)) > 0.5
     if bool(noisy.any()):
         clamped = torch.stack([s.clamped[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
-        out = _give_back(out, clamped, noisy, _GIVE_BACK_REACH * base * max(settings.bandwidths))
+        out = _give_back(out, clamped, noisy, _GIVE_BACK_REACH * widest, kept)
+    if not bool(noisy.all()) and bool((s.clamped > 0).any()):
+        lone = _lone_fireflies(s.clamped)
+        lone = torch.stack([lone[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
+        out = _give_back(out, lone, ~noisy, _FIREFLY_BACK_REACH * widest, kept, _FIREFLY_BACK_COUNT)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -1293,12 +1309,16 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     return ec, luminance(taken)
 
 
-def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Tensor:
+def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float, kept: Tensor | None = None,
+               count: float | None = None) -> Tensor:
     """The output ``out`` ``(Q, 3, H, W)`` with the radiance the firefly clamp took given back at the
     queries ``noisy`` (bool ``(Q,)``): each pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a
     Gaussian of ``sigma`` pixels, so that what the clamp took around a pixel comes back in proportion to
     what the filter left there. ``clamped`` ``(Q, 1, H, W)``: the luminance the clamp took, averaged over
-    each query's time window, so that the gain holds still from frame to frame.
+    each query's time window, so that the gain holds still from frame to frame. Pixels ``kept`` (bool
+    ``(Q, 1, H, W)``) keep their samples exactly and take nothing. With a ``count``, a share
+    ``n / (n + count)`` of it comes back, ``n`` the effective number of clamped pixels under the kernel
+    (``(sum w x)^2 / sum w^2 x^2``): a mean known from a few fireflies is mostly their noise.
 
     Where the pilot is too noisy to trust, the light that reaches most pixels through rare bright paths
     looks like fireflies to it, and the clamp takes real light: the rooms lit by bounce light alone came out
@@ -1309,10 +1329,25 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float) -> Ten
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
     taken, left = blurred[:, :1], blurred[:, 1:]
+    if count is not None:  # w^2 is the Gaussian of sigma / sqrt(2); their sums 2 pi sigma^2 and pi sigma^2
+        sq = _normalised_blur(clamped[q] ** 2, torch.ones_like(taken), sigma / math.sqrt(2.0))
+        n = torch.where(sq > 0, 4 * math.pi * sigma**2 * taken**2 / torch.where(sq > 0, sq, 1.0), 0.0)
+        taken = taken * n / (n + count)
     # out / blur(lum(out)) first: it stays under the inverse of the kernel's centre weight (over the least
     # luminance coefficient), so the product stays finite however little light the filter left
     back = torch.where(left > 0, out[q] / torch.where(left > 0, left, 1.0) * taken, 0.0)
+    if kept is not None:
+        back = torch.where(kept[q], 0.0, back)
     return out.index_copy(0, q, out[q] + back)
+
+
+def _lone_fireflies(clamped: Tensor) -> Tensor:
+    """``clamped`` ``(T, 1, H, W)`` (the luminance the clamp took) where none of a pixel's eight neighbours
+    was clamped, else 0. Clamped pixels side by side are bright detail the pilot blurred (a small light's
+    rim, a highlight): their energy belongs where it is, not spread around."""
+    hit = (clamped > 0).to(clamped.dtype)
+    around = torch.nn.functional.avg_pool2d(hit, 3, stride=1, padding=1, count_include_pad=True) * 9 - hit
+    return torch.where(around > 0.5, 0.0, clamped)
 
 
 def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:
