@@ -455,6 +455,34 @@ def test_a_caustic_s_clamped_light_comes_back_where_it_fell(monkeypatch):
     assert abs(float(out[upper].mean()) - float(kept[upper].mean())) < 0.005
 
 
+def test_effective_count_against_explicit_sums():
+    """``n / (n + count)`` with ``n = (sum w x)^2 / sum w^2 x^2`` over the Gaussian's taps, written out at an
+    inner pixel, one by the border and one in the corner (no taps beyond the frame); one firefly counts as
+    one wherever it lies, k equal ones well inside the reach as nearly k."""
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(1, 1, 20, 24, generator=g, dtype=torch.float64) * (torch.rand(1, 1, 20, 24, generator=g) < 0.2)
+    sigma, count = 2.5, 16.0
+    got = D._effective_count(x, sigma, count)
+    r = math.ceil(3 * sigma)
+    for y, z in ((10, 12), (0, 12), (19, 23)):
+        s1 = s2 = 0.0
+        for dy in range(-r, r + 1):
+            for dx in range(-r, r + 1):
+                if 0 <= y + dy < 20 and 0 <= z + dx < 24:
+                    w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma))
+                    v = float(x[0, 0, y + dy, z + dx])
+                    s1, s2 = s1 + w * v, s2 + w * w * v * v
+        n = s1 * s1 / s2
+        assert float(got[0, 0, y, z]) == pytest.approx(n / (n + count), rel=1e-9)
+    one = torch.zeros(1, 1, 20, 24, dtype=torch.float64)
+    one[..., 0, 0] = 5.0
+    assert float(D._effective_count(one, sigma, count)[0, 0, 3, 3]) == pytest.approx(1 / (1 + count))
+    many = torch.zeros(1, 1, 40, 40, dtype=torch.float64)
+    many[..., 19:22, 19:22] = 1.0
+    n = float(D._effective_count(many, 50.0, 1.0)[0, 0, 20, 20])
+    assert 8.9 < n / (1 - n) <= 9.0
+
+
 def test_clamped_pixels_side_by_side_are_detail_not_fireflies():
     """A lone clamped pixel is a firefly (its energy may be spread); a block of them (a light's rim, a
     highlight the pilot blurred) keeps none to spread, and neither does a pixel with one clamped neighbour,

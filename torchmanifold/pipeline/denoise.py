@@ -162,12 +162,16 @@ _GIVE_BACK_REACH = 2.0
 #: where the pilot can be trusted, lone clamped samples (:func:`_lone_fireflies`) are light that reaches a
 #: surface through rare paths (a caustic under glass); their energy comes back over this reach (in sigmas
 #: of the widest candidate bandwidth), in full only where many of them fall within it: the share is
-#: ``n / (n + count)``, ``n`` their effective number under the kernel. A few lone fireflies (a small light's
-#: rare paths) would come back as a halo. ``mi_glass_room`` (256x256), from 1 / 4 spp, reach / count
-#: 1 / 64: +0.58 / +0.27 dB; 0.5 / 16: +0.91 / +0.48, but ``mi_dark_glossy`` -1.2 from 4 spp (its small
-#: lights' halos); without the count, or with clustered samples too, halos (``benchmarks/validation/findings.md``)
+#: ``n / (n + count)``, ``n`` their effective number under the kernel (:func:`_effective_count`). A few
+#: lone fireflies (a small light's rare paths) would come back as a halo. From 1 / 4 spp, count 8 / 16 /
+#: 32 / 64 at reach 1: the probe ``mi_glass_room`` (256x256) +0.75 / +0.39, +0.66 / +0.34, +0.52 / +0.26,
+#: +0.36 / +0.18 dB; the tuning part's ``bl_glass_caustic`` from 1 spp +0.08 at 16, +0.06 at 32; the held-out
+#: ``mi_dark_glossy`` from 4 spp -0.34, -0.09, -0.01, +0.01 (its small lights' rare paths). Reach 2, count
+#: 16: the room +0.57 / +0.31. Halos around lights and highlights where clustered clamped samples come back
+#: too (count 16: ``mi_dark_glossy`` -1.51 from 4 spp, the room +0.73 / +0.42) or lone ones without a count
+#: (-2.82) (``benchmarks/validation/findings.md``)
 _FIREFLY_BACK_REACH = 1.0
-_FIREFLY_BACK_COUNT = 64.0
+_FIREFLY_BACK_COUNT = 16.0
 
 #: range sigmas of feature groups in their own units; ``P`` and ``Z`` are fractions of the scene extent
 #: (the feature table's, see :mod:`torchmanifold.features` for where each figure comes from)
@@ -1329,16 +1333,30 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float, kept: 
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
     taken, left = blurred[:, :1], blurred[:, 1:]
-    if count is not None:  # w^2 is the Gaussian of sigma / sqrt(2); their sums 2 pi sigma^2 and pi sigma^2
-        sq = _normalised_blur(clamped[q] ** 2, torch.ones_like(taken), sigma / math.sqrt(2.0))
-        n = torch.where(sq > 0, 4 * math.pi * sigma**2 * taken**2 / torch.where(sq > 0, sq, 1.0), 0.0)
-        taken = taken * n / (n + count)
+    if count is not None:
+        taken = taken * _effective_count(clamped[q], sigma, count)
     # out / blur(lum(out)) first: it stays under the inverse of the kernel's centre weight (over the least
     # luminance coefficient), so the product stays finite however little light the filter left
     back = torch.where(left > 0, out[q] / torch.where(left > 0, left, 1.0) * taken, 0.0)
     if kept is not None:
         back = torch.where(kept[q], 0.0, back)
     return out.index_copy(0, q, out[q] + back)
+
+
+def _effective_count(x: Tensor, sigma: float, count: float) -> Tensor:
+    """``n / (n + count)`` per pixel of ``x`` ``(T, 1, H, W)``, ``n = (sum w x)^2 / sum w^2 x^2`` the effective
+    number of nonzero pixels under a Gaussian ``w`` of ``sigma`` pixels (the terms beyond the border are
+    none, so a firefly by the border does not count as many)."""
+    r = max(1, int(math.ceil(3 * sigma)))
+    k = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+    w = torch.exp(-(k * k) / (2 * sigma * sigma))
+
+    def sums(v: Tensor, taps: Tensor) -> Tensor:
+        v = torch.nn.functional.conv2d(torch.nn.functional.pad(v, (r, r, 0, 0)), taps.view(1, 1, 1, -1))
+        return torch.nn.functional.conv2d(torch.nn.functional.pad(v, (0, 0, r, r)), taps.view(1, 1, -1, 1))
+    s1, s2 = sums(x, w), sums(x * x, w * w)
+    n = torch.where(s2 > 0, s1 * s1 / torch.where(s2 > 0, s2, 1.0), 0.0)
+    return n / (n + count)
 
 
 def _lone_fireflies(clamped: Tensor) -> Tensor:
