@@ -443,7 +443,8 @@ def test_a_caustic_s_clamped_light_comes_back_where_it_fell(monkeypatch):
     hit[..., : H // 2, :] = 0
     caustic = hit * torch.empty(T, 1, H, W).exponential_(generator=g) / 0.03
     color = 0.5 * (direct + caustic).expand(T, 3, H, W)
-    lower, upper = (..., slice(H // 2 + 8, H - 8), slice(8, W - 8)), (..., slice(8, H // 2 - 8), slice(8, W - 8))
+    lower = (..., slice(H // 2 + 8, H - 8), slice(8, W - 8))
+    upper = (..., slice(8, H // 2 - 8), slice(8, W - 8))
     out, st = denoise_frames(color, feats, names, samples_per_pixel=1, return_stats=True)
     assert not bool(D._noisy_pilot(D.prepare_frames(color, feats, names, None, DenoiseSettings()),
                                    [0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).any())
@@ -460,7 +461,8 @@ def test_effective_count_against_explicit_sums():
     inner pixel, one by the border and one in the corner (no taps beyond the frame); one firefly counts as
     one wherever it lies, k equal ones well inside the reach as nearly k."""
     g = torch.Generator().manual_seed(2)
-    x = torch.rand(1, 1, 20, 24, generator=g, dtype=torch.float64) * (torch.rand(1, 1, 20, 24, generator=g) < 0.2)
+    x = torch.rand(1, 1, 20, 24, generator=g, dtype=torch.float64)
+    x = x * (torch.rand(1, 1, 20, 24, generator=g) < 0.2)
     sigma, count = 2.5, 16.0
     got = D._effective_count(x, sigma, count)
     r = math.ceil(3 * sigma)

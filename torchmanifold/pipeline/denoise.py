@@ -1313,10 +1313,10 @@ def _clamp_fireflies(e: Tensor, alb: Tensor, pe: Tensor, mask: Tensor, k: float,
     return ec, luminance(taken)
 
 
-def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float, kept: Tensor | None = None,
+def _give_back(out: Tensor, clamped: Tensor, queries: Tensor, sigma: float, kept: Tensor | None = None,
                count: float | None = None) -> Tensor:
     """The output ``out`` ``(Q, 3, H, W)`` with the radiance the firefly clamp took given back at the
-    queries ``noisy`` (bool ``(Q,)``): each pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a
+    ``queries`` (bool ``(Q,)``): each pixel scaled by ``1 + blur(clamped) / blur(lum(out))`` under a
     Gaussian of ``sigma`` pixels, so that what the clamp took around a pixel comes back in proportion to
     what the filter left there. ``clamped`` ``(Q, 1, H, W)``: the luminance the clamp took, averaged over
     each query's time window, so that the gain holds still from frame to frame. Pixels ``kept`` (bool
@@ -1328,8 +1328,9 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float, kept: 
     looks like fireflies to it, and the clamp takes real light: the rooms lit by bounce light alone came out
     7% dark. Spread out as it was taken, that energy draws blotches; in proportion to the result over a
     wide reach it changes the brightness alone. Where the pilot can be trusted, what the clamp took is
-    fireflies and bright detail, not light missing around it, and nothing comes back."""
-    q = noisy.nonzero().flatten()
+    mostly fireflies and bright detail: only lone fireflies' energy comes back there, with a ``count``
+    (:func:`_lone_fireflies`): where many of them fall together, they are light (a caustic)."""
+    q = queries.nonzero().flatten()
     both = torch.cat([clamped[q], luminance(out[q]).clamp_min(0.0)], 1)
     blurred = _normalised_blur(both, torch.ones_like(both[:, :1]), sigma)
     taken, left = blurred[:, :1], blurred[:, 1:]
@@ -1344,16 +1345,19 @@ def _give_back(out: Tensor, clamped: Tensor, noisy: Tensor, sigma: float, kept: 
 
 
 def _effective_count(x: Tensor, sigma: float, count: float) -> Tensor:
-    """``n / (n + count)`` per pixel of ``x`` ``(T, 1, H, W)``, ``n = (sum w x)^2 / sum w^2 x^2`` the effective
-    number of nonzero pixels under a Gaussian ``w`` of ``sigma`` pixels (the terms beyond the border are
-    none, so a firefly by the border does not count as many)."""
+    """``n / (n + count)`` per pixel of ``x`` ``(T, 1, H, W)`` (at least 0), ``n = (sum w x)^2 / sum w^2 x^2``
+    the effective number of nonzero pixels under a Gaussian ``w`` of ``sigma`` pixels (no terms beyond the
+    border, so a firefly by the border does not count as many)."""
     r = max(1, int(math.ceil(3 * sigma)))
     k = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
     w = torch.exp(-(k * k) / (2 * sigma * sigma))
+    conv, pad = torch.nn.functional.conv2d, torch.nn.functional.pad
 
-    def sums(v: Tensor, taps: Tensor) -> Tensor:
-        v = torch.nn.functional.conv2d(torch.nn.functional.pad(v, (r, r, 0, 0)), taps.view(1, 1, 1, -1))
-        return torch.nn.functional.conv2d(torch.nn.functional.pad(v, (0, 0, r, r)), taps.view(1, 1, -1, 1))
+    def sums(v: Tensor, taps: Tensor) -> Tensor:  # frame by frame: a batch would change the bits
+        return torch.cat([conv(pad(conv(pad(f, (r, r, 0, 0)), taps.view(1, 1, 1, -1)), (0, 0, r, r)),
+                               taps.view(1, 1, -1, 1)) for f in v.split(1)])
+
+    x = x / x.amax((1, 2, 3), keepdim=True).clamp_min(1e-30)  # n is the same at any scale; x^2 stays finite
     s1, s2 = sums(x, w), sums(x * x, w * w)
     n = torch.where(s2 > 0, s1 * s1 / torch.where(s2 > 0, s2, 1.0), 0.0)
     return n / (n + count)
