@@ -446,8 +446,8 @@ def test_a_caustic_s_clamped_light_comes_back_where_it_fell(monkeypatch):
     lower = (..., slice(H // 2 + 8, H - 8), slice(8, W - 8))
     upper = (..., slice(8, H // 2 - 8), slice(8, W - 8))
     out, st = denoise_frames(color, feats, names, samples_per_pixel=1, return_stats=True)
-    assert not bool(D._noisy_pilot(D.prepare_frames(color, feats, names, None, DenoiseSettings()),
-                                   [0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).any())
+    state = D.prepare_frames(color, feats, names, None, DenoiseSettings(), samples_per_pixel=1)
+    assert not bool(D._noisy_pilot(state, [0.0, 1.0, 2.0], [0.0, 1.0, 2.0]).any())
     monkeypatch.setattr(D, "_lone_fireflies", torch.zeros_like)
     kept = denoise_frames(color, feats, names, samples_per_pixel=1)
     truth = 1.0  # albedo 0.5 times irradiance 1 + 1
