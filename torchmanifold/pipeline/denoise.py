@@ -74,7 +74,7 @@ from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
-                                          luminance)
+                                          _gaussian_taps, luminance)
 from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth, _select_flat_width
 from torchmanifold.timewindow import frame_at, window
 
@@ -784,22 +784,23 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             return out
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
                                  flat_widths)
-    if bool(s.keep_samples.any()):  # the environment seen directly, a picture on a light: nothing to filter
-        out = torch.where(at_queries(s.keep_samples.to(out.dtype)) > 0.5, at_queries(s.values), out)
+    kept = at_queries(s.keep_samples.to(out.dtype)) > 0.5
+    if bool(kept.any()):  # the environment seen directly, a picture on a light: nothing to filter
+        out = torch.where(kept, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None
     if s.position is not None and settings.temporal_radius > 0:
         albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
-    noisy = _noisy_pilot(s, ft, qt)
-    widest, kept = base * max(settings.bandwidths), at_queries(s.keep_samples.to(out.dtype)) > 0.5
+    noisy, widest = _noisy_pilot(s, ft, qt), base * max(settings.bandwidths)
+
+    def window_mean(x: Tensor) -> Tensor:  # what the clamp took, held still from frame to frame
+        return torch.stack([x[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
     if bool(noisy.any()):
-        clamped = torch.stack([s.clamped[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
-        out = _give_back(out, clamped, noisy, _GIVE_BACK_REACH * widest, kept)
+        out = _give_back(out, window_mean(s.clamped), noisy, _GIVE_BACK_REACH * widest, kept)
     if not bool(noisy.all()) and bool((s.clamped > 0).any()):
-        lone = _lone_fireflies(s.clamped)
-        lone = torch.stack([lone[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
+        lone = window_mean(_lone_fireflies(s.clamped))
         out = _give_back(out, lone, ~noisy, _FIREFLY_BACK_REACH * widest, kept, _FIREFLY_BACK_COUNT)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
@@ -1348,9 +1349,8 @@ def _effective_count(x: Tensor, sigma: float, count: float) -> Tensor:
     """``n / (n + count)`` per pixel of ``x`` ``(T, 1, H, W)`` (at least 0), ``n = (sum w x)^2 / sum w^2 x^2``
     the effective number of nonzero pixels under a Gaussian ``w`` of ``sigma`` pixels (no terms beyond the
     border, so a firefly by the border does not count as many)."""
-    r = max(1, int(math.ceil(3 * sigma)))
-    k = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-    w = torch.exp(-(k * k) / (2 * sigma * sigma))
+    w = _gaussian_taps(sigma, x.dtype, x.device)  # n is the same for any scale of w
+    r = (w.numel() - 1) // 2
     conv, pad = torch.nn.functional.conv2d, torch.nn.functional.pad
 
     def sums(v: Tensor, taps: Tensor) -> Tensor:  # frame by frame: a batch would change the bits
