@@ -413,6 +413,21 @@ def test_firefly_clamped_and_energy_reported():
     assert st0["firefly_energy_removed"] == 0.0
 
 
+def test_a_caller_s_pilot_sets_the_clamp_and_nothing_else(clip):
+    """The progressive loop passes its last estimate as the pilot: a past result, blurred where the samples
+    now resolve more. It sets the firefly clamp; were it also the selection's error level, a blur it holds
+    would weigh the errors there and lock itself in. Two pilots that clamp nothing give the same output."""
+    c, f, _ = clip
+    sharp = D.denoise_frames(c, f, FEATURES)
+    blurred = gaussian_baseline(sharp, 4.0)
+    a = D.denoise_frames(c, f, FEATURES, pilot=sharp, firefly_k=1e6)
+    b = D.denoise_frames(c, f, FEATURES, pilot=blurred, firefly_k=1e6)
+    assert torch.equal(a, b)
+    _, st_sharp = D.denoise_frames(c, f, FEATURES, pilot=sharp, return_stats=True)
+    _, st_dark = D.denoise_frames(c, f, FEATURES, pilot=0.2 * sharp, return_stats=True)
+    assert st_dark["firefly_clamped_samples"] > st_sharp["firefly_clamped_samples"]
+
+
 def test_light_through_rare_bright_samples_is_not_clamped_away():
     """Bounce light alone: a fifth of the samples carry all of it (the rest are black). The log-domain pilot
     sits far below their mean, so a plain clamp at k times it took 46% of the frame's energy; clamping no

@@ -724,10 +724,11 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
             out, held["x"] = pf.with_held_out(values, weights, int(cell.max()))
             return out
         pe = level * torch.expm1(_filter_flat_apart(pilot_filter, x, mask, flat, base, pf.at_queries))
-    state.level = pe
     if settings.firefly == "log" and pilot is None:
-        state.pilot_only = True
+        state.level, state.pilot_only = pe, True
         return state
+    # a caller's pilot (a past result) only sets the clamp: as the bandwidth selection's error level its blur
+    # would lock itself in where the samples now resolve more (the progressive loop's caustic, see the notes)
     state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, keep_samples)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
