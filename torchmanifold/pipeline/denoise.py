@@ -169,7 +169,9 @@ _GIVE_BACK_REACH = 2.0
 #: ``mi_dark_glossy`` from 4 spp -0.34, -0.09, -0.01, +0.01 (its small lights' rare paths). Reach 2, count
 #: 16: the room +0.57 / +0.31. Halos around lights and highlights where clustered clamped samples come back
 #: too (count 16: ``mi_dark_glossy`` -1.51 from 4 spp, the room +0.73 / +0.42) or lone ones without a count
-#: (-2.82) (``benchmarks/validation/findings.md``)
+#: (-2.82). A clamped sample beside one as bright (a small light's rim) is no lone firefly either: through
+#: the set's progressive iterations without that test ``mi_dark_glossy`` lost 0.14 / 0.57 / 0.23 dB after 2
+#: / 4 / 8, its lights' rims spread as halos (``benchmarks/validation/findings.md``)
 _FIREFLY_BACK_REACH = 1.0
 _FIREFLY_BACK_COUNT = 16.0
 
@@ -587,6 +589,7 @@ class FrameState:
         cv_cell: ``(T,)`` int64, each frame's cross-validation checkerboard squares in pixels (1 but where
             neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
         clamped: ``(T, 1, H, W)`` the luminance of the radiance the firefly clamp took (0 without a clamp).
+        lone: ``(T, 1, H, W)`` the part of ``clamped`` that lone fireflies took (:func:`_lone_fireflies`).
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other
@@ -611,6 +614,7 @@ class FrameState:
     pooling: Tensor
     cv_cell: Tensor
     clamped: Tensor
+    lone: Tensor
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -625,7 +629,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
-                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped")
+                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -703,7 +707,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
-                       cell, torch.zeros_like(mask), False, point, counts, fp, base)
+                       cell, torch.zeros_like(mask), torch.zeros_like(mask), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -730,6 +734,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     # a caller's pilot (a past result) only sets the clamp: as the bandwidth selection's error level its blur
     # would lock itself in where the samples now resolve more (the progressive loop's caustic, see the notes)
     state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, keep_samples)
+    state.lone = _lone_fireflies(state.clamped, luminance(e * alb) * mask)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
@@ -800,9 +805,9 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         return torch.stack([x[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
     if bool(noisy.any()):
         out = _give_back(out, window_mean(s.clamped), noisy, _GIVE_BACK_REACH * widest, kept)
-    if not bool(noisy.all()) and bool((s.clamped > 0).any()):
-        lone = window_mean(_lone_fireflies(s.clamped))
-        out = _give_back(out, lone, ~noisy, _FIREFLY_BACK_REACH * widest, kept, _FIREFLY_BACK_COUNT)
+    if not bool(noisy.all()) and bool((s.lone > 0).any()):
+        reach = _FIREFLY_BACK_REACH * widest
+        out = _give_back(out, window_mean(s.lone), ~noisy, reach, kept, _FIREFLY_BACK_COUNT)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
@@ -1364,13 +1369,23 @@ def _effective_count(x: Tensor, sigma: float, count: float) -> Tensor:
     return n / (n + count)
 
 
-def _lone_fireflies(clamped: Tensor) -> Tensor:
-    """``clamped`` ``(T, 1, H, W)`` (the luminance the clamp took) where none of a pixel's eight neighbours
-    was clamped, else 0. Clamped pixels side by side are bright detail the pilot blurred (a small light's
-    rim, a highlight): their energy belongs where it is, not spread around."""
+def _lone_fireflies(clamped: Tensor, radiance: Tensor) -> Tensor:
+    """``clamped`` ``(T, 1, H, W)`` (the luminance the clamp took) at spikes: pixels none of whose eight
+    neighbours was clamped and whose sample is brighter than each of theirs (``radiance``, like ``clamped``:
+    the samples' luminance before the clamp); else 0. A clamped pixel beside another, or beside a sample as
+    bright, is bright detail the pilot blurred (a small light and its rim, a highlight): its energy belongs
+    where it is, not spread around."""
     hit = (clamped > 0).to(clamped.dtype)
     around = torch.nn.functional.avg_pool2d(hit, 3, stride=1, padding=1, count_include_pad=True) * 9 - hit
-    return torch.where(around > 0.5, 0.0, clamped)
+    return torch.where((around > 0.5) | (_neighbours_max(radiance) >= radiance), 0.0, clamped)
+
+
+def _neighbours_max(x: Tensor) -> Tensor:
+    """The largest of each pixel's eight neighbours in ``x`` ``(T, 1, H, W)`` (0 beyond the image)."""
+    H, W = x.shape[-2:]
+    p = torch.nn.functional.pad(x, (1, 1, 1, 1))
+    return torch.stack([p[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+                        for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]).amax(0)
 
 
 def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:
