@@ -568,7 +568,8 @@ class FrameState:
 
     Attributes:
         values: ``(T, 3, H, W)`` demodulated samples to filter (fireflies clamped).
-        level: ``(T, 3, H, W)`` demodulated radiance estimate (the pilot), or ``None`` without one.
+        level: ``(T, 3, H, W)`` demodulated radiance estimate (the pilot), or ``None`` without one or with a
+            caller's (a past result, which sets the firefly clamp alone).
         mask: ``(T, 1, H, W)`` sample weights (0 where a sample was not finite).
         flat: ``(T, 1, H, W)`` bool, pixels filtered as radiance (not demodulated).
         albedo: ``(T, 3, H, W)`` the albedo the output is multiplied back by.
@@ -732,7 +733,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         state.level, state.pilot_only = pe, True
         return state
     # a caller's pilot (a past result) only sets the clamp: as the bandwidth selection's error level its blur
-    # would lock itself in where the samples now resolve more (the progressive loop's caustic, see the notes)
+    # would lock itself in where the samples now resolve more (the progressive loop's caustic, findings.md)
     state.values, state.clamped = _clamp_fireflies(e, alb, pe, mask, k_ff, counts, keep_samples)
     state.lone = _lone_fireflies(state.clamped, luminance(e * alb) * mask)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
