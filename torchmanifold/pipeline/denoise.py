@@ -73,8 +73,8 @@ from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo,
                                               _normalised_blur, _position, _remodulate, _scattered_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
-from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _four_neighbours, _frame_mean,
-                                          _gaussian_taps, luminance)
+from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
+                                          _four_neighbours, _frame_mean, _gaussian_taps, luminance)
 from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth, _select_flat_width
 from torchmanifold.timewindow import frame_at, window
 
@@ -1376,17 +1376,8 @@ def _lone_fireflies(clamped: Tensor, radiance: Tensor) -> Tensor:
     the samples' luminance before the clamp); else 0. A clamped pixel beside another, or beside a sample as
     bright, is bright detail the pilot blurred (a small light and its rim, a highlight): its energy belongs
     where it is, not spread around."""
-    hit = (clamped > 0).to(clamped.dtype)
-    around = torch.nn.functional.avg_pool2d(hit, 3, stride=1, padding=1, count_include_pad=True) * 9 - hit
-    return torch.where((around > 0.5) | (_neighbours_max(radiance) >= radiance), 0.0, clamped)
-
-
-def _neighbours_max(x: Tensor) -> Tensor:
-    """The largest of each pixel's eight neighbours in ``x`` ``(T, 1, H, W)`` (0 beyond the image)."""
-    H, W = x.shape[-2:]
-    p = torch.nn.functional.pad(x, (1, 1, 1, 1))
-    return torch.stack([p[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
-                        for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]).amax(0)
+    beside_clamped = _eight_neighbours_max((clamped > 0).to(clamped.dtype)) > 0
+    return torch.where(beside_clamped | (_eight_neighbours_max(radiance) >= radiance), 0.0, clamped)
 
 
 def _clamp_scale(ratio: Tensor, mask: Tensor) -> Tensor:

@@ -65,3 +65,11 @@ def _four_neighbours(x: Tensor) -> Tensor:
     """The sum of each pixel's four adjacent pixels of ``(T, C, H, W)`` (none beyond the border)."""
     p = torch.nn.functional.pad(x, (1, 1, 1, 1))
     return p[..., :-2, 1:-1] + p[..., 2:, 1:-1] + p[..., 1:-1, :-2] + p[..., 1:-1, 2:]
+
+
+def _eight_neighbours_max(x: Tensor) -> Tensor:
+    """The largest of each pixel's eight surrounding pixels of ``(T, C, H, W)`` (0 beyond the border)."""
+    H, W = x.shape[-2:]
+    p = torch.nn.functional.pad(x, (1, 1, 1, 1))
+    return torch.stack([p[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+                        for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]).amax(0)
