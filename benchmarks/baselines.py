@@ -242,6 +242,7 @@ class _PipelineStream:
     def __call__(self, clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings) -> torch.Tensor:
         from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features,
                                                     denoise_prepared, prepare_frames)
+        from torchmanifold.pipeline.selection import CandidateCache
         from torchmanifold.pipeline.sliding import SlidingFrames
         from torchmanifold.timewindow import index_window
 
@@ -258,12 +259,15 @@ class _PipelineStream:
                                       samples_per_pixel=clip.samples_per_pixel)
 
             self._clip, self._settings, self._frames = clip, st, SlidingFrames(lambda k: k, prepare)
+            self._candidates = CandidateCache()
         self._last = query
         r = st.window_radius
         ids = list(index_window(clip.values.shape[0], query, r))
         times = [float(clip.times[k]) for k in ids]
         states = FrameState.cat(self._frames.prepared(ids))
-        return denoise_prepared(states, st, times, [float(clip.times[query])])[0].to(clip.values.dtype)
+        self._candidates.release_before(times[0])
+        return denoise_prepared(states, st, times, [float(clip.times[query])],
+                                cache=self._candidates)[0].to(clip.values.dtype)
 
 
 def _ours_temporal(clip: Clip, query: int, sigma_s: float, sigma_r: float, tree_height: int = 2,

@@ -31,7 +31,7 @@ def _guide_sigmas(items):
 
 
 def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str, tree_height: int,
-                     selection_softness: float | None = None) -> None:
+                     selection_softness: float | None = None, evidence_radius: int | None = None) -> None:
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
     d = DenoiseSettings()
@@ -65,6 +65,9 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     g.add_argument("--albedo-radius", type=int, default=d.albedo_radius,
                    help="with a time window and world positions, the frames on each side whose samples of a "
                         "pixel's albedo join it (%(default)s)")
+    g.add_argument("--evidence-radius", type=int, default=d.evidence_radius if evidence_radius is None else
+                   evidence_radius, help="with a time window, the frames on each side whose queries lend their "
+                                         "cross-validated errors to a frame's bandwidth selection (%(default)s)")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")
@@ -78,6 +81,7 @@ def _settings(a):
                            guide_sigmas=_guide_sigmas(a.guide_sigma), firefly=a.firefly, firefly_k=a.firefly_k,
                            demodulate=not a.no_demodulate, keep_sky=not a.filter_sky,
                            temporal_radius=a.temporal_radius, albedo_radius=a.albedo_radius,
+                           evidence_radius=a.evidence_radius,
                            sigma_t=a.sigma_t, mode=a.mode).check()
 
 

@@ -28,9 +28,13 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // least error, in standard errors (denoise._excess_error_z2), gives weights exp(-z^2 / 2 softness^2)
   // (softness > 0) that blend fulls (K, T, 3, H, W) -> (T, 3, H, W). A candidate is left out where its
   // prediction is NaN (no support) unless every one's is, and where its error exceeds error_cut times the
-  // least.
+  // least. others (J, K + 1, T, H, W): neighbouring queries' residual planes (_cv_residuals), pooled with the
+  // query's own under weights other_weights (J, T, H, W) relative to its 1 (selection._excess_error_z2).
   m.def("_cv_blend(Tensor preds, Tensor fulls, Tensor e, Tensor weight, Tensor mask, float blur_sigma, "
-        "float softness, float error_cut) -> Tensor");
+        "float softness, float error_cut, Tensor? others=None, Tensor? other_weights=None) -> Tensor");
+  // _cv_blend's residual planes of one query, what its neighbours' blends borrow: (K + 1, T, H, W), the K
+  // candidates' weighted squared residuals (a NaN prediction takes the worst held one), then the mask.
+  m.def("_cv_residuals(Tensor preds, Tensor e, Tensor weight, Tensor mask) -> Tensor");
   // torch.quantile(v.double(), q, dim=1) (linear): v (R, N) float32/float64 -> (R, len(q)) float64.
   m.def("_quantiles(Tensor v, float[] q) -> Tensor");
   // denoise._select_bandwidth's stack for one op call: e (T, 3, H, W), mask (T, 1, H, W) -> (T, 8, H, W): per

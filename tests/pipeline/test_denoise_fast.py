@@ -172,6 +172,40 @@ def test_bandwidth_selection_blend_equals_reference(frame, with_level):
     torch.testing.assert_close(out * m, ref * m, rtol=3e-5, atol=1e-6 * float(ref.abs().mean()))
 
 
+def _evidence_case(frame):
+    """One query's candidates on the rendered frame and two neighbours' residual planes (the same frame with
+    its samples shuffled in brightness), with per-pixel weights that run from 0 to 1."""
+    st = DenoiseSettings()
+    e, m = frame["e"], frame["mask"]
+    guide, sig, _ = D._guide(frame["f"], FEATURES, e, m, st)
+    c = SEL._bandwidth_candidates(e, m, guide, sig, st, [0.0], [0.0], st.sigma_s, 1.0, None)
+    g = torch.Generator().manual_seed(3)
+    others = torch.stack([c.residuals() * (0.5 + torch.rand(c.residuals().shape, generator=g)) for _ in range(2)])
+    weights = torch.rand(2, 1, 1, *e.shape[2:], generator=g)
+    return c, others, weights
+
+
+def test_residual_planes_equal_reference(frame):
+    """A query's residual planes for its neighbours (_cv_residuals) as the PyTorch residuals, NaN predictions
+    (no support) resolved alike."""
+    c = _evidence_case(frame)[0]
+    preds = [p.clone() for p in c.preds]
+    preds[0][..., 5:9, 5:9] = math.nan
+    out, ref = _both(SEL._residual_planes, preds, c.e, c.weight, c.mask)
+    assert out.shape == (len(preds) + 1, 1, 1, *c.e.shape[2:])
+    torch.testing.assert_close(out, ref, rtol=1e-6, atol=0)
+
+
+def test_blend_with_neighbours_evidence_equals_reference(frame):
+    """The blend that pools the neighbours' residuals in C++ as in PyTorch; weights of 0 lend nothing (the
+    bytes of no evidence), and evidence does move the blend."""
+    c, others, weights = _evidence_case(frame)
+    out, ref = _both(c.blend, 1.0, others, weights)
+    torch.testing.assert_close(out, ref, rtol=3e-5, atol=1e-6 * float(ref.abs().mean()))
+    _same(c.blend(1.0, others, torch.zeros_like(weights)), c.blend(1.0))
+    assert float((out - c.blend(1.0)).abs().max()) > 1e-3 * float(ref.abs().mean())
+
+
 def test_cv_halves_and_split_equal_the_pytorch_stack_bitwise(frame):
     e, m = frame["e"], frame["mask"].clone()
     m[..., :20, :20] = 0.0
@@ -367,6 +401,9 @@ def test_kernels_thread_count_invariant(frame):
         lambda: _fast.footprint_average(e, torch.tensor([[[[0.3]]]]), 0.5, 0.3),
         lambda: _fast.kuwahara3(e),
         lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5, 2.0),
+        lambda: _fast.cv_blend([e, 2 * e, 3 * e], [e, e + 1, e + 2], 1.5 * e, m + 1, m, 4.0, 0.5, 2.0,
+                               _fast.cv_residuals([e, 3 * e, 2 * e], e, m + 1, m)[None], m[None, :, 0]),
+        lambda: _fast.cv_residuals([e, 2 * e, 3 * e], 1.5 * e, m + 1, m),
         lambda: _fast.quantiles(e.reshape(3, -1), [0.01, 0.99]),
         lambda: _fast.cv_halves(e, m),
         lambda: _fast.cv_split(torch.cat([e, m, 2 * e, m], 1)),
@@ -415,6 +452,11 @@ def test_op_argument_errors():
         torch.ops.torchmanifold._footprint_average(x, torch.ones(2), 0.5, 0.3)
     with pytest.raises(ValueError, match="preds and fulls must be"):
         torch.ops.torchmanifold._cv_blend(x[None], x, x, x[:, :1], x[:, :1], 4.0, 0.5, 2.0)
+    with pytest.raises(ValueError, match=r"others must be \(J, K \+ 1, T, H, W\)"):
+        torch.ops.torchmanifold._cv_blend(x[None], x[None], x, x[:, :1], x[:, :1], 4.0, 0.5, 2.0, x[None],
+                                          x[None, :, 0])
+    with pytest.raises(ValueError, match="others and other_weights come together"):
+        torch.ops.torchmanifold._cv_blend(x[None], x[None], x, x[:, :1], x[:, :1], 4.0, 0.5, 2.0, x[None])
     with pytest.raises(ValueError, match="q must lie in"):
         torch.ops.torchmanifold._quantiles(x.view(3, -1), [1.5])
     with pytest.raises(ValueError, match="float32 or float64"):
@@ -447,6 +489,9 @@ def _op_samples():
     return [("_normalise_guard", (e, m, e, m, 2)), ("_normalise_guard_bounds", (e, m, e, e, -e, 2)),
             ("_footprint_average", (e, torch.ones(T), 0.5, 0.3)),
             ("_kuwahara3", (e,)), ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0)),
+            ("_cv_blend", (preds, fulls, e, m, m, 4.0, 1.0, 2.0, torch.rand(2, 4, T, H, W, generator=g),
+                           torch.rand(2, T, H, W, generator=g))),
+            ("_cv_residuals", (preds, e, m, m)),
             ("_quantiles", (e.view(T * 3, -1), [0.01, 0.99])), ("_cv_halves", (e, m)),
             ("_cv_halves_out", (e, m, torch.empty(T, 8, H, W))), ("_cv_split", (y,)),
             ("_sanitize", (e, torch.rand(T, 4, H, W, generator=g))), ("_normalised_blur", (e, m, 0.5)),
@@ -458,7 +503,7 @@ def _op_samples():
                               0.3))]
 
 
-@pytest.mark.parametrize("name,args", _op_samples(), ids=[n for n, _ in _op_samples()])
+@pytest.mark.parametrize("name,args", _op_samples(), ids=[f"{n}{len(a)}" for n, a in _op_samples()])
 def test_opcheck(name, args):
     """Each private op's schema, fake kernel (shapes and dtypes under fake tensors) and dispatch agree
     with its CPU kernel."""

@@ -101,9 +101,11 @@ def test_denoise_sharded_is_bitwise_one_process(cluster, clip, denoise_reference
         assert res[k] == ref[k], k
     s = res["shards"]
     assert s["chunks"] == -(-N_FRAMES // chunk) and s["written"] == N_FRAMES and s["retries"] == 0
-    # owned frames + the halo each chunk reads (clipped at the clip's ends)
+    # owned frames + the halo each chunk reads (clipped at the clip's ends): the frames a query's output
+    # depends on (its filter's, its albedo's and its evidence's windows)
+    halo = DenoiseSettings(temporal_radius=RADIUS).window_radius
     assert s["frames_read"] == sum(c.hi - c.lo + 1 for c in shards.plan_chunks(
-        range(N_FRAMES), chunk, shards.denoise_halo(N_FRAMES, RADIUS)))
+        range(N_FRAMES), chunk, shards.denoise_halo(N_FRAMES, halo)))
     assert sum(w["frames"] for w in s["workers"].values()) == N_FRAMES
     m = json.loads((tmp_path / "out" / shards.MANIFEST).read_text())
     for t, p in enumerate(clip):

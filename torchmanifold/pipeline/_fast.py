@@ -20,7 +20,7 @@ from torch import Tensor
 from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds",
-           "footprint_average", "kuwahara3", "cv_blend", "quantiles", "cv_halves", "cv_split", "sanitize",
+           "footprint_average", "kuwahara3", "cv_blend", "cv_residuals", "quantiles", "cv_halves", "cv_split", "sanitize",
            "normalised_blur", "box_mean", "same_pixel", "footprint_samples", "edge_directions", "along_edges"]
 
 _FLOATS = (torch.float32, torch.float64)
@@ -120,11 +120,21 @@ def kuwahara3(x: Tensor) -> Tensor:
 
 
 def cv_blend(preds: list[Tensor], fulls: list[Tensor], e: Tensor, weight: Tensor, mask: Tensor,
-             blur_sigma: float, softness: float, error_cut: float) -> Tensor:
+             blur_sigma: float, softness: float, error_cut: float, others: Tensor | None = None,
+             other_weights: Tensor | None = None) -> Tensor:
     """The end of ``denoise._select_bandwidth`` at frame queries: K predictions and outputs
-    ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``."""
+    ``(T, 3, H, W)`` each, e ``(T, 3, H, W)``, weight and mask ``(T, 1, H, W)`` -> ``(T, 3, H, W)``; with the
+    neighbouring queries' residual planes ``others`` ``(J, K + 1, T, H, W)`` (:func:`cv_residuals`) pooled in
+    under ``other_weights`` ``(J, T, H, W)``."""
     return call_parallel(torch.ops.torchmanifold._cv_blend, torch.stack(preds), torch.stack(fulls), e, weight,
-                         mask, float(blur_sigma), float(softness), float(error_cut))
+                         mask, float(blur_sigma), float(softness), float(error_cut), others, other_weights)
+
+
+@parallel
+def cv_residuals(preds: list[Tensor], e: Tensor, weight: Tensor, mask: Tensor) -> Tensor:
+    """A query's residual planes for its neighbours' blends: K predictions ``(T, 3, H, W)``, e ``(T, 3, H,
+    W)``, weight and mask ``(T, 1, H, W)`` -> ``(K + 1, T, H, W)``."""
+    return torch.ops.torchmanifold._cv_residuals(torch.stack(preds), e, weight, mask)
 
 
 @parallel
@@ -236,8 +246,12 @@ def _register_fakes() -> None:
         return torch.empty_like(x, memory_format=torch.contiguous_format)
 
     @torch.library.register_fake(lib + "_cv_blend")
-    def _(preds, fulls, e, weight, mask, blur_sigma, softness, error_cut):
+    def _(preds, fulls, e, weight, mask, blur_sigma, softness, error_cut, others=None, other_weights=None):
         return torch.empty_like(e, memory_format=torch.contiguous_format)
+
+    @torch.library.register_fake(lib + "_cv_residuals")
+    def _(preds, e, weight, mask):
+        return e.new_empty((preds.shape[0] + 1, e.shape[0], *e.shape[2:]))
 
     @torch.library.register_fake(lib + "_quantiles")
     def _(v, q):

@@ -75,7 +75,8 @@ from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo,
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
-from torchmanifold.pipeline.selection import _PLAIN_GROUPS, _cv_cell, _select_bandwidth, _select_flat_width
+from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, CandidateCache, _cv_cell, _pooled_selection,
+                                             _select_bandwidth, _select_flat_width)
 from torchmanifold.timewindow import frame_at, window
 
 __all__ = [
@@ -284,13 +285,20 @@ class DenoiseSettings:
             their colour is noise (:func:`_noisy_sky`: a scene in a medium, where a ray that meets no surface
             also reads depth 0 and its colour is in-scattered light); ``False`` filters them always.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where a
-            frame's pilot is too noisy to trust, every frame of ``window_radius`` (:func:`_noisy_window`).
+            frame's pilot is too noisy to trust, every frame of ``joined_radius`` (:func:`_noisy_window`).
         albedo_radius: with a time window (``temporal_radius`` > 0) and world positions from the
             renderer, the frames on each side whose samples of each pixel's albedo join it
             (:func:`~torchmanifold.pipeline.footprint._window_albedo`); it may reach beyond the filter's
             window, as texture holds still where light does not need to. Validation set, 1 spp, against 1: 2
             +0.09 dB on the tuning part (``cbox_glossy_tex`` +0.24), 3 +0.13 at twice the cost; no scene below
             -0.03 (``benchmarks/validation/findings.md``).
+        evidence_radius: with a time window, the frames on each side whose queries lend their
+            cross-validated residuals to a query's bandwidth selection, where their guides agree with its
+            own (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
+            persists from frame to frame, the noise of its error estimate does not. 1 against 0, all frames
+            from 1 / 4 spp: the validation set +0.08 / +0.07 dB, six of its clips at 256x256 with 12 frames
+            +0.08 / +0.07, no clip below -0.01 (``benchmarks/validation/findings.md``). Frames of another
+            window kind (:func:`_noisy_window`) lend none.
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
@@ -315,6 +323,7 @@ class DenoiseSettings:
     keep_sky: bool = True
     temporal_radius: int = 0
     albedo_radius: int = 2
+    evidence_radius: int = 1
     sigma_t: float = 1.0
     mode: str = "spacetime"
     dtype: torch.dtype = torch.float32
@@ -338,6 +347,7 @@ class DenoiseSettings:
         check_choice("mode", self.mode, MODES)
         check_int("temporal_radius", self.temporal_radius, min=0)
         check_int("albedo_radius", self.albedo_radius, min=0)
+        check_int("evidence_radius", self.evidence_radius, min=0)
         check_int("levels_per_doubling", self.levels_per_doubling, min=0)
         check_tree_height(self.tree_height)
         for k, v in dict(self.guide_sigmas).items():
@@ -345,10 +355,16 @@ class DenoiseSettings:
         return self
 
     @property
-    def window_radius(self) -> int:
-        """The frames on each side that a query's output depends on: the filter's window, and the
+    def joined_radius(self) -> int:
+        """The frames on each side that a query's filter or albedo joins: the filter's window, and the
         albedo's where there is a time window (0 per frame)."""
         return max(self.temporal_radius, self.albedo_radius) if self.temporal_radius > 0 else 0
+
+    @property
+    def window_radius(self) -> int:
+        """The frames on each side that a query's output depends on: what it joins, and what its
+        neighbours lending evidence join (0 per frame)."""
+        return self.joined_radius + self.evidence_radius if self.temporal_radius > 0 else 0
 
 
 #: the spatial sigma shrinks as ``spp ** -0.25``: with noise variance ~ 1/spp, a kernel's error on a
@@ -750,16 +766,18 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
 @serial
 def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: Sequence[float],
                      query_times: Sequence[float], sigma_s: float | None = None,
-                     range_scale: float = 1.0) -> Tensor:
+                     range_scale: float = 1.0, cache: CandidateCache | None = None) -> Tensor:
     """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
     :func:`denoise_frames`). At a query whose frame's pilot is too noisy to trust, the time window joins
-    every frame the albedo's window holds (:func:`_noisy_window`)."""
+    every frame the albedo's window holds (:func:`_noisy_window`). A query at a frame borrows evidence from
+    its neighbours' queries (``settings.evidence_radius``), filtered here unless ``cache`` (one per clip and
+    settings, shared by a clip's calls) holds them."""
     ft, qt = list(frame_times), list(query_times)
-    wide = _noisy_window(state, settings, ft, qt)
+    wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
     if any(wide):
         if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
-            return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale) for q in qt])
-        settings = replace(settings, temporal_radius=settings.window_radius)
+            return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache) for q in qt])
+        settings = replace(settings, temporal_radius=settings.joined_radius)
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     s = state
 
@@ -774,9 +792,14 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             filt = _Filter(s.guide, s.sigmas, settings, ft, qt, base * b, range_scale,
                            tree_height_at(settings, b))
         else:
+            neighbours = _lenders(kinds, settings, ft, qt)
+
             def filt(values, mask):
-                return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                         s.level, s.pooling, int(s.cv_cell.max()))
+                if neighbours is None:
+                    return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                             s.level, s.pooling, int(s.cv_cell.max()))
+                return _pooled_selection(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                         s.level, s.pooling, int(s.cv_cell.max()), neighbours, cache)
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
             # blended at the frames the queries take it from (all where a query lies between frames) that
@@ -814,15 +837,28 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     return out
 
 
+def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: list[float]) -> list | None:
+    """Per query, the frames whose queries lend it their cross-validated residuals: those within
+    ``settings.evidence_radius`` of its frame whose window is of its kind (``kinds``: per frame,
+    :func:`_noisy_window`); ``None`` where a query lies between frames or there is no time window (each
+    query's evidence is its own)."""
+    at = [frame_at(ft, q) for q in qt]
+    if settings.temporal_radius == 0 or settings.evidence_radius == 0 or None in at:
+        return None
+    r = settings.evidence_radius
+    return [[n for n in range(max(0, k - r), min(len(ft), k + r + 1)) if n != k and kinds[n] == kinds[k]]
+            for k in at]
+
+
 def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
                   qt: list[float]) -> list[bool]:
     """Per query, whether its time window widens to every frame the albedo's window holds
-    (``settings.window_radius``): where the query is a frame whose firefly pilot is too noisy to trust
+    (``settings.joined_radius``): where the query is a frame whose firefly pilot is too noisy to trust
     (``state.pooling`` above 1, :func:`_selection_pooling`), as the selection's pooling widens there. Only
     the two rooms lit by bounce light alone are that noisy: frames 0-5 from 1 / 4 spp, ``mi_indirect_dof``
     (tuning part) +0.15 / +0.11 dB and ``bl_indirect_dof`` (held out) +0.11 / +0.14 with +-2 frames against
     +-1 (for 5/3 of the op's time there); every other scene keeps its bits."""
-    if settings.temporal_radius == 0 or settings.window_radius <= settings.temporal_radius:
+    if settings.temporal_radius == 0 or settings.joined_radius <= settings.temporal_radius:
         return [False] * len(qt)
     return _noisy_pilot(state, ft, qt).tolist()
 

@@ -19,6 +19,7 @@ from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
                                             prepare_frames, radiance_sigma_at, spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
+from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
 
@@ -113,6 +114,7 @@ class ClipWindow:
         self.notes = list(first.notes)
         self._window = SlidingFrames(self._read, self._prepare, {0: first})
         self._settings: DenoiseSettings | None = None
+        self.candidates = CandidateCache()  # each query's bandwidth candidates, lent to its neighbours
         self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
         self._ahead: tuple[int, Future] | None = None
         self._pool = pool or InOrder(1, 1)  # one worker: each frame prepared at once, here
@@ -166,7 +168,9 @@ class ClipWindow:
         each prepared once for ``settings``: futures of their states (done ones without a pool)."""
         if settings != self._settings:
             self._window.forget_prepared()
-            self._settings = settings
+            self._settings, self.candidates = settings, CandidateCache()
+        # a query's window starts past the earlier queries that lent it evidence
+        self.candidates.release_before(ids[0])
         return self._window.prepared(ids)
 
 
@@ -188,15 +192,16 @@ def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tupl
     the frame as read."""
     r = settings.window_radius
     ids = list(index_window(len(clip), t, r))
-    return (clip.prepared(ids, settings), settings, ids, t), clip.frames(ids)[ids.index(t)]
+    states = clip.prepared(ids, settings)
+    return (states, settings, ids, t, clip.candidates), clip.frames(ids)[ids.index(t)]
 
 
 def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list[int],
-                  t: int) -> tuple[np.ndarray, dict]:
+                  t: int, candidates: CandidateCache | None = None) -> tuple[np.ndarray, dict]:
     """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
-    float32, and the frame's stats."""
+    float32, and the frame's stats; ``candidates``: the clip's, which its neighbouring windows share."""
     states = [s.result() for s in states]
-    y = denoise_prepared(FrameState.cat(states), settings, ids, [t]).to(torch.float32)[0].numpy()
+    y = denoise_prepared(FrameState.cat(states), settings, ids, [t], cache=candidates).to(torch.float32)[0].numpy()
     stats = states[ids.index(t)].stats()
     return y, {k: stats[k] for k in FRAME_STATS}
 

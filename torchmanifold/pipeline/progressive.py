@@ -50,8 +50,11 @@ ESTIMATES = ("ours", "raw", "gaussian")
 #: bandwidth selection (softness 0.7), which keeps a thin caustic from being blended with the wide
 #: candidates around it. Built-in scene against softness 1: 96x96 and 128x128 (4 frames, 10 iterations)
 #: +0.03 / +0.03 dB, caustic energy 0.72 -> 0.78 / 0.75; the render job's default (256x256, 8 frames, 16
-#: iterations) -0.02 dB. Softness 0.5: -0.04 / +0.04 / -0.07 dB, caustic 0.80 / 0.78
-PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2, selection_softness=0.7)
+#: iterations) -0.02 dB. Softness 0.5: -0.04 / +0.04 / -0.07 dB, caustic 0.80 / 0.78. A query is filtered
+#: from its own window alone (its neighbours' queries lend no evidence, as they would need their windows'
+#: frames too).
+PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2, selection_softness=0.7,
+                          evidence_radius=0)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")

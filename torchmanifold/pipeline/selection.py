@@ -6,6 +6,9 @@ pixels (:func:`_cv_cell`)."""
 from __future__ import annotations
 
 import math
+import threading
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
@@ -158,6 +161,157 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     Returns:
         ``(Q, 3, H, W)`` at the query times.
     """
+    return _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, qt, sigma_s, range_scale, level, pooling,
+                                 cell).blend(settings.selection_softness)
+
+
+@dataclass
+class _Candidates:
+    """:func:`_select_bandwidth` before its blend: the K bandwidths' outputs ``fulls`` (each ``(Q, 3, H, W)``) at
+    the queries, and how to weigh them. Where every query is a frame (``z2`` ``None``): each query's
+    predictions of its samples from the other half ``preds``, the samples ``e`` (in the window's brightness
+    unit), their relative ``weight`` and ``mask`` (``(Q, 3 | 1, H, W)``), and each query's pooling width
+    ``blurs``; otherwise the z^2 of every candidate, interpolated to the queries."""
+
+    fulls: list
+    preds: list | None = None
+    e: Tensor | None = None
+    weight: Tensor | None = None
+    mask: Tensor | None = None
+    blurs: list | None = None
+    z2: Tensor | None = None
+
+    def query(self, i: int) -> "_Candidates":
+        """The candidates of query ``i`` alone (at frames)."""
+        one = slice(i, i + 1)
+        return _Candidates([f[one] for f in self.fulls], [p[one] for p in self.preds], self.e[one],
+                           self.weight[one], self.mask[one], self.blurs[i:i + 1])
+
+    @staticmethod
+    def cat(cs: "list[_Candidates]") -> "_Candidates":
+        """Queries' candidates (at frames) as one."""
+        def join(xs):
+            return [torch.cat(x) for x in zip(*xs)]
+        return _Candidates(join([c.fulls for c in cs]), join([c.preds for c in cs]), torch.cat([c.e for c in cs]),
+                           torch.cat([c.weight for c in cs]), torch.cat([c.mask for c in cs]),
+                           [b for c in cs for b in c.blurs])
+
+    def residuals(self) -> Tensor:
+        """The residual planes its neighbours' blends borrow (at frames): ``(K + 1, Q, 1, H, W)``, each
+        candidate's weighted squared residuals (:func:`_residual_planes`), then the mask."""
+        return _residual_planes(self.preds, self.e, self.weight, self.mask)
+
+    def blend(self, softness: float, others: Tensor | None = None, other_weights: Tensor | None = None) -> Tensor:
+        """The candidates blended per pixel, ``(Q, 3, H, W)``. ``others`` ``(J, K + 1, Q, 1, H, W)``: the
+        residual planes of J neighbouring queries, pooled with each query's own under ``other_weights``
+        ``(J, Q, 1, H, W)`` (:func:`_excess_error_z2`)."""
+        if self.z2 is not None:
+            return _blend(self.fulls, self.z2, softness)
+        n = len(self.blurs)
+        groups = [list(range(n))] if len(set(self.blurs)) == 1 else [[i] for i in range(n)]
+
+        def part(xs: list, g: list) -> list:
+            return [x if len(groups) == 1 else _frames(x, g) for x in xs]
+
+        def ev(g: list) -> tuple:
+            if others is None or len(groups) == 1:
+                return others, other_weights
+            return others[:, :, g[0]:g[-1] + 1], other_weights[:, g[0]:g[-1] + 1]
+
+        e, weight, mask = self.e, self.weight, self.mask
+        if softness > 0 and self.blurs[0] > 0 and _fast.enabled(e, weight, mask, *self.preds, *self.fulls):
+            outs = []
+            for g in groups:
+                o, w = ev(g)
+                if o is not None:
+                    o, w = o[:, :, :, 0], w[:, :, 0]
+                outs.append(_fast.cv_blend(part(self.preds, g), part(self.fulls, g), *part([e, weight, mask], g),
+                                           self.blurs[g[0]], softness, _SELECTION_ERROR_CUT, o, w))
+            return torch.cat(outs)
+        z2 = torch.cat([_candidate_z2(part(self.preds, g), *part([e, weight, mask], g), self.blurs[g[0]], *ev(g))
+                        for g in groups], 1)
+        return _blend(self.fulls, z2, softness)
+
+
+class CandidateCache:
+    """The bandwidth candidates of each query a clip's calls have filtered, so that a query's candidates serve
+    its own blend and its neighbours' evidence (:func:`_select_bandwidth`'s ``neighbours``) and are filtered
+    once. An entry comes from its query's window alone, so it holds the same bytes whichever call made it;
+    the caller keeps one cache per clip and settings. Calls on several threads share it: an entry another
+    thread is filtering is waited for."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._entries: dict = {}
+
+    def get(self, keys: list, compute) -> list:
+        """The entries of ``keys``; those no call has made yet come from ``compute(missing keys)`` (a list of
+        entries), made here."""
+        with self._lock:
+            mine = [k for k in keys if k not in self._entries]
+            for k in mine:
+                self._entries[k] = Future()
+        if mine:
+            try:
+                for k, v in zip(mine, compute(mine)):
+                    self._entries[k].set_result(v)
+            except BaseException as err:
+                with self._lock:
+                    for k in mine:
+                        self._entries.pop(k).set_exception(err)
+                raise
+        with self._lock:
+            futures = [self._entries[k] for k in keys]
+        return [f.result() for f in futures]
+
+    def release_before(self, time: float) -> None:
+        """Forget the entries of queries before ``time`` (a streamed clip's windows have moved past them)."""
+        with self._lock:
+            for k in [k for k in self._entries if k[0] < time]:
+                del self._entries[k]
+
+
+def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
+                      ft: list[float], qt: list[float], sigma_s: float, range_scale: float, level: Tensor | None,
+                      pooling: Tensor | None, cell: int, neighbours: list[list[int]],
+                      cache: CandidateCache | None) -> Tensor:
+    """:func:`_select_bandwidth` at queries that are frames, each blending with its neighbouring frames'
+    cross-validated residuals as evidence (``neighbours``: per query, the frame indices whose queries lend
+    theirs). A neighbour's residuals weigh ``exp(-d^2 / 2)`` at a pixel, ``d`` the distance of its guide there
+    from the query's in range sigmas: where the same surface under the same light shows, a candidate's bias
+    is the same and the noise independent."""
+    idx = [frame_at(ft, q) for q in qt]
+    need = sorted(set(idx) | {n for ns in neighbours for n in ns})
+    key = (settings.temporal_radius, float(sigma_s), float(range_scale))
+
+    def compute(keys: list) -> list:
+        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, [k[0] for k in keys], sigma_s, range_scale,
+                                  level, pooling, cell)
+        planes = c.residuals()
+        return [(c.query(i), planes[:, i:i + 1]) for i in range(len(keys))]
+
+    keys = [(ft[k], *key) for k in need]
+    got = dict(zip(need, (cache.get(keys, compute) if cache is not None else compute(keys))))
+    cands = _Candidates.cat([got[k][0] for k in idx])
+    J = max((len(ns) for ns in neighbours), default=0)
+    if J == 0:
+        return cands.blend(settings.selection_softness)
+    planes, shape = got[idx[0]][1], guide.shape
+    others = planes.new_zeros((J, planes.shape[0], len(qt), 1, *shape[2:]))
+    weights = planes.new_zeros((J, len(qt), 1, *shape[2:]))
+    for i, (k, ns) in enumerate(zip(idx, neighbours)):
+        ranges = (sigmas[k] * range_scale).to(guide.dtype).clamp_min(1e-30)[:, None, None]  # the query's
+        for j, n in enumerate(ns):
+            others[j, :, i] = got[n][1][:, 0]
+            weights[j, i, 0] = torch.exp(-0.5 * (((guide[n] - guide[k]) / ranges) ** 2).sum(0))
+    return cands.blend(settings.selection_softness, others, weights)
+
+
+def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
+                          settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
+                          range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
+                          cell: int = 1) -> _Candidates:
+    """:func:`_select_bandwidth`'s filters and cross-validation, the blend left to do (arguments as there)."""
     T = e.shape[0]
     st = settings
     # Where every query is a frame, cross-validate at the queries alone (a query's window is filtered
@@ -198,26 +352,19 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     weight = _relative_weight(level, mask)[0]
     e, preds = e / scale, [p / scale for p in preds]
     # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
-    # varies on its own scale: pooling wider mixes places where it differs); frames pool apart, so
-    # frames of one width go in one call
+    # varies on its own scale: pooling wider mixes places where it differs)
     widest = sigma_s * max(st.bandwidths)
     blurs = [st.selection_blur if pooling is None else
              max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
+    if at_frames:
+        return _Candidates(fulls, preds, e, weight, mask, blurs)
     groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
 
     def part(xs: list, g: list) -> list:
         return [x if len(groups) == 1 else _frames(x, g) for x in xs]
 
-    if at_frames and st.selection_softness > 0 and st.selection_blur > 0 and \
-            _fast.enabled(e, weight, mask, *preds, *fulls):
-        return torch.cat([_fast.cv_blend(part(preds, g), part(fulls, g), *part([e, weight, mask], g),
-                                         blurs[g[0]], st.selection_softness, _SELECTION_ERROR_CUT)
-                          for g in groups])
-    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]])
-                    for g in groups], 1)
-    if not at_frames:
-        z2 = torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2])
-    return _blend(fulls, z2, st.selection_softness)
+    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]]) for g in groups], 1)
+    return _Candidates(fulls, z2=torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2]))
 
 
 def _relative_weight(level: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
@@ -276,23 +423,39 @@ def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur:
     return _blend(fulls, _candidate_z2(preds, e, rel, m, blur), softness)
 
 
-def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float) -> Tensor:
-    """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
-    H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
-    weighted by ``weight`` and pooled over ``blur`` pixels."""
-    # a prediction with no sample of the other half under its kernel (NaN) tells nothing of its error: it
-    # pools as the worst candidate's residual there, and its candidate is left out at that pixel (its
-    # residual is taken as 0 first, so no NaN reaches a gradient)
+def _residual_planes(preds: list, e: Tensor, weight: Tensor, mask: Tensor) -> Tensor:
+    """Each candidate's squared cross-validation residuals ``(K + 1, T, 1, H, W)`` from its predictions ``preds``
+    of the samples ``e`` ``(T, 3, H, W)``, weighted by ``weight`` ``(T, 1, H, W)``, then ``mask``."""
+    if _fast.enabled(e, weight, mask, *preds):
+        return _fast.cv_residuals(preds, e, weight, mask)[:, :, None]
+    return torch.cat([_squared_residuals(preds, e, weight)[0], mask[None]])
+
+
+def _squared_residuals(preds: list, e: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
+    """``(K, T, 1, H, W)`` weighted squared residuals of ``preds`` against ``e``, and where each prediction held
+    (bool, like them). A prediction with no sample of the other half under its kernel (NaN) tells nothing of
+    its error: it pools as the worst candidate's residual there (its residual is taken as 0 first, so no NaN
+    reaches a gradient)."""
     held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T, 1, H, W)
     sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
                       for p, h in zip(preds, held)])
     sq = torch.where(held, sq, math.nan)
     worst = torch.where(held, sq, -math.inf).amax(0, keepdim=True)
-    sq = torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0))
-    return _excess_error_z2(sq, mask, blur, held | ~held.any(0, keepdim=True))
+    return torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0)), held
 
 
-def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> Tensor:
+def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float, others: Tensor | None = None,
+                  other_weights: Tensor | None = None) -> Tensor:
+    """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
+    H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
+    weighted by ``weight`` and pooled over ``blur`` pixels (with neighbours' ``others`` as there). A candidate
+    whose prediction has no support (NaN) is left out at that pixel."""
+    sq, held = _squared_residuals(preds, e, weight)
+    return _excess_error_z2(sq, mask, blur, held | ~held.any(0, keepdim=True), others, other_weights)
+
+
+def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor, others: Tensor | None = None,
+                     other_weights: Tensor | None = None) -> Tensor:
     """How surely each candidate's error exceeds the least one's: ``z^2`` per candidate and pixel.
 
     ``sq`` ``(K, T, 1, H, W)`` holds each candidate's weighted squared cross-validation residuals; a pixel's
@@ -304,7 +467,23 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> 
     says so. ``z^2 = D^2 / var``, 0 for the least-error candidate. Candidates not ``allowed`` (bool, like
     ``sq``) and those whose error exceeds ``_SELECTION_ERROR_CUT`` times the least are left out
     (``_LEFT_OUT``); the least-error allowed candidate never is.
+
+    ``others`` ``(J, K + 1, T, 1, H, W)``: the residual planes of J neighbouring queries
+    (:func:`_residual_planes`), which join the kernel in time: each pixel's own residuals weigh 1 and a
+    neighbour's ``other_weights`` ``(J, T, 1, H, W)``, normalised (a bias at a place persists from frame to
+    frame where the noise does not, so its evidence adds up).
     """
+    sq_b, mask_b, pair_terms = sq, mask, None
+    if others is not None:
+        w = other_weights
+        total = 1.0 + w.sum(0)
+        sq_a = (sq + (w[:, None] * others[:, :-1]).sum(0)) / total
+        sq_b = (sq + (w[:, None] ** 2 * others[:, :-1]).sum(0)) / total ** 2
+        mask, mask_b = (mask + (w * others[:, -1]).sum(0)) / total, (mask + (w ** 2 * others[:, -1]).sum(0)) / total ** 2
+        K = sq.shape[0]
+        pair_terms = {(a, b): ((sq[b] - sq[a]) ** 2 + (w ** 2 * (others[:, b] - others[:, a]) ** 2).sum(0)) / total ** 2
+                      for a in range(K) for b in range(a + 1, K)}
+        sq = sq_a
     K = sq.shape[0]
     pool = footprint_blur(mask, blur).clamp_min(1e-6)
     err = footprint_blur(sq.flatten(0, 1), blur).view_as(sq) / pool
@@ -313,13 +492,14 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor) -> 
     else:
         c, blur2 = 1.0, 0.0
     inv = c / pool ** 2
-    s1 = footprint_blur(sq.flatten(0, 1), blur2).view_as(sq) * inv
-    m2 = footprint_blur(mask, blur2) * inv
+    s1 = footprint_blur(sq_b.flatten(0, 1), blur2).view_as(sq) * inv
+    m2 = footprint_blur(mask_b, blur2) * inv
     pairs = [(a, b) for a in range(K) for b in range(a + 1, K)]
     d2 = {}
     if pairs:
         T = sq.shape[1]
-        blurred = footprint_blur(torch.cat([(sq[b] - sq[a]) ** 2 for a, b in pairs]), blur2)
+        terms = [(sq[b] - sq[a]) ** 2 if pair_terms is None else pair_terms[a, b] for a, b in pairs]
+        blurred = footprint_blur(torch.cat(terms), blur2)
         for k, (a, b) in enumerate(pairs):
             d2[a, b] = d2[b, a] = blurred[k * T:(k + 1) * T] * inv
     best = torch.where(allowed, err, math.inf).argmin(0)  # (T, 1, H, W)

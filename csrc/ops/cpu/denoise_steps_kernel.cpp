@@ -625,23 +625,100 @@ void fma_row(const T* __restrict a, const T* __restrict b, int64_t n, T* __restr
   for (int64_t i = 0; i < n; ++i) y[i] += a[i] * b[i];
 }
 
-at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, const at::Tensor& e_,
-                        const at::Tensor& weight_, const at::Tensor& mask_, double blur_sigma, double softness,
-                        double error_cut) {
-  const char* op = "_cv_blend";
+// Row y of frame t's K weighted squared residuals (preds (K, T, 3, H, W) against e (T, 3, H, W), times weight)
+// into out (K rows of W), then the mask's row: a prediction without support (NaN) takes the worst held
+// residual there (0 if none is held).
+template <typename T>
+void residual_rows(const T* pp, const T* pe, const T* pw, const T* pm, int64_t K, int64_t Tn, int64_t t, int64_t y,
+                   int64_t H, int64_t W, T* out) {
+  const int64_t HW = H * W;
+  for (int64_t kk = 0; kk < K; ++kk) {
+    const T* q = pp + (kk * Tn + t) * 3 * HW + y * W;
+    sq_error_row(q, q + HW, q + 2 * HW, pe + t * 3 * HW + y * W, pe + t * 3 * HW + HW + y * W,
+                 pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, out + kk * W);
+  }
+  for (int64_t x = 0; x < W; ++x) {
+    T worst = -std::numeric_limits<T>::infinity();
+    for (int64_t kk = 0; kk < K; ++kk)
+      if (out[kk * W + x] == out[kk * W + x] && out[kk * W + x] > worst) worst = out[kk * W + x];
+    if (!(worst > -std::numeric_limits<T>::infinity())) worst = T(0);
+    for (int64_t kk = 0; kk < K; ++kk)
+      if (out[kk * W + x] != out[kk * W + x]) out[kk * W + x] = worst;
+  }
+  std::copy(pm + t * HW + y * W, pm + t * HW + (y + 1) * W, out + K * W);
+}
+
+void check_cv_inputs(const at::Tensor& preds_, const at::Tensor& e_, const at::Tensor& weight_,
+                     const at::Tensor& mask_, const char* op) {
   check_float(e_, "e", op);
   check_shape(preds_, "preds", op, 5);
   check_shape(e_, "e", op, 4);
-  const int64_t K = preds_.size(0), Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W;
+  const int64_t K = preds_.size(0), Tn = e_.size(0), H = e_.size(2), W = e_.size(3);
   TORCH_CHECK_VALUE(e_.size(1) == 3, op, ": e must be (T, 3, H, W), got ", e_.sizes());
-  TORCH_CHECK_VALUE(K >= 1 && preds_.sizes() == at::IntArrayRef({K, Tn, 3, H, W}) && fulls_.sizes() == preds_.sizes(),
-                    op, ": preds and fulls must be (K, T, 3, H, W) = (K, ", e_.sizes(), "), got ", preds_.sizes(),
-                    " and ", fulls_.sizes());
+  TORCH_CHECK_VALUE(K >= 1 && preds_.sizes() == at::IntArrayRef({K, Tn, 3, H, W}), op,
+                    ": preds must be (K, T, 3, H, W) = (K, ", e_.sizes(), "), got ", preds_.sizes());
   TORCH_CHECK_VALUE(weight_.sizes() == at::IntArrayRef({Tn, 1, H, W}) && mask_.sizes() == weight_.sizes(), op,
                     ": weight and mask must be (T, 1, H, W), got ", weight_.sizes(), " and ", mask_.sizes());
-  for (auto* p : {&preds_, &fulls_, &weight_, &mask_})
+  for (auto* p : {&preds_, &weight_, &mask_})
     TORCH_CHECK_VALUE(p->scalar_type() == e_.scalar_type(), op, ": inputs must share e's dtype");
+}
+
+// The residual planes a neighbouring query's blend borrows: (K + 1, T, H, W), each candidate's weighted
+// squared residuals (NaN resolved as in _cv_blend), then the mask.
+at::Tensor cv_residuals_cpu(const at::Tensor& preds_, const at::Tensor& e_, const at::Tensor& weight_,
+                            const at::Tensor& mask_) {
+  const char* op = "_cv_residuals";
+  check_cv_inputs(preds_, e_, weight_, mask_, op);
+  const int64_t K = preds_.size(0), Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W;
+  const at::Tensor preds = preds_.contiguous(), e = e_.contiguous(), weight = weight_.contiguous(),
+                   mask = mask_.contiguous();
+  at::Tensor out = at::empty({K + 1, Tn, H, W}, e.options());
+  if (out.numel() == 0) return out;
+  AT_DISPATCH_FLOATING_TYPES(e.scalar_type(), "cv_residuals_cpu", [&] {
+    using T = scalar_t;
+    T* po = out.data_ptr<T>();
+    at::parallel_for(0, Tn * H, row_grain(W * K * 4), [&](int64_t r0, int64_t r1) {
+      std::vector<T> rows((K + 1) * W);
+      for (int64_t tr = r0; tr < r1; ++tr) {
+        const int64_t t = tr / H, y = tr % H;
+        residual_rows(preds.data_ptr<T>(), e.data_ptr<T>(), weight.data_ptr<T>(), mask.data_ptr<T>(), K, Tn, t, y,
+                      H, W, rows.data());
+        for (int64_t kk = 0; kk <= K; ++kk)
+          std::copy(rows.data() + kk * W, rows.data() + (kk + 1) * W, po + (kk * Tn + t) * HW + y * W);
+      }
+    });
+  });
+  return out;
+}
+
+at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, const at::Tensor& e_,
+                        const at::Tensor& weight_, const at::Tensor& mask_, double blur_sigma, double softness,
+                        double error_cut, const c10::optional<at::Tensor>& others_,
+                        const c10::optional<at::Tensor>& other_weights_) {
+  const char* op = "_cv_blend";
+  check_cv_inputs(preds_, e_, weight_, mask_, op);
+  const int64_t K = preds_.size(0), Tn = e_.size(0), H = e_.size(2), W = e_.size(3), HW = H * W;
+  TORCH_CHECK_VALUE(fulls_.sizes() == preds_.sizes() && fulls_.scalar_type() == e_.scalar_type(), op,
+                    ": preds and fulls must be (K, T, 3, H, W) of e's dtype, got ", preds_.sizes(), " and ",
+                    fulls_.sizes());
   TORCH_CHECK_VALUE(blur_sigma > 0 && softness > 0, op, ": blur_sigma and softness must be > 0");
+  TORCH_CHECK_VALUE(others_.has_value() == other_weights_.has_value(), op,
+                    ": others and other_weights come together");
+  // the neighbouring queries' residual planes (J, K + 1, T, H, W) and their weights (J, T, H, W), relative to
+  // the query's own 1
+  at::Tensor others, ow;
+  int64_t J = 0;
+  if (others_.has_value()) {
+    J = others_->size(0);
+    TORCH_CHECK_VALUE(others_->dim() == 5 && others_->sizes() == at::IntArrayRef({J, K + 1, Tn, H, W}) &&
+                          other_weights_->sizes() == at::IntArrayRef({J, Tn, H, W}),
+                      op, ": others must be (J, K + 1, T, H, W) and other_weights (J, T, H, W), got ",
+                      others_->sizes(), " and ", other_weights_->sizes());
+    TORCH_CHECK_VALUE(others_->scalar_type() == e_.scalar_type() && other_weights_->scalar_type() == e_.scalar_type(),
+                      op, ": inputs must share e's dtype");
+    others = others_->contiguous();
+    ow = other_weights_->contiguous();
+  }
   const at::Tensor preds = preds_.contiguous(), fulls = fulls_.contiguous(), e = e_.contiguous(),
                    weight = weight_.contiguous(), mask = mask_.contiguous();
   at::Tensor out = at::empty_like(e, at::MemoryFormat::Contiguous);
@@ -676,39 +753,66 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
     at::parallel_for(0, Tn * H, row_grain(W * NP * (2 * r + 1)), [&](int64_t r0, int64_t r1) {
       Scratch<T> srcb, sqb;
       srcb.resize(W + 2 * r);
-      sqb.resize((K + 1) * W);
+      sqb.resize((K + 1) * W * (J > 0 ? 3 : 1) + (J > 0 ? npairs * W + W : 0));
       T* src = srcb.data();  // a row, replicate-padded by the taps' radius
       T* sqr = sqb.data();   // the K residual rows, then the mask row
+      // with neighbours: the rows pooled over them (A: weights w / sum w, B: their squares), the pairs' B rows
+      T* rowa = J > 0 ? sqr + (K + 1) * W : sqr;
+      T* rowb = J > 0 ? rowa + (K + 1) * W : sqr;
+      T* rowp = J > 0 ? rowb + (K + 1) * W : nullptr;
+      T* tot = J > 0 ? rowp + npairs * W : nullptr;
       auto hblur = [&](const T* row, const std::vector<T>& tp, int64_t rr, T* o) {
         blur_row(row, tp, rr, W, src, o);
       };
       std::vector<T> d(W);
       for (int64_t tr = r0; tr < r1; ++tr) {
         const int64_t t = tr / H, y = tr % H;
-        for (int64_t kk = 0; kk < K; ++kk) {
-          const T* q = pp + (kk * Tn + t) * 3 * HW + y * W;
-          sq_error_row(q, q + HW, q + 2 * HW, pe + t * 3 * HW + y * W, pe + t * 3 * HW + HW + y * W,
-                       pe + t * 3 * HW + 2 * HW + y * W, pw + t * HW + y * W, W, sqr + kk * W);
+        residual_rows(pp, pe, pw, pm, K, Tn, t, y, H, W, sqr);
+        if (J > 0) {
+          const T* po_ = others.data_ptr<T>();
+          const T* pow_ = ow.data_ptr<T>();
+          auto other = [&](int64_t j, int64_t kk, int64_t x) { return po_[((j * (K + 1) + kk) * Tn + t) * HW + y * W + x]; };
+          auto wt = [&](int64_t j, int64_t x) { return pow_[(j * Tn + t) * HW + y * W + x]; };
+          for (int64_t x = 0; x < W; ++x) {
+            T s = T(1);
+            for (int64_t j = 0; j < J; ++j) s += wt(j, x);
+            tot[x] = s;
+          }
+          for (int64_t kk = 0; kk <= K; ++kk)
+            for (int64_t x = 0; x < W; ++x) {
+              T a = sqr[kk * W + x], b = sqr[kk * W + x];
+              for (int64_t j = 0; j < J; ++j) {
+                const T w = wt(j, x), o = other(j, kk, x);
+                a += w * o;
+                b += w * w * o;
+              }
+              rowa[kk * W + x] = a / tot[x];
+              rowb[kk * W + x] = b / (tot[x] * tot[x]);
+            }
+          for (int64_t k = 0; k < npairs; ++k)
+            for (int64_t x = 0; x < W; ++x) {
+              const T dd = sqr[pairs[k].second * W + x] - sqr[pairs[k].first * W + x];
+              T p = dd * dd;
+              for (int64_t j = 0; j < J; ++j) {
+                const T w = wt(j, x), od = other(j, pairs[k].second, x) - other(j, pairs[k].first, x);
+                p += w * w * od * od;
+              }
+              rowp[k * W + x] = p / (tot[x] * tot[x]);
+            }
         }
-        // a prediction without support (NaN) pools as the worst held residual there (0 if none is held)
-        for (int64_t x = 0; x < W; ++x) {
-          T worst = -std::numeric_limits<T>::infinity();
-          for (int64_t kk = 0; kk < K; ++kk)
-            if (sqr[kk * W + x] == sqr[kk * W + x] && sqr[kk * W + x] > worst) worst = sqr[kk * W + x];
-          if (!(worst > -std::numeric_limits<T>::infinity())) worst = T(0);
-          for (int64_t kk = 0; kk < K; ++kk)
-            if (sqr[kk * W + x] != sqr[kk * W + x]) sqr[kk * W + x] = worst;
-        }
-        std::copy(pm + t * HW + y * W, pm + t * HW + (y + 1) * W, sqr + K * W);
         T* base = hb + t * NP * HW + y * W;
-        for (int64_t kk = 0; kk <= K; ++kk) hblur(sqr + kk * W, taps, r, base + kk * HW);
-        for (int64_t kk = 0; kk < K; ++kk) hblur(sqr + kk * W, taps2, r2, base + (n1 + kk) * HW);
+        for (int64_t kk = 0; kk <= K; ++kk) hblur(rowa + kk * W, taps, r, base + kk * HW);
+        for (int64_t kk = 0; kk < K; ++kk) hblur(rowb + kk * W, taps2, r2, base + (n1 + kk) * HW);
         for (int64_t k = 0; k < npairs; ++k) {
+          if (J > 0) {
+            hblur(rowp + k * W, taps2, r2, base + (n1 + K + k) * HW);
+            continue;
+          }
           const T *sa = sqr + pairs[k].first * W, *sb = sqr + pairs[k].second * W;
           for (int64_t x = 0; x < W; ++x) d[x] = (sb[x] - sa[x]) * (sb[x] - sa[x]);
           hblur(d.data(), taps2, r2, base + (n1 + K + k) * HW);
         }
-        hblur(sqr + K * W, taps2, r2, base + (n1 + K + npairs) * HW);
+        hblur(rowb + K * W, taps2, r2, base + (n1 + K + npairs) * HW);
       }
     });
     // pass 2: blur along y; per pixel the least-error candidate a, every other's excess D and its
@@ -1681,6 +1785,7 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_footprint_average", &footprint_average_cpu);
   m.impl("_kuwahara3", &kuwahara3_cpu);
   m.impl("_cv_blend", &cv_blend_cpu);
+  m.impl("_cv_residuals", &cv_residuals_cpu);
   m.impl("_quantiles", &quantiles_cpu);
   m.impl("_cv_halves", &cv_halves_cpu);
   m.impl("_cv_halves_out", &cv_halves_out_cpu);
