@@ -282,7 +282,8 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     is the same and the noise independent."""
     idx = [frame_at(ft, q) for q in qt]
     need = sorted(set(idx) | {n for ns in neighbours for n in ns})
-    key = (settings.temporal_radius, float(sigma_s), float(range_scale))
+    # what an entry depends on beyond its frame's window, which another call's state may set otherwise
+    key = (settings.temporal_radius, float(sigma_s), float(range_scale), cell)
 
     def compute(keys: list) -> list:
         c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, [k[0] for k in keys], sigma_s, range_scale,
