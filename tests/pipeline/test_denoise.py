@@ -1280,10 +1280,11 @@ def test_same_bytes_for_any_thread_count(clip, splatted):
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads):
-    """The denoise command prepares each frame once and reuses it in every window that holds it; each
-    output frame has the bytes of :func:`denoise_frames` over that frame's window (the filter's and the
-    albedo's), computed afresh with the sample count the files' header gives, on one thread or two."""
+def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads, monkeypatch):
+    """The denoise command prepares each frame once and reuses it in every window that holds it, and filters
+    each query's bandwidth candidates once for its own blend and its neighbours' evidence; each output frame
+    has the bytes of :func:`denoise_frames` over that frame's window (the filter's, the albedo's and the
+    neighbours'), computed afresh with the sample count the files' header gives, on one thread or two."""
     from torchmanifold._threads import torch_threads
     from torchmanifold.io import read_exr, write_exr
     from torchmanifold.pipeline.denoise_files import denoise_files
@@ -1297,11 +1298,15 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads
         write_exr(paths[-1], {**{ch: c[t, k].numpy() for k, ch in enumerate("RGB")},
                               **{n: f[t, k].numpy() for k, n in enumerate(FEATURES)}}, attributes={"spp": "1"})
     st = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=2)
+    filtered = []  # each query's candidates, filtered once for its own blend and its neighbours' evidence
+    candidates = SEL._bandwidth_candidates
+    monkeypatch.setattr(SEL, "_bandwidth_candidates", lambda *a: filtered.extend(a[6]) or candidates(*a))
     with torch_threads(threads):
         res = denoise_files(paths, tmp_path / "out", settings=st, feature_channels=FEATURES, progress=False)
+    assert sorted(filtered) == [0, 1, 2, 3], filtered
     assert res["nonfinite_color"] == 3
     assert res["samples_per_pixel"] == 1 and res["footprint_sigma"] == pytest.approx(0.7)  # from the header
-    r = st.window_radius  # the filter's +-1 and the albedo's +-2
+    r = st.window_radius  # the filter's +-1, the albedo's +-2, and +-1 more for the neighbours' windows
     for t in range(4):
         ids = list(range(max(0, t - r), min(4, t + r + 1)))
         want = denoise_frames(c[ids], f[ids], FEATURES, settings=st, frame_times=ids, query_times=[t],
