@@ -72,7 +72,7 @@ def test_memory_bounded_by_window():
     pr.step()
     pr.step()
     assert sorted(ct.calls) == sorted([((float(t),), i) for t in range(5) for i in (0, 1)])
-    assert pr.memory_frames == 3
+    assert pr.memory_frames == 5  # the filter's +-1 frames and its evidence-lending neighbours'
     assert pr.history[-1].ours.shape == (5, 3, 12, 16)
 
 

@@ -18,6 +18,7 @@ from torchmanifold.pipeline import shards
 from torchmanifold.pipeline.denoise import DenoiseSettings
 from torchmanifold.pipeline.render_job import render_query_times
 from torchmanifold.pipeline.job import denoise_files, render_job
+from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER
 
 ray = pytest.importorskip("ray", reason="requirements.txt installs ray; the sharded engine needs it")
 
@@ -128,9 +129,11 @@ def test_render_sharded_is_bitwise_one_process(cluster, render_reference, tmp_pa
     s = res["shards"]
     times, query = render_query_times(RENDER["frames"], RENDER["inbetween"])
     plan = shards.plan_chunks(range(q), chunk, lambda o: (0, 0))
-    # the halo's cost: the engine renders exactly the planned cone of every chunk
+    # the halo's cost: the engine renders exactly the planned cone of every chunk (a query reads the frames
+    # of its filter's window and of its evidence-lending neighbours')
+    r = DenoiseSettings(**PROGRESSIVE_FILTER).query_radius
     assert s["frames_traced"] == sum(shards.traced_frames(
-        times, query, shards.render_cone(times, query, c.owned, 1, RENDER["iterations"])[0], 1) for c in plan)
+        times, query, shards.render_cone(times, query, c.owned, r, RENDER["iterations"])[0], r) for c in plan)
     assert s["frames_traced"] >= s["frames_traced_one_process"] == RENDER["iterations"] * RENDER["frames"]
 
 

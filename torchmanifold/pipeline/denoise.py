@@ -361,6 +361,12 @@ class DenoiseSettings:
         return max(self.temporal_radius, self.albedo_radius) if self.temporal_radius > 0 else 0
 
     @property
+    def query_radius(self) -> int:
+        """The frames on each side whose samples a query's filter and its neighbours' lending evidence join
+        (the albedo's window aside; 0 per frame): what the progressive loop renders around a query."""
+        return self.temporal_radius + self.evidence_radius if self.temporal_radius > 0 else 0
+
+    @property
     def window_radius(self) -> int:
         """The frames on each side that a query's output depends on: what it joins, and what its
         neighbours lending evidence join (0 per frame)."""

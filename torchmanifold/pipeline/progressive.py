@@ -36,6 +36,7 @@ from torch import Tensor
 
 from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
+from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.pipeline.sliding import SlidingFrames
@@ -50,11 +51,8 @@ ESTIMATES = ("ours", "raw", "gaussian")
 #: bandwidth selection (softness 0.7), which keeps a thin caustic from being blended with the wide
 #: candidates around it. Built-in scene against softness 1: 96x96 and 128x128 (4 frames, 10 iterations)
 #: +0.03 / +0.03 dB, caustic energy 0.72 -> 0.78 / 0.75; the render job's default (256x256, 8 frames, 16
-#: iterations) -0.02 dB. Softness 0.5: -0.04 / +0.04 / -0.07 dB, caustic 0.80 / 0.78. A query is filtered
-#: from its own window alone (its neighbours' queries lend no evidence, as they would need their windows'
-#: frames too).
-PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2, selection_softness=0.7,
-                          evidence_radius=0)
+#: iterations) -0.02 dB. Softness 0.5: -0.04 / +0.04 / -0.07 dB, caustic 0.80 / 0.78
+PROGRESSIVE_FILTER = dict(temporal_radius=1, mode="spacetime", tree_height=2, selection_softness=0.7)
 #: how "ours" is built: filter the running mean of the samples at the shrinking bandwidth
 #: ("accumulate"), or average filtered 1-spp iterations (the paper's scheme, "average")
 SCHEMES = ("accumulate", "average")
@@ -288,7 +286,7 @@ class ProgressiveRenderer:
 
     # -- the iteration ------------------------------------------------------------------------------
     def _needed(self, q: float) -> list[int]:
-        return window(self.times, q, self._settings.temporal_radius)
+        return window(self.times, q, self._settings.query_radius)
 
     def _accumulate(self, k: int, res) -> None:
         parts = (res.color, res.features, res.emission)
@@ -360,9 +358,11 @@ class ProgressiveRenderer:
             return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot,
                                   k_ff, own_pixels=True)
 
+        candidates = CandidateCache()  # each query's, filtered once for its blend and its neighbours'
+
         def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
             state = FrameState.cat([s.result() for s in states])
-            y = denoise_prepared(state, settings, ft, [q], sig_s, rscale).float()
+            y = denoise_prepared(state, settings, ft, [q], sig_s, rscale, candidates).float()
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
             row = torch.empty((3, *x.shape), dtype=torch.float64)

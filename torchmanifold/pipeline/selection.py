@@ -282,7 +282,8 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     is the same and the noise independent."""
     idx = [frame_at(ft, q) for q in qt]
     need = sorted(set(idx) | {n for ns in neighbours for n in ns})
-    # what an entry depends on beyond its frame's window, which another call's state may set otherwise
+    # an entry's key: the frames its window holds in this call's state (a call whose state cuts a neighbour's
+    # window short makes its own entry) and what another call's state may set otherwise
     key = (settings.temporal_radius, float(sigma_s), float(range_scale), cell)
 
     def compute(keys: list) -> list:
@@ -291,7 +292,7 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
         planes = c.residuals()
         return [(c.query(i), planes[:, i:i + 1]) for i in range(len(keys))]
 
-    keys = [(ft[k], *key) for k in need]
+    keys = [(ft[k], tuple(ft[j] for j in window(ft, ft[k], settings.temporal_radius)), *key) for k in need]
     got = dict(zip(need, (cache.get(keys, compute) if cache is not None else compute(keys))))
     cands = _Candidates.cat([got[k][0] for k in idx])
     J = max((len(ns) for ns in neighbours), default=0)

@@ -7,9 +7,10 @@ denoise_files.denoise_files` and :func:`~torchmanifold.pipeline.render_job.rende
 from the same inputs by the same code:
 
 - ``denoise``: output frame ``t`` is :func:`~torchmanifold.pipeline.denoise.denoise_frames` of the
-  frames ``t - r .. t + r`` (``r = DenoiseSettings.window_radius``: the filter's and the albedo's windows)
-  at query ``t``; the halo is ``r`` frames per side.
-- ``render``: iteration ``i`` filters query ``q`` from the samples of the frames in its time window and,
+  frames ``t - r .. t + r`` (``r = DenoiseSettings.window_radius``: the filter's, the albedo's and the
+  evidence-lending neighbours' windows) at query ``t``; the halo is ``r`` frames per side.
+- ``render``: iteration ``i`` filters query ``q`` from the samples of the frames in its time window and its
+  evidence-lending neighbours' (``r = DenoiseSettings.query_radius``) and,
   as the firefly pilot, the running estimates of those frames after iteration ``i - 1``, which depend on
   *their* windows. So the frames that reach an owned frame after ``N`` iterations form a cone: ``N r``
   frames per side at iteration 1, one radius fewer each iteration (:func:`render_cone`).
@@ -125,7 +126,7 @@ def render_cone(times: Sequence[float], query: Sequence[float], owned: Sequence[
     Args:
         times: ``(T,)`` frame times of the clip; query: ``(Q,)`` its output times (all frame times among them).
         owned: indices into ``query`` the chunk writes.
-        radius: the temporal radius; iterations: ``N``.
+        radius: the frames on each side a query reads (``DenoiseSettings.query_radius``); iterations: ``N``.
 
     Returns:
         ``(keep, lo, hi)``: ``keep[i-1]`` = sorted query indices the chunk's engine must hold during
@@ -335,7 +336,7 @@ def _render_chunk(job, chunk: Chunk, todo, events, counts):
     tracer = _tracer(job["scene"], job["width"], job["height"])
     times, query, n_it, seed = job["times"], job["query"], job["iterations"], job["seed"]
     settings = job["settings"]
-    keep, lo, hi = render_cone(times, query, chunk.owned, settings.temporal_radius, n_it)
+    keep, lo, hi = render_cone(times, query, chunk.owned, settings.query_radius, n_it)
     traced = [0]
 
     def count(k, res):
@@ -633,7 +634,7 @@ def shard_render(out, scene=None, frames: int = 8, iterations: int = 16, width: 
         _save_manifest(outp, manifest)
         workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         size = chunk or max(1, math.ceil(len(query) / workers))
-        r = settings.temporal_radius
+        r = settings.query_radius
 
         def reads(owned):
             return render_cone(times, query, owned, r, iterations)[1:]
