@@ -361,16 +361,22 @@ class DenoiseSettings:
         return max(self.temporal_radius, self.albedo_radius) if self.temporal_radius > 0 else 0
 
     @property
+    def lending_radius(self) -> int:
+        """The neighbouring frames on each side whose queries lend a query their evidence: ``evidence_radius``
+        where there is a time window and bandwidths to choose among, else 0."""
+        return self.evidence_radius if self.temporal_radius > 0 and len(self.bandwidths) > 1 else 0
+
+    @property
     def query_radius(self) -> int:
         """The frames on each side whose samples a query's filter and its neighbours' lending evidence join
         (the albedo's window aside; 0 per frame): what the progressive loop renders around a query."""
-        return self.temporal_radius + self.evidence_radius if self.temporal_radius > 0 else 0
+        return self.temporal_radius + self.lending_radius
 
     @property
     def window_radius(self) -> int:
         """The frames on each side that a query's output depends on: what it joins, and what its
         neighbours lending evidence join (0 per frame)."""
-        return self.joined_radius + self.evidence_radius if self.temporal_radius > 0 else 0
+        return self.joined_radius + self.lending_radius
 
 
 #: the spatial sigma shrinks as ``spp ** -0.25``: with noise variance ~ 1/spp, a kernel's error on a
@@ -849,9 +855,9 @@ def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: 
     :func:`_noisy_window`); ``None`` where a query lies between frames or there is no time window (each
     query's evidence is its own)."""
     at = [frame_at(ft, q) for q in qt]
-    if settings.temporal_radius == 0 or settings.evidence_radius == 0 or None in at:
+    r = settings.lending_radius
+    if r == 0 or None in at:
         return None
-    r = settings.evidence_radius
     return [[n for n in range(max(0, k - r), min(len(ft), k + r + 1)) if n != k and kinds[n] == kinds[k]]
             for k in at]
 
