@@ -180,25 +180,30 @@ class _Candidates:
     mask: Tensor | None = None
     blurs: list | None = None
     z2: Tensor | None = None
+    units: Tensor | None = None
 
     def query(self, i: int) -> "_Candidates":
         """The candidates of query ``i`` alone (at frames)."""
         one = slice(i, i + 1)
         return _Candidates([f[one] for f in self.fulls], [p[one] for p in self.preds], self.e[one],
-                           self.weight[one], self.mask[one], self.blurs[i:i + 1])
+                           self.weight[one], self.mask[one], self.blurs[i:i + 1], units=self.units[one])
 
     @staticmethod
     def cat(cs: "list[_Candidates]") -> "_Candidates":
         """Queries' candidates (at frames) as one."""
         def join(xs):
             return [torch.cat(x) for x in zip(*xs)]
+        if len(cs) == 1:
+            return cs[0]
         return _Candidates(join([c.fulls for c in cs]), join([c.preds for c in cs]), torch.cat([c.e for c in cs]),
                            torch.cat([c.weight for c in cs]), torch.cat([c.mask for c in cs]),
-                           [b for c in cs for b in c.blurs])
+                           [b for c in cs for b in c.blurs], units=torch.cat([c.units for c in cs]))
 
     def residuals(self) -> Tensor:
         """The residual planes its neighbours' blends borrow (at frames): ``(K + 1, Q, 1, H, W)``, each
-        candidate's weighted squared residuals (:func:`_residual_planes`), then the mask."""
+        candidate's weighted squared residuals (:func:`_residual_planes`), then the mask. They are relative
+        errors times the square of ``units`` (float64 ``(Q,)``: each query's level unit over its window's
+        brightness unit, which differ from query to query)."""
         return _residual_planes(self.preds, self.e, self.weight, self.mask)
 
     def blend(self, softness: float, others: Tensor | None = None, other_weights: Tensor | None = None) -> Tensor:
@@ -231,6 +236,11 @@ class _Candidates:
         z2 = torch.cat([_candidate_z2(part(self.preds, g), *part([e, weight, mask], g), self.blurs[g[0]], *ev(g))
                         for g in groups], 1)
         return _blend(self.fulls, z2, softness)
+
+
+#: how far apart two queries' residual units may lie for one to lend the other its residuals (a factor; a
+#: guard against float32 overflow and a black frame beside lit ones, not a tuned figure)
+_UNITS_APART = 1e-6
 
 
 class CandidateCache:
@@ -304,7 +314,13 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     for i, (k, ns) in enumerate(zip(idx, neighbours)):
         ranges = (sigmas[k] * range_scale).to(guide.dtype).clamp_min(1e-30)[:, None, None]  # the query's
         for j, n in enumerate(ns):
-            others[j, :, i] = got[n][1][:, 0]
+            # in the query's units; a neighbour whose units lie orders of magnitude away (a black frame
+            # beside lit ones) lends nothing
+            factor = float((cands.units[i] / got[n][0].units[0]) ** 2)
+            if not _UNITS_APART < factor < 1.0 / _UNITS_APART:
+                continue
+            others[j, :-1, i] = got[n][1][:-1, 0] * factor
+            others[j, -1, i] = got[n][1][-1, 0]
             weights[j, i, 0] = torch.exp(-0.5 * (((guide[n] - guide[k]) / ranges) ** 2).sum(0))
     return cands.blend(settings.selection_softness, others, weights)
 
@@ -351,7 +367,7 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
     scale = torch.where(top > 0, top, torch.ones_like(top))
     e, mask = _frames(e, idx), _frames(mask, idx)
-    weight = _relative_weight(level, mask)[0]
+    weight, unit = _relative_weight(level, mask)
     e, preds = e / scale, [p / scale for p in preds]
     # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
     # varies on its own scale: pooling wider mixes places where it differs)
@@ -359,7 +375,7 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     blurs = [st.selection_blur if pooling is None else
              max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
     if at_frames:
-        return _Candidates(fulls, preds, e, weight, mask, blurs)
+        return _Candidates(fulls, preds, e, weight, mask, blurs, units=(unit.double() / scale.double()).view(-1))
     groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
 
     def part(xs: list, g: list) -> list:
