@@ -1365,6 +1365,40 @@ def test_neighbouring_frames_lend_their_evidence():
     assert min(gains) > 0.0 and sum(gains) / 5 > 0.15, gains
 
 
+def test_candidate_cache_computes_each_entry_once_across_threads():
+    """Calls on several threads that need overlapping queries' candidates compute each once; a caller waits
+    for an entry another thread is computing, keeps it when the entry is released meanwhile, and a failed
+    computation raises in every caller and leaves no entry behind."""
+    import threading
+    import time
+
+    cache, computed, started = SEL.CandidateCache(), [], threading.Event()
+
+    def compute(keys):
+        computed.extend(keys)
+        started.set()
+        time.sleep(0.05)
+        return [f"entry {k[0]}" for k in keys]
+
+    out = {}
+    first = threading.Thread(target=lambda: out.setdefault("a", cache.get([(0,), (1,)], compute)))
+    first.start()
+    started.wait()
+    cache.release_before(1)  # (0,) while it is computed: the first caller still gets it
+    second = cache.get([(1,), (2,)], compute)
+    first.join()
+    assert out["a"] == ["entry 0", "entry 1"] and second == ["entry 1", "entry 2"]
+    assert sorted(computed) == [(0,), (1,), (2,)]  # (1,) once: the second caller waited for it
+    assert cache.get([(0,)], compute) == ["entry 0"] and computed[-1] == (0,)  # released: made again
+
+    def fail(keys):
+        raise RuntimeError("filter failed")
+
+    with pytest.raises(RuntimeError, match="filter failed"):
+        cache.get([(3,)], fail)
+    assert cache.get([(3,)], compute) == ["entry 3"]
+
+
 def test_a_neighbour_that_shows_something_else_lends_nothing(mitsuba_dir):
     """Where a neighbouring frame's guide lies far from the query's (another surface, or the same one in
     other light), its residuals say nothing about the query's candidates: they weigh exp(-d^2 / 2), here 0,

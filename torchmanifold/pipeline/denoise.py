@@ -296,9 +296,10 @@ class DenoiseSettings:
             cross-validated residuals to a query's bandwidth selection, where their guides agree with its
             own (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
             persists from frame to frame, the noise of its error estimate does not. 1 against 0, all frames
-            from 1 / 4 spp: the validation set +0.08 / +0.07 dB, six of its clips at 256x256 with 12 frames
-            +0.08 / +0.07, no clip below -0.01 (``benchmarks/validation/findings.md``). Frames of another
-            window kind (:func:`_noisy_window`) lend none.
+            from 1 / 4 spp: the validation set +0.08 / +0.07 dB, no clip below -0.01; its clips at 256x256
+            with 12 frames +0.07 / +0.07 (six Mitsuba) and +0.08 / +0.07 (four Cycles); the progressive loop's
+            caustic 0.83 -> 0.87 (``benchmarks/validation/findings.md``). Frames of another window kind
+            (:func:`_noisy_window`) lend none; with one bandwidth there is nothing to lend.
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
@@ -782,7 +783,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
     :func:`denoise_frames`). At a query whose frame's pilot is too noisy to trust, the time window joins
     every frame the albedo's window holds (:func:`_noisy_window`). A query at a frame borrows evidence from
-    its neighbours' queries (``settings.evidence_radius``), filtered here unless ``cache`` (one per clip and
+    its neighbours' queries (``settings.lending_radius``), filtered here unless ``cache`` (one per clip and
     settings, shared by a clip's calls) holds them."""
     ft, qt = list(frame_times), list(query_times)
     wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
@@ -851,7 +852,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
 
 def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: list[float]) -> list | None:
     """Per query, the frames whose queries lend it their cross-validated residuals: those within
-    ``settings.evidence_radius`` of its frame whose window is of its kind (``kinds``: per frame,
+    ``settings.lending_radius`` of its frame whose window is of its kind (``kinds``: per frame,
     :func:`_noisy_window`); ``None`` where a query lies between frames or there is no time window (each
     query's evidence is its own)."""
     at = [frame_at(ft, q) for q in qt]

@@ -36,9 +36,9 @@ from torch import Tensor
 
 from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
-from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
+from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import frame_at, interpolate, window
 

@@ -245,8 +245,7 @@ _UNITS_APART = 1e-6
 
 class CandidateCache:
     """The bandwidth candidates of each query a clip's calls have filtered, so that a query's candidates serve
-    its own blend and its neighbours' evidence (:func:`_select_bandwidth`'s ``neighbours``) and are filtered
-    once. An entry comes from its query's window alone, so it holds the same bytes whichever call made it;
+    its own blend and its neighbours' evidence (:func:`_pooled_selection`) and are filtered once. An entry comes from its query's window alone, so it holds the same bytes whichever call made it;
     the caller keeps one cache per clip and settings. Calls on several threads share it: an entry another
     thread is filtering is waited for."""
 
@@ -256,23 +255,26 @@ class CandidateCache:
 
     def get(self, keys: list, compute) -> list:
         """The entries of ``keys``; those no call has made yet come from ``compute(missing keys)`` (a list of
-        entries), made here."""
+        entries), made here. An entry released meanwhile (:meth:`release_before`) is still returned."""
         with self._lock:
-            mine = [k for k in keys if k not in self._entries]
-            for k in mine:
-                self._entries[k] = Future()
+            futures, mine = {}, []
+            for k in keys:
+                if k not in self._entries:
+                    self._entries[k] = Future()
+                    mine.append(k)
+                futures[k] = self._entries[k]
         if mine:
             try:
                 for k, v in zip(mine, compute(mine)):
-                    self._entries[k].set_result(v)
+                    futures[k].set_result(v)
             except BaseException as err:
                 with self._lock:
                     for k in mine:
-                        self._entries.pop(k).set_exception(err)
+                        if self._entries.get(k) is futures[k]:
+                            del self._entries[k]
+                        futures[k].set_exception(err)
                 raise
-        with self._lock:
-            futures = [self._entries[k] for k in keys]
-        return [f.result() for f in futures]
+        return [futures[k].result() for k in keys]
 
     def release_before(self, time: float) -> None:
         """Forget the entries of queries before ``time`` (a streamed clip's windows have moved past them)."""
