@@ -298,33 +298,52 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     # window short makes its own entry) and what another call's state may set otherwise
     key = (settings.temporal_radius, float(sigma_s), float(range_scale), cell)
 
-    def compute(keys: list) -> list:
-        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, [k[0] for k in keys], sigma_s, range_scale,
-                                  level, pooling, cell)
+    def compute(times: list) -> list:
+        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s, range_scale, level, pooling,
+                                  cell)
         planes = c.residuals()
-        return [(c.query(i), planes[:, i:i + 1]) for i in range(len(keys))]
+        return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(len(times))]
 
     keys = [(ft[k], tuple(ft[j] for j in window(ft, ft[k], settings.temporal_radius)), *key) for k in need]
-    got = dict(zip(need, (cache.get(keys, compute) if cache is not None else compute(keys))))
-    cands = _Candidates.cat([got[k][0] for k in idx])
+    got = dict(zip(need, (cache.get(keys, lambda ks: compute([k[0] for k in ks])) if cache is not None
+                          else compute([ft[k] for k in need]))))
+    # a query's own candidates, made again where the cache kept only what it lends (a query asked twice)
+    again = [k for k in idx if got[k].candidates is None]
+    if again:
+        for k, lent in zip(again, compute([ft[k] for k in again])):
+            got[k] = lent
+    cands = _Candidates.cat([got[k].candidates for k in idx])
+    if cache is not None:  # what a cache holds of a blended query is what it lends its neighbours
+        for k in idx:
+            got[k].candidates = None
     J = max((len(ns) for ns in neighbours), default=0)
     if J == 0:
         return cands.blend(settings.selection_softness)
-    planes, shape = got[idx[0]][1], guide.shape
-    others = planes.new_zeros((J, planes.shape[0], len(qt), 1, *shape[2:]))
-    weights = planes.new_zeros((J, len(qt), 1, *shape[2:]))
+    planes = got[idx[0]].residuals
+    others = planes.new_zeros((J, planes.shape[0], len(qt), 1, *guide.shape[2:]))
+    weights = planes.new_zeros((J, len(qt), 1, *guide.shape[2:]))
     for i, (k, ns) in enumerate(zip(idx, neighbours)):
         ranges = (sigmas[k] * range_scale).to(guide.dtype).clamp_min(1e-30)[:, None, None]  # the query's
         for j, n in enumerate(ns):
             # in the query's units; a neighbour whose units lie orders of magnitude away (a black frame
             # beside lit ones) lends nothing
-            factor = float((cands.units[i] / got[n][0].units[0]) ** 2)
+            factor = float((cands.units[i] / got[n].units) ** 2)
             if not _UNITS_APART < factor < 1.0 / _UNITS_APART:
                 continue
-            others[j, :-1, i] = got[n][1][:-1, 0] * factor
-            others[j, -1, i] = got[n][1][-1, 0]
+            others[j, :-1, i] = got[n].residuals[:-1, 0] * factor
+            others[j, -1, i] = got[n].residuals[-1, 0]
             weights[j, i, 0] = torch.exp(-0.5 * (((guide[n] - guide[k]) / ranges) ** 2).sum(0))
     return cands.blend(settings.selection_softness, others, weights)
+
+
+class _Lent:
+    """A query's entry in a :class:`CandidateCache`: its bandwidth candidates until its own blend is done,
+    and what it lends its neighbours' blends, its residual planes ``(K + 1, 1, 1, H, W)`` and their units."""
+
+    __slots__ = ("candidates", "residuals", "units")
+
+    def __init__(self, candidates: _Candidates | None, residuals: Tensor, units: Tensor):
+        self.candidates, self.residuals, self.units = candidates, residuals, units
 
 
 def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
