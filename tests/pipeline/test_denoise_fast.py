@@ -173,8 +173,8 @@ def test_bandwidth_selection_blend_equals_reference(frame, with_level):
 
 
 def _evidence_case(frame):
-    """One query's candidates on the rendered frame and two neighbours' residual planes (the same frame with
-    its samples shuffled in brightness), with per-pixel weights that run from 0 to 1."""
+    """One query's candidates on the rendered frame and two neighbours' residual planes (its own, scaled by
+    random factors of 0.5-1.5 per pixel), with per-pixel weights that run from 0 to 1."""
     st = DenoiseSettings()
     e, m = frame["e"], frame["mask"]
     guide, sig, _ = D._guide(frame["f"], FEATURES, e, m, st)
