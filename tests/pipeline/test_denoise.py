@@ -1547,12 +1547,18 @@ def test_spatial_sigma_from_the_sample_count():
 
 def test_gradient_through_the_denoiser_is_finite():
     """With a gradient the denoiser runs its PyTorch stages; a bandwidth's prediction with no support (NaN)
-    is left out of the blend without its NaN reaching the gradient."""
+    is left out of the blend without its NaN reaching the gradient, and the neighbours' evidence passes none
+    through its units (no warning of a tensor that needs a gradient read as a number)."""
+    import warnings
+
     g = torch.Generator().manual_seed(0)
     c = (torch.rand(3, 3, 40, 48, generator=g) * 2).requires_grad_(True)
     f = torch.rand(3, 7, 40, 48, generator=g)
     names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
-    y = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1, mode="spacetime"), query_times=[1.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        y = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1, mode="spacetime"),
+                           query_times=[1.0])
     (grad,) = torch.autograd.grad(y.sum(), c)
     assert y.isfinite().all() and grad.isfinite().all() and grad.abs().sum() > 0
 

@@ -396,7 +396,9 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     blurs = [st.selection_blur if pooling is None else
              max(st.selection_blur, min(st.selection_blur * float(pooling[k]), widest)) for k in idx]
     if at_frames:
-        return _Candidates(fulls, preds, e, weight, mask, blurs, units=(unit.double() / scale.double()).view(-1))
+        # a unit, as scale is: no gradient passes it
+        units = (unit.detach().double() / scale.double()).view(-1)
+        return _Candidates(fulls, preds, e, weight, mask, blurs, units=units)
     groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
 
     def part(xs: list, g: list) -> list:
