@@ -65,9 +65,10 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     g.add_argument("--albedo-radius", type=int, default=d.albedo_radius,
                    help="with a time window and world positions, the frames on each side whose samples of a "
                         "pixel's albedo join it (%(default)s)")
-    g.add_argument("--evidence-radius", type=int, default=d.evidence_radius if evidence_radius is None else
-                   evidence_radius, help="with a time window, the frames on each side whose queries lend their "
-                                         "cross-validated errors to a frame's bandwidth selection (%(default)s)")
+    g.add_argument("--evidence-radius", type=int,
+                   default=d.evidence_radius if evidence_radius is None else evidence_radius,
+                   help="with a time window, the frames on each side whose queries lend their "
+                        "cross-validated errors to a frame's bandwidth selection (%(default)s)")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")

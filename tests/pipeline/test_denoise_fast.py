@@ -180,7 +180,8 @@ def _evidence_case(frame):
     guide, sig, _ = D._guide(frame["f"], FEATURES, e, m, st)
     c = SEL._bandwidth_candidates(e, m, guide, sig, st, [0.0], [0.0], st.sigma_s, 1.0, None)
     g = torch.Generator().manual_seed(3)
-    others = torch.stack([c.residuals() * (0.5 + torch.rand(c.residuals().shape, generator=g)) for _ in range(2)])
+    planes = c.residuals()
+    others = torch.stack([planes * (0.5 + torch.rand(planes.shape, generator=g)) for _ in range(2)])
     weights = torch.rand(2, 1, 1, *e.shape[2:], generator=g)
     return c, others, weights
 

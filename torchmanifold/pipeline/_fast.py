@@ -20,8 +20,9 @@ from torch import Tensor
 from torchmanifold._threads import call_parallel, parallel
 
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds",
-           "footprint_average", "kuwahara3", "cv_blend", "cv_residuals", "quantiles", "cv_halves", "cv_split", "sanitize",
-           "normalised_blur", "box_mean", "same_pixel", "footprint_samples", "edge_directions", "along_edges"]
+           "footprint_average", "kuwahara3", "cv_blend", "cv_residuals", "quantiles", "cv_halves", "cv_split",
+           "sanitize", "normalised_blur", "box_mean", "same_pixel", "footprint_samples", "edge_directions",
+           "along_edges"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()

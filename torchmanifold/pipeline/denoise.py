@@ -77,7 +77,7 @@ from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, 
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
 from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, CandidateCache, _cv_cell, _pooled_selection,
                                              _select_bandwidth, _select_flat_width)
-from torchmanifold.timewindow import frame_at, window
+from torchmanifold.timewindow import frame_at, index_window, window
 
 __all__ = [
     "DenoiseSettings",
@@ -789,7 +789,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
     if any(wide):
         if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
-            return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache) for q in qt])
+            return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache)
+                              for q in qt])
         settings = replace(settings, temporal_radius=settings.joined_radius)
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     s = state
@@ -808,11 +809,11 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             neighbours = _lenders(kinds, settings, ft, qt)
 
             def filt(values, mask):
+                args = (values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale, s.level,
+                        s.pooling, int(s.cv_cell.max()))
                 if neighbours is None:
-                    return _select_bandwidth(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                             s.level, s.pooling, int(s.cv_cell.max()))
-                return _pooled_selection(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
-                                         s.level, s.pooling, int(s.cv_cell.max()), neighbours, cache)
+                    return _select_bandwidth(*args)
+                return _pooled_selection(*args, neighbours, cache)
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
             # blended at the frames the queries take it from (all where a query lies between frames) that
@@ -859,8 +860,7 @@ def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: 
     r = settings.lending_radius
     if r == 0 or None in at:
         return None
-    return [[n for n in range(max(0, k - r), min(len(ft), k + r + 1)) if n != k and kinds[n] == kinds[k]]
-            for k in at]
+    return [[n for n in index_window(len(ft), k, r) if n != k and kinds[n] == kinds[k]] for k in at]
 
 
 def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],

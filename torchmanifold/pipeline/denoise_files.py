@@ -201,7 +201,8 @@ def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list
     """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
     float32, and the frame's stats; ``candidates``: the clip's, which its neighbouring windows share."""
     states = [s.result() for s in states]
-    y = denoise_prepared(FrameState.cat(states), settings, ids, [t], cache=candidates).to(torch.float32)[0].numpy()
+    y = denoise_prepared(FrameState.cat(states), settings, ids, [t], cache=candidates)
+    y = y.to(torch.float32)[0].numpy()
     stats = states[ids.index(t)].stats()
     return y, {k: stats[k] for k in FRAME_STATS}
 

@@ -161,14 +161,15 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
     Returns:
         ``(Q, 3, H, W)`` at the query times.
     """
-    return _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, qt, sigma_s, range_scale, level, pooling,
-                                 cell).blend(settings.selection_softness)
+    candidates = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, qt, sigma_s, range_scale, level,
+                                       pooling, cell)
+    return candidates.blend(settings.selection_softness)
 
 
 @dataclass
 class _Candidates:
-    """:func:`_select_bandwidth` before its blend: the K bandwidths' outputs ``fulls`` (each ``(Q, 3, H, W)``) at
-    the queries, and how to weigh them. Where every query is a frame (``z2`` ``None``): each query's
+    """:func:`_select_bandwidth` before its blend: the K bandwidths' outputs ``fulls`` (each ``(Q, 3, H, W)``)
+    at the queries, and how to weigh them. Where every query is a frame (``z2`` ``None``): each query's
     predictions of its samples from the other half ``preds``, the samples ``e`` (in the window's brightness
     unit), their relative ``weight`` and ``mask`` (``(Q, 3 | 1, H, W)``), and each query's pooling width
     ``blurs``; otherwise the z^2 of every candidate, interpolated to the queries."""
@@ -195,8 +196,8 @@ class _Candidates:
             return [torch.cat(x) for x in zip(*xs)]
         if len(cs) == 1:
             return cs[0]
-        return _Candidates(join([c.fulls for c in cs]), join([c.preds for c in cs]), torch.cat([c.e for c in cs]),
-                           torch.cat([c.weight for c in cs]), torch.cat([c.mask for c in cs]),
+        return _Candidates(join([c.fulls for c in cs]), join([c.preds for c in cs]),
+                           *(torch.cat([getattr(c, n) for c in cs]) for n in ("e", "weight", "mask")),
                            [b for c in cs for b in c.blurs], units=torch.cat([c.units for c in cs]))
 
     def residuals(self) -> Tensor:
@@ -206,36 +207,53 @@ class _Candidates:
         brightness unit, which differ from query to query)."""
         return _residual_planes(self.preds, self.e, self.weight, self.mask)
 
-    def blend(self, softness: float, others: Tensor | None = None, other_weights: Tensor | None = None) -> Tensor:
+    def blend(self, softness: float, others: Tensor | None = None,
+              other_weights: Tensor | None = None) -> Tensor:
         """The candidates blended per pixel, ``(Q, 3, H, W)``. ``others`` ``(J, K + 1, Q, 1, H, W)``: the
         residual planes of J neighbouring queries, pooled with each query's own under ``other_weights``
         ``(J, Q, 1, H, W)`` (:func:`_excess_error_z2`)."""
         if self.z2 is not None:
             return _blend(self.fulls, self.z2, softness)
-        n = len(self.blurs)
-        groups = [list(range(n))] if len(set(self.blurs)) == 1 else [[i] for i in range(n)]
+        own = [self.e, self.weight, self.mask]
+        if not (softness > 0 and self.blurs[0] > 0 and _fast.enabled(*own, *self.preds, *self.fulls)):
+            z2 = _z2_by_width(self.preds, *own, self.blurs, others, other_weights)
+            return _blend(self.fulls, z2, softness)
+        outs = []
+        for g in _width_groups(self.blurs):
+            o, w = _lenders_part(others, other_weights, g)
+            if o is not None:
+                o, w = o[:, :, :, 0], w[:, :, 0]
+            preds, fulls = _frames_of(self.preds, g), _frames_of(self.fulls, g)
+            outs.append(_fast.cv_blend(preds, fulls, *_frames_of(own, g), self.blurs[g[0]], softness,
+                                       _SELECTION_ERROR_CUT, o, w))
+        return torch.cat(outs)
 
-        def part(xs: list, g: list) -> list:
-            return [x if len(groups) == 1 else _frames(x, g) for x in xs]
 
-        def ev(g: list) -> tuple:
-            if others is None or len(groups) == 1:
-                return others, other_weights
-            return others[:, :, g[0]:g[-1] + 1], other_weights[:, g[0]:g[-1] + 1]
+def _width_groups(blurs: list) -> list[list[int]]:
+    """The queries that pool over one width, which go in one call (frames pool apart)."""
+    return [list(range(len(blurs)))] if len(set(blurs)) == 1 else [[i] for i in range(len(blurs))]
 
-        e, weight, mask = self.e, self.weight, self.mask
-        if softness > 0 and self.blurs[0] > 0 and _fast.enabled(e, weight, mask, *self.preds, *self.fulls):
-            outs = []
-            for g in groups:
-                o, w = ev(g)
-                if o is not None:
-                    o, w = o[:, :, :, 0], w[:, :, 0]
-                outs.append(_fast.cv_blend(part(self.preds, g), part(self.fulls, g), *part([e, weight, mask], g),
-                                           self.blurs[g[0]], softness, _SELECTION_ERROR_CUT, o, w))
-            return torch.cat(outs)
-        z2 = torch.cat([_candidate_z2(part(self.preds, g), *part([e, weight, mask], g), self.blurs[g[0]], *ev(g))
-                        for g in groups], 1)
-        return _blend(self.fulls, z2, softness)
+
+def _frames_of(xs: list, g: list) -> list:
+    """Each of ``xs`` at the queries ``g`` (views: a group is a run of queries)."""
+    return [_frames(x, g) for x in xs]
+
+
+def _lenders_part(others: Tensor | None, other_weights: Tensor | None, g: list) -> tuple:
+    """The neighbours' residual planes ``(J, K + 1, Q, ...)`` and weights ``(J, Q, ...)`` at the queries
+    ``g``."""
+    if others is None:
+        return None, None
+    return others[:, :, g[0]:g[-1] + 1], other_weights[:, g[0]:g[-1] + 1]
+
+
+def _z2_by_width(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blurs: list,
+                 others: Tensor | None = None, other_weights: Tensor | None = None) -> Tensor:
+    """:func:`_candidate_z2` of the queries, each group of one pooling width (``blurs``) in one call:
+    ``(K, Q, 1, H, W)``."""
+    return torch.cat([_candidate_z2(_frames_of(preds, g), *_frames_of([e, weight, mask], g), blurs[g[0]],
+                                    *_lenders_part(others, other_weights, g))
+                      for g in _width_groups(blurs)], 1)
 
 
 #: how far apart two queries' residual units may lie for one to lend the other its residuals (a factor; a
@@ -245,8 +263,9 @@ _UNITS_APART = 1e-6
 
 class CandidateCache:
     """The bandwidth candidates of each query a clip's calls have filtered, so that a query's candidates serve
-    its own blend and its neighbours' evidence (:func:`_pooled_selection`) and are filtered once. An entry comes from its query's window alone, so it holds the same bytes whichever call made it;
-    the caller keeps one cache per clip and settings. Calls on several threads share it: an entry another
+    its own blend and its neighbours' evidence (:func:`_pooled_selection`) and are filtered once. An entry
+    comes from its query's window alone, so it holds the same bytes whichever call made it; the caller keeps
+    one cache per clip and settings. Calls on several threads share it: an entry another
     thread is filtering is waited for."""
 
     def __init__(self):
@@ -284,8 +303,8 @@ class CandidateCache:
 
 
 def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
-                      ft: list[float], qt: list[float], sigma_s: float, range_scale: float, level: Tensor | None,
-                      pooling: Tensor | None, cell: int, neighbours: list[list[int]],
+                      ft: list[float], qt: list[float], sigma_s: float, range_scale: float,
+                      level: Tensor | None, pooling: Tensor | None, cell: int, neighbours: list[list[int]],
                       cache: CandidateCache | None) -> Tensor:
     """:func:`_select_bandwidth` at queries that are frames, each blending with its neighbouring frames'
     cross-validated residuals as evidence (``neighbours``: per query, the frame indices whose queries lend
@@ -299,8 +318,8 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     key = (settings.temporal_radius, float(sigma_s), float(range_scale), cell)
 
     def compute(times: list) -> list:
-        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s, range_scale, level, pooling,
-                                  cell)
+        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s, range_scale, level,
+                                  pooling, cell)
         planes = c.residuals()
         return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(len(times))]
 
@@ -399,12 +418,7 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
         # a unit, as scale is: no gradient passes it
         units = (unit.detach().double() / scale.double()).view(-1)
         return _Candidates(fulls, preds, e, weight, mask, blurs, units=units)
-    groups = [list(range(len(idx)))] if len(set(blurs)) == 1 else [[i] for i in range(len(idx))]
-
-    def part(xs: list, g: list) -> list:
-        return [x if len(groups) == 1 else _frames(x, g) for x in xs]
-
-    z2 = torch.cat([_candidate_z2(part(preds, g), *part([e, weight, mask], g), blurs[g[0]]) for g in groups], 1)
+    z2 = _z2_by_width(preds, e, weight, mask, blurs)
     return _Candidates(fulls, z2=torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2]))
 
 
@@ -465,18 +479,19 @@ def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur:
 
 
 def _residual_planes(preds: list, e: Tensor, weight: Tensor, mask: Tensor) -> Tensor:
-    """Each candidate's squared cross-validation residuals ``(K + 1, T, 1, H, W)`` from its predictions ``preds``
-    of the samples ``e`` ``(T, 3, H, W)``, weighted by ``weight`` ``(T, 1, H, W)``, then ``mask``."""
+    """Each candidate's squared cross-validation residuals ``(K + 1, T, 1, H, W)`` from its predictions
+    ``preds`` of the samples ``e`` ``(T, 3, H, W)``, weighted by ``weight`` ``(T, 1, H, W)``, then
+    ``mask``."""
     if _fast.enabled(e, weight, mask, *preds):
         return _fast.cv_residuals(preds, e, weight, mask)[:, :, None]
     return torch.cat([_squared_residuals(preds, e, weight)[0], mask[None]])
 
 
 def _squared_residuals(preds: list, e: Tensor, weight: Tensor) -> tuple[Tensor, Tensor]:
-    """``(K, T, 1, H, W)`` weighted squared residuals of ``preds`` against ``e``, and where each prediction held
-    (bool, like them). A prediction with no sample of the other half under its kernel (NaN) tells nothing of
-    its error: it pools as the worst candidate's residual there (its residual is taken as 0 first, so no NaN
-    reaches a gradient)."""
+    """``(K, T, 1, H, W)`` weighted squared residuals of ``preds`` against ``e``, and where each prediction
+    held (bool, like them). A prediction with no sample of the other half under its kernel (NaN) tells
+    nothing of its error: it pools as the worst candidate's residual there (its residual is taken as 0 first,
+    so no NaN reaches a gradient)."""
     held = torch.stack([~torch.isnan(p).any(1, keepdim=True) for p in preds])  # (K, T, 1, H, W)
     sq = torch.stack([(torch.where(h, p - e, 0.0) ** 2).sum(1, keepdim=True) * weight
                       for p, h in zip(preds, held)])
@@ -485,8 +500,8 @@ def _squared_residuals(preds: list, e: Tensor, weight: Tensor) -> tuple[Tensor, 
     return torch.where(held, sq, torch.where(torch.isfinite(worst), worst, 0.0)), held
 
 
-def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float, others: Tensor | None = None,
-                  other_weights: Tensor | None = None) -> Tensor:
+def _candidate_z2(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blur: float,
+                  others: Tensor | None = None, other_weights: Tensor | None = None) -> Tensor:
     """``z^2`` of each candidate's error in excess of the least one's (:func:`_excess_error_z2`), ``(K, T, 1,
     H, W)``, from its predictions ``preds`` of the samples ``e`` ``(T, 3, H, W)``, the squared residuals
     weighted by ``weight`` and pooled over ``blur`` pixels (with neighbours' ``others`` as there). A candidate
@@ -514,17 +529,18 @@ def _excess_error_z2(sq: Tensor, mask: Tensor, blur: float, allowed: Tensor, oth
     neighbour's ``other_weights`` ``(J, T, 1, H, W)``, normalised (a bias at a place persists from frame to
     frame where the noise does not, so its evidence adds up).
     """
+    # in time first: the kernel's weights k (pooled error, pool), their squares k^2 (spreads s1, m2, d2)
     sq_b, mask_b, pair_terms = sq, mask, None
     if others is not None:
-        w = other_weights
-        total = 1.0 + w.sum(0)
-        sq_a = (sq + (w[:, None] * others[:, :-1]).sum(0)) / total
-        sq_b = (sq + (w[:, None] ** 2 * others[:, :-1]).sum(0)) / total ** 2
-        mask, mask_b = (mask + (w * others[:, -1]).sum(0)) / total, (mask + (w ** 2 * others[:, -1]).sum(0)) / total ** 2
-        K = sq.shape[0]
-        pair_terms = {(a, b): ((sq[b] - sq[a]) ** 2 + (w ** 2 * (others[:, b] - others[:, a]) ** 2).sum(0)) / total ** 2
-                      for a in range(K) for b in range(a + 1, K)}
-        sq = sq_a
+        w, total = other_weights, 1.0 + other_weights.sum(0)
+
+        def pooled(own: Tensor, theirs: Tensor, wj: Tensor, power: int) -> Tensor:
+            return (own + (wj ** power * theirs).sum(0)) / total ** power
+        wk = w[:, None]  # over the candidates
+        sq_b, mask_b = pooled(sq, others[:, :-1], wk, 2), pooled(mask, others[:, -1], w, 2)
+        pair_terms = {(a, b): pooled((sq[b] - sq[a]) ** 2, (others[:, b] - others[:, a]) ** 2, w, 2)
+                      for a in range(sq.shape[0]) for b in range(a + 1, sq.shape[0])}
+        sq, mask = pooled(sq, others[:, :-1], wk, 1), pooled(mask, others[:, -1], w, 1)
     K = sq.shape[0]
     pool = footprint_blur(mask, blur).clamp_min(1e-6)
     err = footprint_blur(sq.flatten(0, 1), blur).view_as(sq) / pool
