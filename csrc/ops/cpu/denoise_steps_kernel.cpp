@@ -771,7 +771,9 @@ at::Tensor cv_blend_cpu(const at::Tensor& preds_, const at::Tensor& fulls_, cons
         if (J > 0) {
           const T* po_ = others.data_ptr<T>();
           const T* pow_ = ow.data_ptr<T>();
-          auto other = [&](int64_t j, int64_t kk, int64_t x) { return po_[((j * (K + 1) + kk) * Tn + t) * HW + y * W + x]; };
+          auto other = [&](int64_t j, int64_t kk, int64_t x) {
+            return po_[((j * (K + 1) + kk) * Tn + t) * HW + y * W + x];
+          };
           auto wt = [&](int64_t j, int64_t x) { return pow_[(j * Tn + t) * HW + y * W + x]; };
           for (int64_t x = 0; x < W; ++x) {
             T s = T(1);
