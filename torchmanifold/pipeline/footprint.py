@@ -10,7 +10,8 @@ edge the footprint reaches further, as far as the few samples' share of either s
 (:func:`_before_footprint`). Where the renderer gives world positions the window's other frames add their
 samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall in the pixel's
 square (:func:`_window_albedo`); where they scatter across a surface against the pixel grid (a defocused
-texture), the albedo itself is averaged before the frame step reads it (:func:`_scattered_albedo`).
+texture), the albedo itself is averaged before the frame step reads it (:func:`_scattered_albedo`); without
+world positions, where the albedo is salt and pepper over one smooth surface (:func:`_speckled`).
 """
 from __future__ import annotations
 
@@ -364,8 +365,8 @@ def _position(f: Tensor, names: Sequence[str]) -> Tensor | None:
 #: Frames 0-2 of `mi_indirect_dof` from 1 / 4 spp: the post's features blurred by hand gained +1.1 / +1.0 dB,
 #: the albedo alone +0.9 / +0.9 (findings.md); this rule, before the bound on depth below, +0.88 / +0.49 (0.7
 #: / 0.9 of it in depth: +0.82 / +0.44, +0.90 / +0.53). Every other Mitsuba clip of the set, of the probes and
-#: at 256x256 keeps its bits: its scatter never fills the window below. Without world positions and depth (our
-#: tracer, Blender without its Position pass) nothing changes.
+#: at 256x256 keeps its bits: its scatter never fills the window below. Without world positions (our tracer,
+#: Blender without its Position pass) the albedo alone tells it, less surely (:data:`_SPECKLE_BOX`).
 _SCATTER_SPACINGS = 3.0
 _SCATTER_ALONG_DEPTH = 0.8
 #: and depth's own second difference stays under this many spacings: one surface at about one depth. Under a
@@ -382,6 +383,27 @@ _SCATTER_DENSITY = 0.4
 #: the averaged albedo's Gaussian, pixels: the hand-blurred post gained as much at 2 and 3 px, 0.2 dB less
 #: at 1
 _SCATTERED_ALBEDO_SIGMA = 2.0
+
+#: Without world positions (Blender writes none in the set's layout) a lens's scatter shows in the albedo
+#: alone: neighbouring pixels' albedos are independent points of the texture, white noise at the pixel scale,
+#: which a single frame shares with a texture finer than the pixels and a rod's partial coverage. Three tests
+#: tell a lens's: the ratio of the squared differences of pixels 1 apart to those of pixels 2 apart over a
+#: (2 :data:`_SPECKLE_BOX` + 1)^2 box (1 for white noise, about 0.5 across an edge, 0.25 on a gradient; the
+#: weight rises from :data:`_SPECKLE_RATIO`'s first value to its second) with the albedo's spread there over
+#: :data:`_SPECKLE_SPREAD` of its mean; an area, the mask opened by a (2 :data:`_SPECKLE_AREA` + 1)^2 square
+#: (edges, rods and a checker's corners are lines and points); one smooth surface, every depth within
+#: :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3 median (a wireframe before the ground
+#: far behind it, a horizon, are not). Set on the tuning clips read without their positions: `mi_indirect_dof`
+#: (its defocused post), all frames from 1 / 4 spp, +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the
+#: ratio's ramp from 0.7 / 0.65 gained 0.08 / 0.10 and 0.12 / 0.15 more on the post but lost the room 0.10 / 0.04
+#: and 0.25 / 0.13; a 7x7 opening lost `bl_glass_caustic` 0.03 / 0.01 (points by its checker's corners and in
+#: its glass). Held out: `bl_indirect_dof` at 128x128 +0.32 / +0.18, at 256x256 +0.45 / +0.40; every other
+#: Blender clip within 0.002 dB (findings.md).
+_SPECKLE_BOX = 3
+_SPECKLE_RATIO = (0.75, 0.95)
+_SPECKLE_SPREAD = 0.05
+_SPECKLE_AREA = 4
+_SPECKLE_DEPTH, _SPECKLE_REACH = 0.05, 2
 
 
 def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
@@ -421,18 +443,59 @@ def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> 
     return ((density - _SCATTER_DENSITY) / (0.5 * (1 - _SCATTER_DENSITY))).clamp(0.0, 1.0)
 
 
+def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
+    """How surely each pixel's albedo is a lens's salt and pepper over one smooth surface, ``(T, 1, H, W)`` in
+    [0, 1], from the albedo ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` alone (0: no hit), where ``valid``
+    (bool, like depth; all by default) marks the pixels whose features are samples (the tests above
+    :data:`_SPECKLE_BOX`). 0 in a frame too small for a difference of pixels 2 apart."""
+    if min(albedo.shape[-2:]) < 3:
+        return torch.zeros_like(depth)
+    # the statistics of the surface's samples alone: no sky's or sanitised pixel's albedo enters them
+    hit = (depth > 0) if valid is None else (depth > 0) & valid
+    h = hit.to(albedo.dtype)
+    lum = albedo.mean(1, keepdim=True) * h
+
+    def squared_differences(k: int) -> Tensor:  # of pixels k apart along x and along y, 0 past the border
+        pad = torch.nn.functional.pad
+        dx = (lum[..., :, k:] - lum[..., :, :-k]).square() * h[..., :, k:] * h[..., :, :-k]
+        dy = (lum[..., k:, :] - lum[..., :-k, :]).square() * h[..., k:, :] * h[..., :-k, :]
+        return pad(dx, (0, k, 0, 0)) + pad(dy, (0, 0, 0, k))
+
+    def ratio_of(a: Tensor, b: Tensor) -> Tensor:
+        return torch.where(b > 0, a / torch.where(b > 0, b, 1.0), 0.0)
+    ratio = ratio_of(_box_mean(squared_differences(1), _SPECKLE_BOX), _box_mean(squared_differences(2), _SPECKLE_BOX))
+    lo, hi = _SPECKLE_RATIO
+    count = _box_mean(h, _SPECKLE_BOX)
+    mean = ratio_of(_box_mean(lum, _SPECKLE_BOX), count)
+    spread = (ratio_of(_box_mean(lum.square(), _SPECKLE_BOX), count) - mean.square()).clamp_min(0.0).sqrt()
+    w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * (spread > _SPECKLE_SPREAD * mean.abs()).to(lum.dtype)
+    # an area: what survives an erosion by the square, dilated back
+    k, r = 2 * _SPECKLE_AREA + 1, _SPECKLE_AREA
+    pool = torch.nn.functional.max_pool2d
+    core = -pool(-(w > 0.5).to(lum.dtype), k, 1, r)
+    w = w * pool(core, k, 1, r)
+    # one smooth surface: no depth jump, no pixel without a hit or a sample within reach
+    padded = torch.nn.functional.pad(depth, (1, 1, 1, 1), mode="replicate")
+    median = padded.unfold(-2, 3, 1).unfold(-2, 3, 1).reshape(*depth.shape, 9).median(-1).values
+    rough = ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
+    reach = 2 * _SPECKLE_REACH + 1
+    return w * (1.0 - pool(rough.to(lum.dtype), reach, 1, _SPECKLE_REACH))
+
+
 def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = None) -> Tensor:
     """Features ``f`` ``(T, D, H, W)`` named ``names`` with the albedo averaged over
     :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`, among
-    the pixels of nonzero ``mask`` ``(T, 1, H, W)``, all by default); ``f`` itself without world positions,
-    depth or albedo, or where nothing scatters."""
+    the pixels of nonzero ``mask`` ``(T, 1, H, W)``, all by default), or without world positions where the
+    albedo is salt and pepper over one smooth surface (:func:`_speckled`); ``f`` itself without depth or
+    albedo, or where nothing scatters."""
     canon = [feature_table.canonical_name(n) for n in names]
     position = _position(f, names)
     albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
     (depth,) = feature_table.feature("Z").channels
-    if position is None or depth not in canon or len(albedo) != 3:
+    if depth not in canon or len(albedo) != 3:
         return f
-    w = _scattered(position, f[:, canon.index(depth)][:, None], None if mask is None else mask > 0)
+    z, valid = f[:, canon.index(depth)][:, None], None if mask is None else mask > 0
+    w = _speckled(f[:, albedo], z, valid) if position is None else _scattered(position, z, valid)
     if not bool((w > 0).any()):
         return f
     a = f[:, albedo]
