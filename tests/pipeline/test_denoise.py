@@ -2204,6 +2204,19 @@ def test_speckle_is_found_where_the_albedo_is_salt_and_pepper_on_one_surface(kin
         assert float(w.max()) == 0.0
 
 
+def test_speckle_helpers_match_torch():
+    """The 3x3 median by a compare-exchange network and the dilation by a box mean: the values of
+    ``torch.median`` over unfolded boxes (ties included) and of ``max_pool2d``, bit for bit."""
+    g = torch.Generator().manual_seed(6)
+    pool = torch.nn.functional.max_pool2d
+    for x in (torch.rand(2, 1, 23, 31, generator=g), torch.randint(0, 3, (1, 1, 17, 9), generator=g).float()):
+        boxes = torch.nn.functional.pad(x, (1, 1, 1, 1), mode="replicate").unfold(-2, 3, 1).unfold(-2, 3, 1)
+        assert torch.equal(FP._median3x3(x), boxes.reshape(*x.shape, 9).median(-1).values)
+        m = x > x.mean()
+        for r in (1, 4):
+            assert torch.equal(FP._any_within(m, r), pool(m.float(), 2 * r + 1, 1, r) > 0)
+
+
 def test_speckle_averages_the_albedo_of_features_without_positions():
     """`_scattered_albedo` takes the albedo's own test where there are no world positions: the salt and pepper
     is averaged, the plain surface beside it keeps its bits; a sample that was not finite (0 after
