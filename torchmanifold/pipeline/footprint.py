@@ -395,10 +395,10 @@ _SCATTERED_ALBEDO_SIGMA = 2.0
 #: :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3 median (a wireframe before the ground
 #: far behind it, a horizon, are not). Set on the tuning clips read without their positions: `mi_indirect_dof`
 #: (its defocused post), all frames from 1 / 4 spp, +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the
-#: ratio's ramp from 0.7 / 0.65 gained 0.08 / 0.10 and 0.12 / 0.15 more on the post but lost the room 0.10 / 0.04
-#: and 0.25 / 0.13; a 7x7 opening lost `bl_glass_caustic` 0.03 / 0.01 (points by its checker's corners and in
-#: its glass). Held out: `bl_indirect_dof` at 128x128 +0.32 / +0.18, at 256x256 +0.45 / +0.40; every other
-#: Blender clip within 0.002 dB (findings.md).
+#: ratio's ramp from 0.7 / 0.65 gained 0.08 / 0.10 and 0.12 / 0.15 more on the post but lost the room
+#: 0.10 / 0.04 and 0.25 / 0.13; a 7x7 opening lost `bl_glass_caustic` 0.03 / 0.01 (points by its checker's
+#: corners and in its glass). Held out: `bl_indirect_dof` at 128x128 +0.32 / +0.18, at 256x256 +0.45 /
+#: +0.40; every other Blender clip within 0.02 dB (findings.md).
 _SPECKLE_BOX = 3
 _SPECKLE_RATIO = (0.75, 0.95)
 _SPECKLE_SPREAD = 0.05
@@ -463,7 +463,8 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
 
     def ratio_of(a: Tensor, b: Tensor) -> Tensor:
         return torch.where(b > 0, a / torch.where(b > 0, b, 1.0), 0.0)
-    ratio = ratio_of(_box_mean(squared_differences(1), _SPECKLE_BOX), _box_mean(squared_differences(2), _SPECKLE_BOX))
+    near, far = (_box_mean(squared_differences(k), _SPECKLE_BOX) for k in (1, 2))
+    ratio = ratio_of(near, far)
     lo, hi = _SPECKLE_RATIO
     count = _box_mean(h, _SPECKLE_BOX)
     mean = ratio_of(_box_mean(lum, _SPECKLE_BOX), count)
@@ -478,14 +479,14 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
 
 
 def _any_within(mask: Tensor, r: int) -> Tensor:
-    """Where bool ``mask`` ``(..., H, W)`` holds anywhere in the (2r+1)^2 box around a pixel (its binary dilation,
-    no pixel beyond the border): a box mean above 0, exact for counts."""
+    """Where bool ``mask`` ``(..., H, W)`` holds anywhere in the (2r+1)^2 box around a pixel (its binary
+    dilation, no pixel beyond the border): a box mean above 0, exact for counts."""
     return _box_mean(mask.to(torch.float32), r) > 0
 
 
 #: compare-exchanges whose 5th output is the median of 9 (Paeth's network, as in Devillard's ``opt_med9``)
-_MEDIAN_OF_9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3), (5, 8), (4, 7),
-                (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
+_MEDIAN_OF_9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3), (5, 8),
+                (4, 7), (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
 
 
 def _median3x3(x: Tensor) -> Tensor:
