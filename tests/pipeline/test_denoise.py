@@ -2166,7 +2166,8 @@ def _speckle_case(kind: str):
     """Albedo ``(1, 3, H, W)`` and depth ``(1, 1, H, W)`` of one plane at depth 2 whose columns 16-47 hold
     ``kind``: a lens's salt and pepper (``lens``), the same where half the samples see the ground far behind
     (``mix``) or nothing (``sky``), an 8 px checker (``checker``), a one-pixel rod of another albedo
-    (``rod``), a texture too faint to matter (``faint``)."""
+    (``rod``), a texture too faint to matter (``faint``), textures near the pixels' own scale: a checker of
+    1.25 px squares, which the pixel grid aliases (``fine``), stripes of one pixel in three (``stripes``)."""
     H, W = 40, 64
     g = torch.Generator().manual_seed(5)
     a = torch.full((1, 3, H, W), 0.5, dtype=torch.float64)
@@ -2184,15 +2185,20 @@ def _speckle_case(kind: str):
         a[..., 30] = 0.9
     elif kind == "faint":
         a[band] = 0.5 + 0.02 * coin
+    elif kind in ("fine", "stripes"):
+        y, x = torch.meshgrid(torch.arange(H), torch.arange(32), indexing="ij")
+        on = ((x / 1.25).floor() + (y / 1.25).floor()) % 2 == 0 if kind == "fine" else x % 3 == 0
+        a[band] = 0.2 + 0.6 * on.double()
     return a, z
 
 
-@pytest.mark.parametrize("kind", ["lens", "mix", "sky", "checker", "rod", "faint", "tiny"])
+@pytest.mark.parametrize("kind", ["lens", "mix", "sky", "checker", "rod", "faint", "fine", "stripes", "tiny"])
 def test_speckle_is_found_where_the_albedo_is_salt_and_pepper_on_one_surface(kind):
     """Without world positions a lens's scatter shows in the albedo alone: neighbouring pixels are independent
     points of the texture, white noise at the pixel scale, over a surface whose depth stays smooth. A texture
-    the pixels resolve, a rod, a faint texture, pixels mixing a surface with the ground far behind or with
-    nothing, and a frame too small to tell are none."""
+    the pixels resolve, a rod, a faint texture, a fine texture that repeats or runs one way (as white as the
+    scatter by adjacent pixels alone), pixels mixing a surface with the ground far behind or with nothing,
+    and a frame too small to tell are none."""
     a, z = _speckle_case("lens" if kind == "tiny" else kind)
     if kind == "tiny":
         a, z = a[..., :2, :], z[..., :2, :]

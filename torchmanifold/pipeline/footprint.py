@@ -386,24 +386,38 @@ _SCATTERED_ALBEDO_SIGMA = 2.0
 
 #: Without world positions (Blender writes none in the set's layout) a lens's scatter shows in the albedo
 #: alone: neighbouring pixels' albedos are independent points of the texture, white noise at the pixel scale,
-#: which a single frame shares with a texture finer than the pixels and a rod's partial coverage. Three tests
-#: tell a lens's: the ratio of the squared differences of pixels 1 apart to those of pixels 2 apart over a
-#: (2 :data:`_SPECKLE_BOX` + 1)^2 box (1 for white noise, about 0.5 across an edge, 0.25 on a gradient; the
-#: weight rises from :data:`_SPECKLE_RATIO`'s first value to its second) with the albedo's spread there over
+#: which a single frame shares with a rod's partial coverage and a texture near the pixels' scale. The tests
+#: that tell a lens's: the ratio of the squared differences of pixels 1 apart to those of pixels 2 apart over
+#: a (2 :data:`_SPECKLE_BOX` + 1)^2 box (1 for white noise, about 0.5 across an edge, 0.25 on a gradient; the
+#: weight rises from :data:`_SPECKLE_RATIO`'s first value to its second), with the albedo's spread there over
 #: :data:`_SPECKLE_SPREAD` of its mean; an area, the mask opened by a (2 :data:`_SPECKLE_AREA` + 1)^2 square
 #: (edges, rods and a checker's corners are lines and points); one smooth surface, every depth within
-#: :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3 median (a wireframe before the ground
-#: far behind it, a horizon, are not). Set on the tuning clips read without their positions: `mi_indirect_dof`
-#: (its defocused post), all frames from 1 / 4 spp, +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the
-#: ratio's ramp from 0.7 / 0.65 gained 0.08 / 0.10 and 0.12 / 0.15 more on the post but lost the room
-#: 0.10 / 0.04 and 0.25 / 0.13; a 7x7 opening lost `bl_glass_caustic` 0.03 / 0.01 (points by its checker's
-#: corners and in its glass). Held out: `bl_indirect_dof` at 128x128 +0.32 / +0.18, at 256x256 +0.45 /
-#: +0.40; every other Blender clip within 0.02 dB (findings.md).
+#: :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3 median (a wireframe before the ground far
+#: behind it, a horizon, are not); no texture (:data:`_SPECKLE_LAGS`). Set on the tuning clips read without
+#: their positions, all frames from 1 / 4 spp, before the texture's test: `mi_indirect_dof` (its defocused
+#: post) +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the ratio's ramp from 0.7 / 0.65 gained the post
+#: 0.08 / 0.10 and 0.12 / 0.15 more but lost the room 0.10 / 0.04 and 0.25 / 0.13; a 7x7 opening lost
+#: `bl_glass_caustic` 0.03 / 0.01 (points by its checker's corners and in its glass). Held out, with the
+#: texture's test: `bl_indirect_dof` at 128x128 +0.31 / +0.17, at 256x256 +0.44 / +0.39; every other Blender
+#: clip within 0.02 dB (findings.md).
 _SPECKLE_BOX = 3
 _SPECKLE_RATIO = (0.75, 0.95)
 _SPECKLE_SPREAD = 0.05
 _SPECKLE_AREA = 4
 _SPECKLE_DEPTH, _SPECKLE_REACH = 0.05, 2
+#: A fine texture that the pixel grid aliases reads as white by the ratio too (`mi_still_textures` read
+#: without its positions lost 0.24 / 0.84 dB to the tests above: its fine checkers and stripes were averaged
+#: away). Unlike a lens's scatter it repeats or runs one way. Over more than :data:`_SPECKLE_PLAIN` of the
+#: area's box, a lens's pixels keep the squared differences at each lag of :data:`_SPECKLE_LAGS` pixels along
+#: each axis above :data:`_SPECKLE_REPEAT` of those of adjacent pixels (medians in the flagged areas: 0.75 on
+#: the defocused posts, 0.48 / 0.62 on that clip's textures from 4 / 1 spp), and the horizontal share of the
+#: adjacent differences within :data:`_SPECKLE_ALONG` of a half (0.50 on the posts, 0.64 / 0.59 on the
+#: textures). Set on the tuning clips read without positions: `mi_indirect_dof` +0.41 / +0.21 (+0.49 / +0.26
+#: without this test), `mi_ceiling_light` -0.005 / 0.00; 0.6 of the box, or the share within 0.08 and the
+#: lags' least above 0.55: within 0.04 dB of it. `mi_still_textures` without positions: -0.08 / +0.03 against
+#: the rule off; per pixel instead of over the box, the posts kept only half their gain.
+_SPECKLE_LAGS = (2, 3, 4)
+_SPECKLE_REPEAT, _SPECKLE_ALONG, _SPECKLE_PLAIN = 0.5, 0.1, 0.5
 
 
 def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
@@ -455,16 +469,17 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     h = hit.to(albedo.dtype)
     lum = albedo.mean(1, keepdim=True) * h
 
-    def squared_differences(k: int) -> Tensor:  # of pixels k apart along x and along y, 0 past the border
-        pad = torch.nn.functional.pad
-        dx = (lum[..., :, k:] - lum[..., :, :-k]).square() * h[..., :, k:] * h[..., :, :-k]
-        dy = (lum[..., k:, :] - lum[..., :-k, :]).square() * h[..., k:, :] * h[..., :-k, :]
-        return pad(dx, (0, k, 0, 0)) + pad(dy, (0, 0, 0, k))
+    def squared_differences(k: int, axis: int) -> Tensor:  # of pixels k apart along an axis, 0 past the end
+        n = lum.shape[axis]
+        d = (lum.narrow(axis, k, n - k) - lum.narrow(axis, 0, n - k)).square()
+        d = d * h.narrow(axis, k, n - k) * h.narrow(axis, 0, n - k)
+        return torch.nn.functional.pad(d, (0, k, 0, 0) if axis == 3 else (0, 0, 0, k))
 
     def ratio_of(a: Tensor, b: Tensor) -> Tensor:
         return torch.where(b > 0, a / torch.where(b > 0, b, 1.0), 0.0)
-    near, far = (_box_mean(squared_differences(k), _SPECKLE_BOX) for k in (1, 2))
-    ratio = ratio_of(near, far)
+    lag = {(axis, k): _box_mean(squared_differences(k, axis), _SPECKLE_BOX)
+           for axis in (2, 3) for k in range(1, max(_SPECKLE_LAGS) + 1)}
+    ratio = ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
     lo, hi = _SPECKLE_RATIO
     count = _box_mean(h, _SPECKLE_BOX)
     mean = ratio_of(_box_mean(lum, _SPECKLE_BOX), count)
@@ -472,6 +487,13 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * (spread > _SPECKLE_SPREAD * mean.abs()).to(lum.dtype)
     # an area: what survives an erosion by the square, dilated back
     area = _any_within(~_any_within(w <= 0.5, _SPECKLE_AREA), _SPECKLE_AREA)
+    # no texture: no lag along either axis where the albedo repeats, no direction it runs along, over most of
+    # the area's box
+    repeats = torch.stack([ratio_of(lag[axis, k], lag[axis, 1])
+                           for axis in (2, 3) for k in _SPECKLE_LAGS]).amin(0)
+    along = (ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
+    plain = ((repeats > _SPECKLE_REPEAT) & (along < _SPECKLE_ALONG)).to(lum.dtype)
+    area = area & (_box_mean(plain, _SPECKLE_AREA) > _SPECKLE_PLAIN)
     # one smooth surface: no depth jump, no pixel without a hit or a sample within reach
     median = _median3x3(depth)
     rough = ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
