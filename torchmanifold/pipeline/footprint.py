@@ -390,16 +390,18 @@ _SCATTERED_ALBEDO_SIGMA = 2.0
 #: that tell a lens's: the ratio of the squared differences of pixels 1 apart to those of pixels 2 apart over
 #: a (2 :data:`_SPECKLE_BOX` + 1)^2 box (1 for white noise, about 0.5 across an edge, 0.25 on a gradient; the
 #: weight rises from :data:`_SPECKLE_RATIO`'s first value to its second), with the albedo's spread there over
-#: :data:`_SPECKLE_SPREAD` of its mean; an area, the mask opened by a (2 :data:`_SPECKLE_AREA` + 1)^2 square
-#: (edges, rods and a checker's corners are lines and points); one smooth surface, every depth within
-#: :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3 median (a wireframe before the ground far
-#: behind it, a horizon, are not); no texture (:data:`_SPECKLE_LAGS`). Set on the tuning clips read without
-#: their positions, all frames from 1 / 4 spp, before the texture's test: `mi_indirect_dof` (its defocused
-#: post) +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the ratio's ramp from 0.7 / 0.65 gained the post
-#: 0.08 / 0.10 and 0.12 / 0.15 more but lost the room 0.10 / 0.04 and 0.25 / 0.13; a 7x7 opening lost
-#: `bl_glass_caustic` 0.03 / 0.01 (points by its checker's corners and in its glass). Held out, with the
-#: texture's test: `bl_indirect_dof` at 128x128 +0.31 / +0.17, at 256x256 +0.44 / +0.39; every other Blender
-#: clip within 0.02 dB (findings.md).
+#: :data:`_SPECKLE_SPREAD` of its mean; an area, cores that survive an erosion of the mask by a
+#: (2 :data:`_SPECKLE_AREA` + 1)^2 square (edges, rods and a checker's corners are lines and points) on one
+#: smooth surface, every depth within :data:`_SPECKLE_REACH` px within :data:`_SPECKLE_DEPTH` of its 3x3
+#: median (a wireframe before the ground far behind it, a horizon, are not), grown by
+#: :data:`_SPECKLE_GROWTH`; no texture (:data:`_SPECKLE_LAGS`). Set on the tuning clips read without their
+#: positions, all frames from 1 / 4 spp, with the area the opening's alone and no texture test:
+#: `mi_indirect_dof` (its defocused post) +0.49 / +0.26 dB, `mi_ceiling_light` -0.02 / 0.00; the ratio's ramp
+#: from 0.7 / 0.65 gained the post 0.08 / 0.10 and 0.12 / 0.15 more but lost the room 0.10 / 0.04 and 0.25 /
+#: 0.13; a 7x7 opening lost `bl_glass_caustic` 0.03 / 0.01 (points by its checker's corners and in its glass).
+#: The whole rule: `mi_indirect_dof` without positions +0.81 / +0.67, `mi_ceiling_light` -0.01 / 0.00; held
+#: out, `bl_indirect_dof` at 128x128 +0.87 / +0.59, at 256x256 +1.26 / +1.14; every other Blender clip within
+#: 0.04 dB (findings.md).
 _SPECKLE_BOX = 3
 _SPECKLE_RATIO = (0.75, 0.95)
 _SPECKLE_SPREAD = 0.05
@@ -418,6 +420,14 @@ _SPECKLE_DEPTH, _SPECKLE_REACH = 0.05, 2
 #: the rule off; per pixel instead of over the box, the posts kept only half their gain.
 _SPECKLE_LAGS = (2, 3, 4)
 _SPECKLE_REPEAT, _SPECKLE_ALONG, _SPECKLE_PLAIN = 0.5, 0.1, 0.5
+#: The opening's cores lie where the test is surest, on the surface itself; the lens's salt and pepper reaches
+#: on around them, and past the silhouette into the band where each pixel mixes the surface with what lies
+#: behind (its depth no longer smooth): the area grows :data:`_SPECKLE_GROWTH` px from its cores, the ratio's
+#: weight still applying to each pixel. `mi_indirect_dof` read without positions (tuning), from 1 / 4 spp, the
+#: area the opening's own 4 px and no further than the smooth depth / grown 4 / 8 / 16 / 24 / 32 px: 23.87 /
+#: 26.45, 23.97 / 26.52, 24.19 / 26.75, 24.27 / 26.91, 24.28 / 26.94, 24.28 / 26.94 dB; `mi_ceiling_light`
+#: without positions 29.804 down to 29.800 at 16 and 29.795 at 32 from 1 spp (the same from 4).
+_SPECKLE_GROWTH = 16
 
 
 def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
@@ -485,19 +495,20 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     mean = ratio_of(_box_mean(lum, _SPECKLE_BOX), count)
     spread = (ratio_of(_box_mean(lum.square(), _SPECKLE_BOX), count) - mean.square()).clamp_min(0.0).sqrt()
     w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * (spread > _SPECKLE_SPREAD * mean.abs()).to(lum.dtype)
-    # an area: what survives an erosion by the square, dilated back
-    area = _any_within(~_any_within(w <= 0.5, _SPECKLE_AREA), _SPECKLE_AREA)
     # no texture: no lag along either axis where the albedo repeats, no direction it runs along, over most of
     # the area's box
     repeats = torch.stack([ratio_of(lag[axis, k], lag[axis, 1])
                            for axis in (2, 3) for k in _SPECKLE_LAGS]).amin(0)
     along = (ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
     plain = ((repeats > _SPECKLE_REPEAT) & (along < _SPECKLE_ALONG)).to(lum.dtype)
-    area = area & (_box_mean(plain, _SPECKLE_AREA) > _SPECKLE_PLAIN)
     # one smooth surface: no depth jump, no pixel without a hit or a sample within reach
     median = _median3x3(depth)
     rough = ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
-    return w * (area & ~_any_within(rough, _SPECKLE_REACH)).to(lum.dtype)
+    # an area: what survives an erosion by the square on one smooth surface, grown from there, also into the
+    # band past its silhouette where the lens mixes it with what lies behind
+    core = ~_any_within(w <= 0.5, _SPECKLE_AREA) & ~_any_within(rough, _SPECKLE_REACH)
+    area = _any_within(core, _SPECKLE_GROWTH) & (_box_mean(plain, _SPECKLE_AREA) > _SPECKLE_PLAIN)
+    return w * (area & hit).to(lum.dtype)
 
 
 def _any_within(mask: Tensor, r: int) -> Tensor:
