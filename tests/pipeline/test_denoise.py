@@ -2242,14 +2242,14 @@ def test_speckle_averages_the_albedo_of_features_without_positions():
 def test_a_defocused_post_without_positions_loses_its_salt_and_pepper(monkeypatch):
     """`bl_indirect_dof` (held out, real Cycles frames, no Position pass): the post before the thin lens is
     out of focus and its albedo salt and pepper; the world positions that tell it in Mitsuba's clips are not
-    there, so the post kept it. Measured on its columns (+0.84 dB measured)."""
+    there, so the post kept it. Measured on its columns (+1.88 dB measured)."""
     c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2])
     kw = dict(settings=DenoiseSettings(temporal_radius=1), query_times=[1.0], samples_per_pixel=1)
     post = (slice(None), slice(None), slice(None), slice(96, None))
     averaged = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
     monkeypatch.setattr(FP, "_speckled", lambda albedo, depth, valid=None: torch.zeros_like(depth))
     kept = M.psnr(denoise_frames(c, f, names, **kw)[post], ref[1:2][post])
-    assert averaged > kept + 0.5, (averaged, kept)
+    assert averaged > kept + 1.0, (averaged, kept)
 
 
 def test_without_albedo_narrower_bandwidths_and_colour_alone_frame_by_frame(mitsuba_dir):
