@@ -2210,6 +2210,17 @@ def test_speckle_is_found_where_the_albedo_is_salt_and_pepper_on_one_surface(kin
         assert float(w.max()) == 0.0
 
 
+@pytest.mark.parametrize("scale", [1e30, 1e-30])
+def test_speckle_is_the_same_at_any_scale_of_the_albedo(scale):
+    """Every test of the albedo is a ratio: a renderer writing it a trillion trillion times larger or smaller
+    (float32, whose squares of squares overflow or vanish there) finds the same pixels, with finite weights."""
+    a, z = _speckle_case("lens")
+    a, z = a.float(), z.float()
+    w = FP._speckled(a * scale, z)
+    assert bool(torch.isfinite(w).all())
+    torch.testing.assert_close(w, FP._speckled(a, z), atol=1e-4, rtol=0)
+
+
 def test_speckle_helpers_match_torch():
     """The 3x3 median by a compare-exchange network and the dilation by a box mean: the values of
     ``torch.median`` over unfolded boxes (ties included) and of ``max_pool2d``, bit for bit."""

@@ -478,6 +478,10 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     hit = (depth > 0) if valid is None else (depth > 0) & valid
     h = hit.to(albedo.dtype)
     lum = albedo.mean(1, keepdim=True) * h
+    # in units of each frame's largest, so that the squares of squares neither overflow nor underflow: every
+    # test is a ratio
+    top = lum.detach().abs().amax((1, 2, 3), keepdim=True)
+    lum = lum / torch.where(top > 0, top, torch.ones_like(top))
 
     def squared_differences(k: int, axis: int) -> Tensor:  # of pixels k apart along an axis, 0 past the end
         n = lum.shape[axis]
