@@ -390,6 +390,7 @@ class ProgressiveRenderer:
                 need = self._needed(q)
                 states = frames.prepared(need)
                 ft = [self.times[k] for k in need]
+                candidates.release_before(ft[0])  # the queries before this window lend it nothing
                 samples = torch.cat([res.color for res in frames.frames(need)])
                 for j, result in pool.submit(qi, filter_query, states, ft, q, samples):
                     collect(j, *result)
