@@ -69,7 +69,7 @@ from torchmanifold._checks import (check_choice, check_int, check_nonnegative, c
                                    check_tree_height)
 from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
-from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _footprint_albedo, _known_count,
+from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _any_within, _footprint_albedo, _known_count,
                                               _normalised_blur, _position, _remodulate, _scattered_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
@@ -1139,9 +1139,8 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
         return alb, flat
     normal = torch.stack([f[:, canon.index(c)] for c in unit.channels], 1)
     share = (1.0 - torch.linalg.vector_norm(normal, dim=1, keepdim=True)).clamp(0.0, 1.0)
-    r = _SKY_MIX_RADIUS
     sky = lit.to(f.dtype)
-    near = nn.functional.max_pool2d(sky, 2 * r + 1, 1, r) > 0
+    near = _any_within(lit, _SKY_MIX_RADIUS)
     sky_albedo = (raw * sky).sum((2, 3), keepdim=True) / sky.sum((2, 3), keepdim=True).clamp_min(1.0)
     mixed_albedo = raw + share * (1.0 - sky_albedo).clamp_min(0.0)
     mixed = near & ~lit & (share > 0) & (luminance(mixed_albedo) >= settings.albedo_eps)
