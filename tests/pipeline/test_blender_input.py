@@ -128,7 +128,7 @@ def test_combined_only_is_denoised_and_says_so(tmp_path, capsys, mitsuba_dir):
     rc, out, err = run(capsys, p, "--out", tmp_path / "out")
     assert rc == 0, err
     assert json.loads(out.strip().splitlines()[-1])["feature_channels"] == []
-    assert "no feature channels" in err and "each frame filtered alone" in err
+    assert "no feature channels" in err and "no feature channel guides" in err
     assert np.isfinite(read_exr(tmp_path / "out" / "c.exr")[f"{LAYER}.Combined.R"]).all()
 
 

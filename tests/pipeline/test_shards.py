@@ -138,7 +138,7 @@ def test_render_sharded_is_bitwise_one_process(cluster, render_reference, tmp_pa
 
 
 def test_colour_alone_sharded_is_bitwise_one_process(cluster, clip, tmp_path):
-    """Colour alone takes its own settings (narrower candidates, each frame alone) in the sharded path too:
+    """Colour alone takes its own settings (narrower candidates, each frame also alone) in the sharded path too:
     the same bytes as one process."""
     paths = []
     for p in clip:
@@ -146,7 +146,7 @@ def test_colour_alone_sharded_is_bitwise_one_process(cluster, clip, tmp_path):
         paths.append(write_exr(tmp_path / p.name, {c: d[c] for c in "RGB"}))
     settings = DenoiseSettings(temporal_radius=RADIUS)
     one = denoise_files(paths, tmp_path / "one", settings=settings, progress=False)
-    assert any("each frame filtered alone" in n for n in one["notes"])
+    assert any("each frame also filtered alone" in n for n in one["notes"])
     shards.shard_denoise(paths, tmp_path / "sharded", settings=settings, chunk=3, progress=False)
     _same_files(tmp_path / "one", tmp_path / "sharded", [p.name for p in paths])
 

@@ -300,6 +300,11 @@ class DenoiseSettings:
             with 12 frames +0.07 / +0.07 (six Mitsuba) and +0.08 / +0.07 (four Cycles); the progressive loop's
             caustic 0.83 -> 0.87 (``benchmarks/validation/findings.md``). Frames of another window kind
             (:func:`_noisy_window`) lend none; with one bandwidth there is nothing to lend.
+        frame_alone_bandwidths: with a time window, bandwidths (multiples of ``sigma_s``) at which each
+            query's frame is also filtered alone; the bandwidth selection blends them with the window's
+            candidates by their cross-validated error, so that where the window's frames disagree (a moving
+            view, and nothing in the guide that tells them apart) a pixel keeps its own frame. Empty: none;
+            :func:`adapt_to_features` sets them for colour alone.
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
@@ -325,6 +330,7 @@ class DenoiseSettings:
     temporal_radius: int = 0
     albedo_radius: int = 2
     evidence_radius: int = 1
+    frame_alone_bandwidths: Sequence[float] = ()
     sigma_t: float = 1.0
     mode: str = "spacetime"
     dtype: torch.dtype = torch.float32
@@ -340,6 +346,12 @@ class DenoiseSettings:
             raise TypeError(f"bandwidths must be a non-empty sequence of numbers, got {self.bandwidths!r}")
         for k, b in enumerate(self.bandwidths):
             check_positive(f"bandwidths[{k}]", b)
+        if isinstance(self.frame_alone_bandwidths, (str, bytes)) or \
+                not isinstance(self.frame_alone_bandwidths, Sequence):
+            raise TypeError(f"frame_alone_bandwidths must be a sequence of numbers, got "
+                            f"{self.frame_alone_bandwidths!r}")
+        for k, b in enumerate(self.frame_alone_bandwidths):
+            check_positive(f"frame_alone_bandwidths[{k}]", b)
         for name in ("radiance_sigma", "selection_blur", "selection_softness"):
             check_nonnegative(name, getattr(self, name))
         if self.footprint_sigma is not None:
@@ -365,7 +377,18 @@ class DenoiseSettings:
     def lending_radius(self) -> int:
         """The neighbouring frames on each side whose queries lend a query their evidence: ``evidence_radius``
         where there is a time window and bandwidths to choose among, else 0."""
-        return self.evidence_radius if self.temporal_radius > 0 and len(self.bandwidths) > 1 else 0
+        return self.evidence_radius if self.temporal_radius > 0 and self.candidates > 1 else 0
+
+    @property
+    def frame_alone(self) -> tuple[float, ...]:
+        """The bandwidths at which a query's frame is also filtered alone: ``frame_alone_bandwidths`` where
+        there is a time window, else none (every candidate is of the frame alone)."""
+        return tuple(map(float, self.frame_alone_bandwidths)) if self.temporal_radius > 0 else ()
+
+    @property
+    def candidates(self) -> int:
+        """How many filters the bandwidth selection blends."""
+        return len(self.bandwidths) + len(self.frame_alone)
 
     @property
     def query_radius(self) -> int:
@@ -425,6 +448,10 @@ def radiance_sigma_at(settings: DenoiseSettings, samples_per_pixel: float | None
 #: normals, depth and positions without albedo +0.60 / +1.12, no scene below -0.2. With albedo, a 1 px
 #: candidate lost 0.14 dB from 1 spp.
 _NO_ALBEDO_NARROWER = (0.25, 0.5)
+#: the factor on ``radiance_sigma`` where colour alone guides (the log-radiance channel is the one edge beside
+#: the chromaticity). The validation set's tuning part from 1 / 4 spp, colour alone, every frame, against 1:
+#: 0.5 +0.18 / +0.19 dB, 0.6 +0.26 / +0.23, 0.7 +0.28 / +0.24, 0.8 +0.21 / +0.18, 1.4 -0.22 / -0.18
+_COLOUR_ALONE_RADIANCE = 0.7
 #: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where
 #: colour alone guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone,
 #: each frame alone: +0.40 / +0.50 dB over none; 0.025 +0.14 / +0.13 more there but -0.3 / -0.4 on its room
@@ -438,10 +465,15 @@ def adapt_to_features(settings: DenoiseSettings,
     """``settings`` for frames with these feature channels, and a note where they changed.
 
     Where no albedo channel guides, the candidates reach down to a quarter of the narrowest
-    (:data:`_NO_ALBEDO_NARROWER`). Where no feature channel guides at all (colour alone), each frame is
-    also filtered alone: nothing tells a moving view's frames apart, and the +-1 window smeared a pan's
-    moving ball (-1.2 / -1.4 dB from 4 spp on two validation scenes), though it gained 0.7-0.9 dB on still
-    views and +0.21 / -0.16 on average (frames 0-2, from 1 / 4 spp, findings.md)."""
+    (:data:`_NO_ALBEDO_NARROWER`). Where no feature channel guides at all (colour alone), nothing tells a
+    moving view's frames apart: the +-1 window smeared a pan's moving ball (-1.2 / -1.4 dB from 4 spp on
+    two validation scenes) and gained 0.7-0.9 dB on still views (findings.md). Each frame is then also
+    filtered alone at the candidates narrower than ``sigma_s`` (``frame_alone_bandwidths``), so that the
+    bandwidth selection keeps a pixel's own frame where the window's disagree, and the log-radiance channel,
+    the guide's one edge beside the chromaticity, narrows by :data:`_COLOUR_ALONE_RADIANCE`. The validation
+    set from 1 / 4 spp, colour alone: each frame alone 24.42 / 27.42 dB, the window alone 24.90 / 27.45, both
+    25.02 / 27.99 (each frame alone at all six candidates: 24.96 / 27.94), with the narrower channel 25.13 /
+    28.10 (every clip up but ``mi_dark_glossy``, -0.06 / -0.11)."""
     names = list(feature_names)
     guide = [names[k] for k in _select_guide(names, settings)]
     if _albedo_guides(guide):
@@ -451,9 +483,13 @@ def adapt_to_features(settings: DenoiseSettings,
     note = f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s"
     if guide:
         return replace(settings, bandwidths=bandwidths), note
-    return (replace(settings, bandwidths=bandwidths, temporal_radius=0),
-            note + "; no feature channel guides: each frame filtered alone (nothing tells a moving view's "
-                   "frames apart)")
+    alone = tuple(b for b in bandwidths if b < 1.0) if settings.temporal_radius > 0 else ()
+    adapted = replace(settings, bandwidths=bandwidths, frame_alone_bandwidths=alone,
+                      radiance_sigma=settings.radiance_sigma * _COLOUR_ALONE_RADIANCE)
+    note += f"; no feature channel guides: radiance sigma {adapted.radiance_sigma:g}"
+    if alone:
+        note += f", each frame also filtered alone at bandwidths {list(alone)}"
+    return adapted, note
 
 
 def _albedo_guides(guide_names: Sequence[str]) -> bool:
@@ -801,7 +837,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     if s.pilot_only:
         out = at_queries(s.level)
     else:
-        if len(settings.bandwidths) == 1:
+        if settings.candidates == 1:
             b = float(settings.bandwidths[0])
             filt = _Filter(s.guide, s.sigmas, settings, ft, qt, base * b, range_scale,
                            tree_height_at(settings, b))

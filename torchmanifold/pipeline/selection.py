@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import threading
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -139,7 +139,8 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
                       range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
                       cell: int = 1) -> Tensor:
-    """Filter ``e`` at every bandwidth of ``settings.bandwidths`` and blend them per pixel by their error.
+    """Filter ``e`` at every bandwidth of ``settings.bandwidths`` (and each query's frame alone at those of
+    ``settings.frame_alone``) and blend them per pixel by their error.
 
     The error of a bandwidth at a pixel is estimated by cross-validation on two interleaved halves of
     the pixels (Rousselle et al. 2012): each sample is predicted by the filter of the other half's
@@ -379,22 +380,28 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     cv_times = qt if at_frames else ft
     idx = query_frames if at_frames else list(range(T))
     preds, fulls, cv_outs = [], [], []
-    filters = [_Filter(guide, sigmas, st, ft, cv_times, sigma_s * float(b), range_scale,
-                       tree_height_at(st, b)) for b in st.bandwidths]
     stack = _halves_stack(e, mask, cell)
-    # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
-    windowed = not filters[0]._per_frame() and e.dtype != torch.float64
-    bounds = filters[0].window_bounds(e, mask) if windowed else None
-    for b, filt, y in zip(st.bandwidths, filters, _Filter.apply_each(filters, stack)):
-        pred, num, den = _split_halves(y, cell)
-        cv_out = filt.normalise(num, den, e, mask, bounds)
-        preds.append(pred)
-        cv_outs.append(cv_out)
-        if at_frames:
-            fulls.append(cv_out)
-        else:
-            at_queries = _Filter(guide, sigmas, st, ft, qt, sigma_s * float(b), range_scale, filt.tree_height)
-            fulls.append(at_queries(e, mask))
+    # the window's bandwidths, then those of each frame alone
+    groups = [(st, st.bandwidths)]
+    if st.frame_alone:
+        groups.append((replace(st, temporal_radius=0), st.frame_alone))
+    for s, bandwidths in groups:
+        filters = [_Filter(guide, sigmas, s, ft, cv_times, sigma_s * float(b), range_scale,
+                           tree_height_at(s, b)) for b in bandwidths]
+        # the guard's window bounds hold for every bandwidth (per-frame queries bound inside the fused kernel)
+        windowed = not filters[0]._per_frame() and e.dtype != torch.float64
+        bounds = filters[0].window_bounds(e, mask) if windowed else None
+        for b, filt, y in zip(bandwidths, filters, _Filter.apply_each(filters, stack)):
+            pred, num, den = _split_halves(y, cell)
+            cv_out = filt.normalise(num, den, e, mask, bounds)
+            preds.append(pred)
+            cv_outs.append(cv_out)
+            if at_frames:
+                fulls.append(cv_out)
+            else:
+                at_queries = _Filter(guide, sigmas, s, ft, qt, sigma_s * float(b), range_scale,
+                                     filt.tree_height)
+                fulls.append(at_queries(e, mask))
     if level is None:
         level = cv_outs[min(range(len(st.bandwidths)), key=lambda k: abs(math.log(st.bandwidths[k])))]
     else:
