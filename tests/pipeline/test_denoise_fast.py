@@ -121,6 +121,16 @@ def test_kuwahara_log_radiance_equals_reference_bitwise(frame):
             _same(out, ref)
 
 
+def test_kuwahara_chromaticity_equals_reference_bitwise(frame):
+    """The colour-alone guide's chromaticity from the samples: each channel its own Kuwahara windows."""
+    for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
+        for dtype in (torch.float32, torch.float64):
+            out, ref = _both(lambda x, w: D._kuwahara3(D._chromaticity(x, w)), e.to(dtype), m.to(dtype))
+            _same(out, ref)
+            one = torch.cat([D._kuwahara3(c) for c in D._chromaticity(e.to(dtype), m.to(dtype)).split(1, 1)], 1)
+            _same(out, one)
+
+
 def test_footprint_average_equals_reference(frame):
     for name, e, m in _hazards() + [("rendered", frame["e"], frame["mask"])]:
         for sigma in (0.5, 1.2):

@@ -25,8 +25,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
    set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
-   channel and the albedo stop steering (:func:`_noise_widening`). Colour alone adds the pilot's
-   chromaticity (:func:`_with_chromaticity`).
+   channel and the albedo stop steering (:func:`_noise_widening`). Colour alone adds the chromaticity, the
+   pilot's from the samples' (:func:`_chromaticity_from_pilot`).
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends them by
    their error, estimated by cross-validation between two interleaved halves of the samples (see
    :func:`~torchmanifold.pipeline.selection._select_bandwidth`): wide where the light is smooth and the
@@ -36,7 +36,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    narrower bandwidths join (:func:`adapt_to_features`): nothing else tells texture from noise.
 7. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; with
-   colour alone each frame is filtered alone (nothing tells a moving view's frames apart).
+   colour alone each frame is also filtered alone, and the bandwidth selection keeps it where the window's
+   frames disagree (nothing else tells a moving view's frames apart).
 8. **Pixel footprint** (:mod:`torchmanifold.pipeline.footprint`): a 1-spp pixel shows one point of its
    area, so thin geometry comes out dotted and texture speckled; the result is averaged over a pixel-sized
    footprint, in a tone-mapped domain and only among pixels of similar brightness, so a light's edge does
@@ -140,6 +141,9 @@ RADIANCE_GUIDE = "log_radiance"
 #: the log-radiance guide's sigma from single samples (3x3 Kuwahara) relative to the pilot's
 #: (validation set's tuning part: the pilot's at 0.5 with the samples' at 1.0 beat both at 1.0 by 0.14 dB
 #: from 1 spp, and 0.22 dB over the whole set from 4 spp; the pilot's at 1.0 or 0.25 lost)
+#: The samples' chromaticity, where colour alone guides, takes the same widening (the tuning part, colour
+#: alone, from 1 / 4 spp, against none in the pilot's guide: 1 +0.02 / -0.01 dB, 1.5 +0.11 / +0.05, 2 +0.16 /
+#: +0.06, 3 +0.18 / +0.09, 4 +0.16 / +0.10)
 _SAMPLE_RADIANCE_WIDENING = 2.0
 
 
@@ -804,8 +808,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
-        if not gnames:  # colour alone: its hue tells apart what its luminance does not
-            state.guide, state.sigmas = _with_chromaticity(state.guide, state.sigmas, pe, mask)
+        if not gnames:
+            state.guide, state.sigmas = _chromaticity_from_pilot(state.guide, state.sigmas, pe, mask)
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
@@ -1193,17 +1197,22 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
     """
     L = luminance(e).clamp_min(0.0)
     mean = _frame_mean(L, mask)
-    lg = torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))
-    if _fast.enabled(lg):
-        return _fast.kuwahara3(lg)
-    H, W = lg.shape[-2:]
-    moments = torch.nn.functional.pad(torch.cat([lg, lg * lg], 1), (2, 2, 2, 2), mode="replicate")
+    return _kuwahara3(torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30)))
+
+
+def _kuwahara3(x: Tensor) -> Tensor:
+    """Each channel of ``x`` ``(T, C, H, W)`` at each pixel: the mean of the least varying of the four 3x3
+    windows that hold the pixel in a corner (replicate-padded), so that an edge stays sharp."""
+    if _fast.enabled(x):
+        return _fast.kuwahara3(x)
+    C, H, W = x.shape[-3:]
+    moments = torch.nn.functional.pad(torch.cat([x, x * x], 1), (2, 2, 2, 2), mode="replicate")
     moments = torch.nn.functional.avg_pool2d(moments, 3, 1)
     best_v = best_m = None
     for dy in (0, 2):
         for dx in (0, 2):
-            mu = moments[:, 0:1, dy:dy + H, dx:dx + W]
-            v = moments[:, 1:2, dy:dy + H, dx:dx + W] - mu * mu
+            mu = moments[:, :C, dy:dy + H, dx:dx + W]
+            v = moments[:, C:, dy:dy + H, dx:dx + W] - mu * mu
             if best_v is None:
                 best_v, best_m = v, mu
             else:
@@ -1240,8 +1249,12 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
             guide[:, xi] = (guide[:, xi].double() - _channel_means(guide[:, xi], mask)).to(guide.dtype)
         parts.append(guide)
         sig.append(s)
+    # from single samples: noisier than the pilot's that replaces them, so wider
+    if not gi:  # colour alone: its hue tells apart what its luminance does not
+        parts.append(_kuwahara3(_chromaticity(e, mask)))
+        sig.append(torch.full((T, 2), _SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA, dtype=torch.float64))
     rs = _radiance_sigma(settings)
-    if rs > 0:  # from single samples: noisier than the pilot's that replaces it, so wider
+    if rs > 0:
         parts.append(_log_radiance(e, mask))
         sig.append(torch.full((T, 1), _SAMPLE_RADIANCE_WIDENING * rs, dtype=torch.float64))
     if not parts:
@@ -1271,14 +1284,21 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     return guide, sigmas
 
 
-def _with_chromaticity(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
-    """The guide ``(T, G, H, W)`` and its sigmas ``(T, G)`` with two more channels: the chromaticity of the
-    pilot ``(T, 3, H, W)``, ``r / (r + g + b)`` and ``g / (r + g + b)`` (the sum offset by a thousandth of
-    the frame's mean luminance, so black pixels stay near 0), at :data:`_CHROMA_SIGMA`."""
-    p = pilot.clamp_min(0.0)
-    total = p.sum(1, keepdim=True) + 1e-3 * _frame_mean(luminance(p), mask).clamp_min(1e-30)
-    chroma = torch.full((guide.shape[0], 2), _CHROMA_SIGMA, dtype=sigmas.dtype)
-    return torch.cat([guide, (p[:, :2] / total).to(guide.dtype)], 1), torch.cat([sigmas, chroma], 1)
+def _chromaticity(x: Tensor, mask: Tensor) -> Tensor:
+    """``r / (r + g + b)`` and ``g / (r + g + b)`` of colours ``x`` ``(T, 3, H, W)``, ``(T, 2, H, W)`` (the sum
+    offset by a thousandth of the frame's mean luminance over ``mask``, so black pixels stay near 0)."""
+    p = x.clamp_min(0.0)
+    return p[:, :2] / (p.sum(1, keepdim=True) + 1e-3 * _frame_mean(luminance(p), mask).clamp_min(1e-30))
+
+
+def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor,
+                             mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The guide ``(T, G, H, W)`` of colour alone and its sigmas ``(T, G)`` with the chromaticity channels
+    (the first two, see :func:`_guide`) taken from the pilot ``(T, 3, H, W)`` instead of the samples, at
+    :data:`_CHROMA_SIGMA`."""
+    sigmas = sigmas.clone()
+    sigmas[:, :2] = _CHROMA_SIGMA
+    return torch.cat([_chromaticity(pilot, mask).to(guide.dtype), guide[:, 2:]], 1), sigmas
 
 
 def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:
