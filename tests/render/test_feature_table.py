@@ -109,7 +109,7 @@ def test_synthetic_feature_flows_through(with_synthetic, tmp_path):
     assert _select_guide(names, DenoiseSettings()) == [0, 1, 2, 3, 4]
     assert default_guide_sigmas(["Q.U", "Qv"]).tolist() == [[0.25, 0.25]]
     # and changes the result: a step in Q alone (flat colour guide otherwise) keeps an edge sharp
-    c = torch.zeros(1, 3, 16, 16)
+    c = torch.full((1, 3, 16, 16), 0.5)  # grey: one hue on both sides (the hue guides where no albedo does)
     c[..., 8:] = 1.0
     f = torch.zeros(1, 2, 16, 16)
     f[:, :, :, 8:] = 1.0
@@ -117,7 +117,7 @@ def test_synthetic_feature_flows_through(with_synthetic, tmp_path):
     guided = denoise_frames(c, f, ["Q.U", "Q.V"], settings=s)
     blind = denoise_frames(c, f, ["Q.U", "Q.V"], settings=replace(s, guide_sigmas={"Q.U": 1e6, "Q.V": 1e6}))
     step = lambda y: float(y[0, 0, :, 8].mean() - y[0, 0, :, 7].mean())  # noqa: E731
-    assert step(guided) > 0.9 > step(blind)
+    assert step(guided) > 0.45 > step(blind)
 
 
 def test_registry_restored_after_synthetic():

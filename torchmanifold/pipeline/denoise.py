@@ -452,15 +452,18 @@ def radiance_sigma_at(settings: DenoiseSettings, samples_per_pixel: float | None
 #: normals, depth and positions without albedo +0.60 / +1.12, no scene below -0.2. With albedo, a 1 px
 #: candidate lost 0.14 dB from 1 spp.
 _NO_ALBEDO_NARROWER = (0.25, 0.5)
-#: the factor on ``radiance_sigma`` where colour alone guides (the log-radiance channel is the one edge beside
-#: the chromaticity). The validation set's tuning part from 1 / 4 spp, colour alone, every frame, against 1:
-#: 0.5 +0.18 / +0.19 dB, 0.6 +0.26 / +0.23, 0.7 +0.28 / +0.24, 0.8 +0.21 / +0.18, 1.4 -0.22 / -0.18
-_COLOUR_ALONE_RADIANCE = 0.7
-#: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where
-#: colour alone guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone,
-#: each frame alone: +0.40 / +0.50 dB over none; 0.025 +0.14 / +0.13 more there but -0.3 / -0.4 on its room
-#: lit by bounce light and -0.7 / -0.8 on the held-out one; 0.1 -0.23 / -0.23. Beside geometry without
-#: albedo it gains +0.30 / +0.47 on the tuning part but loses 0.5 / 0.4 on its room: colour alone only.
+#: the factor on ``radiance_sigma`` where no albedo guides (with colour alone the log-radiance channel is the
+#: one edge beside the chromaticity). The validation set's tuning part from 1 / 4 spp, colour alone, every
+#: frame, against 1: 0.5 +0.18 / +0.19 dB, 0.6 +0.26 / +0.23, 0.7 +0.28 / +0.24, 0.8 +0.21 / +0.18, 1.4 -0.22 /
+#: -0.18; geometry alone, 0.7: -0.01 / +0.08
+_NO_ALBEDO_RADIANCE = 0.7
+#: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where no
+#: albedo guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone, each
+#: frame alone: +0.40 / +0.50 dB over none; 0.025 +0.14 / +0.13 more there but -0.3 / -0.4 on its room lit by
+#: bounce light and -0.7 / -0.8 on the held-out one; 0.1 -0.23 / -0.23. Beside geometry without albedo the
+#: whole set +0.40 / +0.45 (the glass clips +2.1 to +3.1) but the rooms lit by bounce light -0.4 / -0.5 until
+#: the sigma widens with the pilot's noise as the albedo's does (+0.44 / +0.47, every room within 0.1 dB);
+#: 1.5 / 2 times as wide, -0.04 / -0.06 and -0.06 / -0.06
 _CHROMA_SIGMA = 0.05
 
 
@@ -468,31 +471,33 @@ def adapt_to_features(settings: DenoiseSettings,
                       feature_names: Sequence[str]) -> tuple[DenoiseSettings, str | None]:
     """``settings`` for frames with these feature channels, and a note where they changed.
 
-    Where no albedo channel guides, the candidates reach down to a quarter of the narrowest
-    (:data:`_NO_ALBEDO_NARROWER`). Where no feature channel guides at all (colour alone), nothing tells a
-    moving view's frames apart: the +-1 window smeared a pan's moving ball (-1.2 / -1.4 dB from 4 spp on
-    two validation scenes) and gained 0.7-0.9 dB on still views (findings.md). Each frame is then also
-    filtered alone at the candidates narrower than ``sigma_s`` (``frame_alone_bandwidths``), so that the
-    bandwidth selection keeps a pixel's own frame where the window's disagree, and the log-radiance channel,
-    the guide's one edge beside the chromaticity, narrows by :data:`_COLOUR_ALONE_RADIANCE`. The validation
-    set from 1 / 4 spp, colour alone: each frame alone 24.42 / 27.42 dB, the window alone 24.90 / 27.45, both
-    25.02 / 27.99 (each frame alone at all six candidates: 24.96 / 27.94), with the narrower channel 25.13 /
-    28.10 (every clip up but ``mi_dark_glossy``, -0.06 / -0.11)."""
+    Where no albedo channel guides (colour alone, or geometry alone), the guide cannot tell texture from noise
+    nor, on glass, what it shows: the candidates reach down to a quarter of the narrowest
+    (:data:`_NO_ALBEDO_NARROWER`), the log-radiance channel narrows by :data:`_NO_ALBEDO_RADIANCE` (the
+    guide also holds the colour's chromaticity, :func:`_guide`) and, with a time window, each frame is also
+    filtered alone at the candidates narrower than ``sigma_s`` (``frame_alone_bandwidths``): nothing in
+    colour alone tells a moving view's frames apart (the +-1 window smeared a pan's moving ball, -1.2 / -1.4
+    dB from 4 spp on two validation scenes, and gained 0.7-0.9 dB on still views), so the bandwidth
+    selection keeps a pixel's own frame where the window's disagree. The validation set from 1 / 4 spp,
+    colour alone: each frame alone 24.42 / 27.42 dB, the window alone 24.90 / 27.45, both 25.02 / 27.99 (each
+    frame alone at all six candidates: 24.96 / 27.94), with the narrower channel 25.13 / 28.10 (every clip
+    up but ``mi_dark_glossy``, -0.06 / -0.11); geometry alone, with the chromaticity, 25.74 / 28.36 -> 25.74
+    / 28.57 (findings.md)."""
     names = list(feature_names)
     guide = [names[k] for k in _select_guide(names, settings)]
     if _albedo_guides(guide):
         return settings, None
     low = min(float(b) for b in settings.bandwidths)
     bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | set(map(float, settings.bandwidths))))
-    note = f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s"
-    if guide:
-        return replace(settings, bandwidths=bandwidths), note
     alone = tuple(b for b in bandwidths if b < 1.0) if settings.temporal_radius > 0 else ()
     adapted = replace(settings, bandwidths=bandwidths, frame_alone_bandwidths=alone,
-                      radiance_sigma=settings.radiance_sigma * _COLOUR_ALONE_RADIANCE)
-    note += f"; no feature channel guides: radiance sigma {adapted.radiance_sigma:g}"
+                      radiance_sigma=settings.radiance_sigma * _NO_ALBEDO_RADIANCE)
+    note = (f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s, radiance sigma "
+            f"{adapted.radiance_sigma:g}, the colour's chromaticity guides")
     if alone:
         note += f", each frame also filtered alone at bandwidths {list(alone)}"
+    if not guide:
+        note += "; no feature channel guides"
     return adapted, note
 
 
@@ -808,8 +813,12 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
         state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
-        if not gnames:
-            state.guide, state.sigmas = _chromaticity_from_pilot(state.guide, state.sigmas, pe, mask)
+        if not _albedo_guides(gnames):
+            # beside geometry a noisy pilot's hue steers by noise, as its albedo would; colour alone has no
+            # other guide to fall back on
+            hue_noise = noise if gnames else None
+            state.guide, state.sigmas = _chromaticity_from_pilot(state.guide, state.sigmas, pe, mask,
+                                                                 len(gnames), hue_noise)
         state.sigmas = _albedo_widened(state.sigmas, gnames, noise)
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
@@ -1250,7 +1259,7 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         parts.append(guide)
         sig.append(s)
     # from single samples: noisier than the pilot's that replaces them, so wider
-    if not gi:  # colour alone: its hue tells apart what its luminance does not
+    if not _albedo_guides(gnames):  # without albedo, its hue tells apart what luminance and geometry do not
         parts.append(_kuwahara3(_chromaticity(e, mask)))
         sig.append(torch.full((T, 2), _SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA, dtype=torch.float64))
     rs = _radiance_sigma(settings)
@@ -1291,14 +1300,18 @@ def _chromaticity(x: Tensor, mask: Tensor) -> Tensor:
     return p[:, :2] / (p.sum(1, keepdim=True) + 1e-3 * _frame_mean(luminance(p), mask).clamp_min(1e-30))
 
 
-def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor,
-                             mask: Tensor) -> tuple[Tensor, Tensor]:
-    """The guide ``(T, G, H, W)`` of colour alone and its sigmas ``(T, G)`` with the chromaticity channels
-    (the first two, see :func:`_guide`) taken from the pilot ``(T, 3, H, W)`` instead of the samples, at
-    :data:`_CHROMA_SIGMA`."""
+def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Tensor, at: int,
+                             noise: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The guide ``(T, G, H, W)`` without albedo and its sigmas ``(T, G)`` with the chromaticity channels (the
+    two from channel ``at``, see :func:`_guide`) taken from the pilot ``(T, 3, H, W)`` instead of the samples,
+    at :data:`_CHROMA_SIGMA`, widened for the pilot's ``noise`` ``(T,)`` where given, as the albedo's are
+    (:func:`_albedo_widened`)."""
     sigmas = sigmas.clone()
-    sigmas[:, :2] = _CHROMA_SIGMA
-    return torch.cat([_chromaticity(pilot, mask).to(guide.dtype), guide[:, 2:]], 1), sigmas
+    sigmas[:, at:at + 2] = _CHROMA_SIGMA
+    if noise is not None:
+        sigmas[:, at:at + 2] *= _noise_widening(noise.to(sigmas.dtype) / _PILOT_NOISE_SCALE)[:, None]
+    chroma = _chromaticity(pilot, mask).to(guide.dtype)
+    return torch.cat([guide[:, :at], chroma, guide[:, at + 2:]], 1), sigmas
 
 
 def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:
