@@ -140,13 +140,13 @@ def test_selection_pools_wider_where_the_pilot_is_noisy(clip, monkeypatch):
 
 def test_the_time_window_widens_where_the_pilot_is_noisy(monkeypatch):
     """The held-out room lit by bounce light alone: where its pilot is too noisy to trust, the space-time
-    window joins every frame the albedo's window holds (+-2, not +-1), which scores better there; a query
-    of each kind in one call gives each the bytes it gets alone."""
+    window joins every frame the albedo's window holds (+-2, not +-1) and its candidates alone (no frame's own),
+    which scores better there; a query of each kind in one call gives each the bytes it gets alone."""
     c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2, 3, 4])
     settings = DenoiseSettings(temporal_radius=1)
     kw = dict(settings=settings, query_times=[2.0], samples_per_pixel=1)
     wide = denoise_frames(c, f, names, **kw)
-    two = DenoiseSettings(temporal_radius=2)
+    two = DenoiseSettings(temporal_radius=2, frame_alone_bandwidths=())  # its window's candidates alone
     assert torch.equal(wide, denoise_frames(c, f, names, **{**kw, "settings": two}))
     with monkeypatch.context() as m:
         m.setattr(D, "_noisy_window", lambda state, settings, ft, qt: [False] * len(qt))

@@ -117,7 +117,8 @@ def test_inbetween_frames_and_errors():
 def test_spacetime_reduces_ghosting(tracer):
     """Around the moving sphere a plain time window mixes frames (ghosts); space-time keeps them apart.
 
-    Frames of 16 spp, so the ghost, not the noise, dominates the error inside the mask.
+    Frames of 16 spp, so the ghost, not the noise, dominates the error inside the mask. The window's candidates
+    alone (each frame's own would keep a pixel where the frames disagree, in either mode).
     """
     from torchmanifold.pipeline import denoise_frames
     from torchmanifold.render import default_scene
@@ -134,10 +135,35 @@ def test_spacetime_reduces_ghosting(tracer):
     res = {}
     for mode in ("window", "spacetime"):
         out = denoise_frames(r.color, r.features, r.feature_names, r.emission,
-                             DenoiseSettings(temporal_radius=1, mode=mode), frame_times=times, query_times=[4.0])
+                             DenoiseSettings(temporal_radius=1, mode=mode, frame_alone_bandwidths=()),
+                             frame_times=times, query_times=[4.0])
         res[mode] = (M.psnr(out, ref, mask=mask), M.psnr(out, ref))
     assert res["spacetime"][0] > res["window"][0] + 1.0, res  # less ghosting on the moving object
     assert res["spacetime"][1] > res["window"][1] - 0.2, res  # and no worse elsewhere
+
+
+def test_each_frame_alone_keeps_the_moving_object_where_the_window_smears_it(tracer):
+    """The window's candidates and each frame's own narrowest (the default), blended by cross-validated error:
+    where the window mode's frame mean ghosts the moving sphere, the selection keeps the frame's own filter
+    (frames of 16 spp; measured +0.97 dB inside the mask), and the frame is no worse elsewhere."""
+    from torchmanifold.pipeline import denoise_frames
+    from torchmanifold.render import default_scene
+
+    scene = default_scene()
+    moving = [k for k, o in enumerate(scene.objects) if len(o.motion) > 1]
+    times = [3.0, 4.0, 5.0]
+    r = tracer.render(times=times, spp=16, seed=3)
+    ref = tracer.render(times=[4.0], spp=256, seed=7).color
+    mask = moving_mask(r.object_id, moving, dilate=1).amax(0, keepdim=True)
+    res = {}
+    for alone in (None, ()):
+        st = DenoiseSettings(temporal_radius=1, mode="window", frame_alone_bandwidths=alone)
+        assert st.frame_alone == ((0.5,) if alone is None else ())
+        out = denoise_frames(r.color, r.features, r.feature_names, r.emission, st, frame_times=times,
+                             query_times=[4.0], samples_per_pixel=16)
+        res[alone] = (M.psnr(out, ref, mask=mask), M.psnr(out, ref))
+    assert res[None][0] > res[()][0] + 0.5, res
+    assert res[None][1] > res[()][1] - 0.05, res
 
 
 # ---------------------------------------------------------------------------------- the engine's API

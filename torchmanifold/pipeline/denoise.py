@@ -307,8 +307,12 @@ class DenoiseSettings:
         frame_alone_bandwidths: with a time window, bandwidths (multiples of ``sigma_s``) at which each
             query's frame is also filtered alone; the bandwidth selection blends them with the window's
             candidates by their cross-validated error, so that where the window's frames disagree (a moving
-            view, and nothing in the guide that tells them apart) a pixel keeps its own frame. Empty: none;
-            :func:`adapt_to_features` sets them for colour alone.
+            view, and little in the guide that tells them apart) a pixel keeps its own frame. ``None``
+            (default): the ``bandwidths`` narrower than ``sigma_s``, except where the window widens for a
+            noisy pilot (:func:`_noisy_window`: a frame's own narrow candidate is its noise); ``()``: none.
+            Every frame of the validation set from 1 / 4 spp against none: +0.04 / +0.08 dB (the pans
+            ``mi_env_thin`` and ``bl_env_thin`` +0.1 to +0.4); from colour alone, where nothing else tells
+            a pan's frames apart, +0.60 / +0.57 (``findings.md``).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
@@ -334,7 +338,7 @@ class DenoiseSettings:
     temporal_radius: int = 0
     albedo_radius: int = 2
     evidence_radius: int = 1
-    frame_alone_bandwidths: Sequence[float] = ()
+    frame_alone_bandwidths: Sequence[float] | None = None
     sigma_t: float = 1.0
     mode: str = "spacetime"
     dtype: torch.dtype = torch.float32
@@ -350,11 +354,10 @@ class DenoiseSettings:
             raise TypeError(f"bandwidths must be a non-empty sequence of numbers, got {self.bandwidths!r}")
         for k, b in enumerate(self.bandwidths):
             check_positive(f"bandwidths[{k}]", b)
-        if isinstance(self.frame_alone_bandwidths, (str, bytes)) or \
-                not isinstance(self.frame_alone_bandwidths, Sequence):
-            raise TypeError(f"frame_alone_bandwidths must be a sequence of numbers, got "
-                            f"{self.frame_alone_bandwidths!r}")
-        for k, b in enumerate(self.frame_alone_bandwidths):
+        alone = self.frame_alone_bandwidths
+        if alone is not None and (isinstance(alone, (str, bytes)) or not isinstance(alone, Sequence)):
+            raise TypeError(f"frame_alone_bandwidths must be None or a sequence of numbers, got {alone!r}")
+        for k, b in enumerate(alone or ()):
             check_positive(f"frame_alone_bandwidths[{k}]", b)
         for name in ("radiance_sigma", "selection_blur", "selection_softness"):
             check_nonnegative(name, getattr(self, name))
@@ -385,9 +388,14 @@ class DenoiseSettings:
 
     @property
     def frame_alone(self) -> tuple[float, ...]:
-        """The bandwidths at which a query's frame is also filtered alone: ``frame_alone_bandwidths`` where
-        there is a time window, else none (every candidate is of the frame alone)."""
-        return tuple(map(float, self.frame_alone_bandwidths)) if self.temporal_radius > 0 else ()
+        """The bandwidths at which a query's frame is also filtered alone: ``frame_alone_bandwidths`` (``None``:
+        the bandwidths under 1) where there is a time window, else none (every candidate is of the frame
+        alone)."""
+        if self.temporal_radius == 0:
+            return ()
+        if self.frame_alone_bandwidths is None:
+            return tuple(float(b) for b in self.bandwidths if b < 1)
+        return tuple(map(float, self.frame_alone_bandwidths))
 
     @property
     def candidates(self) -> int:
@@ -473,11 +481,11 @@ def adapt_to_features(settings: DenoiseSettings,
 
     Where no albedo channel guides (colour alone, or geometry alone), the guide cannot tell texture from noise
     nor, on glass, what it shows: the candidates reach down to a quarter of the narrowest
-    (:data:`_NO_ALBEDO_NARROWER`), the log-radiance channel narrows by :data:`_NO_ALBEDO_RADIANCE` (the
-    guide also holds the colour's chromaticity, :func:`_guide`) and, with a time window, each frame is also
-    filtered alone at the candidates narrower than ``sigma_s`` (``frame_alone_bandwidths``): nothing in
-    colour alone tells a moving view's frames apart (the +-1 window smeared a pan's moving ball, -1.2 / -1.4
-    dB from 4 spp on two validation scenes, and gained 0.7-0.9 dB on still views), so the bandwidth
+    (:data:`_NO_ALBEDO_NARROWER`), and so, with a time window, does each frame's own filter (by default at
+    the candidates narrower than ``sigma_s``, ``frame_alone_bandwidths``), and the log-radiance channel
+    narrows by :data:`_NO_ALBEDO_RADIANCE` (the guide also holds the colour's chromaticity, :func:`_guide`).
+    Nothing in colour alone tells a moving view's frames apart (the +-1 window smeared a pan's moving ball,
+    -1.2 / -1.4 dB from 4 spp on two validation scenes, and gained 0.7-0.9 dB on still views): the bandwidth
     selection keeps a pixel's own frame where the window's disagree. The validation set from 1 / 4 spp,
     colour alone: each frame alone 24.42 / 27.42 dB, the window alone 24.90 / 27.45, both 25.02 / 27.99 (each
     frame alone at all six candidates: 24.96 / 27.94), with the narrower channel 25.13 / 28.10 (every clip
@@ -489,13 +497,12 @@ def adapt_to_features(settings: DenoiseSettings,
         return settings, None
     low = min(float(b) for b in settings.bandwidths)
     bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | set(map(float, settings.bandwidths))))
-    alone = tuple(b for b in bandwidths if b < 1.0) if settings.temporal_radius > 0 else ()
-    adapted = replace(settings, bandwidths=bandwidths, frame_alone_bandwidths=alone,
+    adapted = replace(settings, bandwidths=bandwidths,
                       radiance_sigma=settings.radiance_sigma * _NO_ALBEDO_RADIANCE)
     note = (f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s, radiance sigma "
             f"{adapted.radiance_sigma:g}, the colour's chromaticity guides")
-    if alone:
-        note += f", each frame also filtered alone at bandwidths {list(alone)}"
+    if adapted.frame_alone:
+        note += f", each frame also filtered alone at bandwidths {list(adapted.frame_alone)}"
     if not guide:
         note += "; no feature channel guides"
     return adapted, note
@@ -840,7 +847,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
             return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache)
                               for q in qt])
-        settings = replace(settings, temporal_radius=settings.joined_radius)
+        # the window's candidates alone: a frame's own narrow candidate is its noise there
+        settings = replace(settings, temporal_radius=settings.joined_radius, frame_alone_bandwidths=())
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     s = state
 
