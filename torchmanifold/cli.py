@@ -31,7 +31,8 @@ def _guide_sigmas(items):
 
 
 def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str, tree_height: int,
-                     selection_softness: float | None = None, evidence_radius: int | None = None) -> None:
+                     selection_softness: float | None = None, evidence_radius: int | None = None,
+                     frame_alone_bandwidths=None) -> None:
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
     d = DenoiseSettings()
@@ -69,6 +70,12 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                    default=d.evidence_radius if evidence_radius is None else evidence_radius,
                    help="with a time window, the frames on each side whose queries lend their "
                         "cross-validated errors to a frame's bandwidth selection (%(default)s)")
+    alone = "the bandwidths under 1" if frame_alone_bandwidths is None else \
+        list(frame_alone_bandwidths) or "none"
+    g.add_argument("--frame-alone", type=float, nargs="*", metavar="FACTOR",
+                   default=None if frame_alone_bandwidths is None else list(frame_alone_bandwidths),
+                   help="with a time window, bandwidths (multiples of --sigma-s) at which each frame is also "
+                        f"filtered alone, blended with the window's; no value: none (default: {alone})")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")
@@ -83,6 +90,7 @@ def _settings(a):
                            demodulate=not a.no_demodulate, keep_sky=not a.filter_sky,
                            temporal_radius=a.temporal_radius, albedo_radius=a.albedo_radius,
                            evidence_radius=a.evidence_radius,
+                           frame_alone_bandwidths=None if a.frame_alone is None else tuple(a.frame_alone),
                            sigma_t=a.sigma_t, mode=a.mode).check()
 
 

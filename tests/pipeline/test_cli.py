@@ -210,6 +210,11 @@ def test_each_command_filters_with_its_engine_defaults():
     assert render.selection_softness != denoise.selection_softness
     args = sub["render"].parse_args(["--out", "o", "--selection-softness", "0.8"])
     assert _settings(args).selection_softness == 0.8
+    assert render.frame_alone == () and denoise.frame_alone == (0.5,)
+    for command, given, alone in (("render", ["0.5", "1"], (0.5, 1.0)), ("denoise", [], ())):
+        clip = ["x"] if command == "denoise" else []
+        args = sub[command].parse_args(clip + ["--out", "o", "--frame-alone", *given])
+        assert _settings(args).frame_alone == alone
 
 
 def test_filter_sky_flag():
