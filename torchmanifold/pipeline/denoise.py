@@ -310,9 +310,9 @@ class DenoiseSettings:
             view, and little in the guide that tells them apart) a pixel keeps its own frame. ``None``
             (default): the ``bandwidths`` narrower than ``sigma_s``, except where the window widens for a
             noisy pilot (:func:`_noisy_window`: a frame's own narrow candidate is its noise); ``()``: none.
-            Every frame of the validation set from 1 / 4 spp against none: +0.04 / +0.08 dB (the pans
-            ``mi_env_thin`` and ``bl_env_thin`` +0.1 to +0.4); from colour alone, where nothing else tells
-            a pan's frames apart, +0.60 / +0.57 (``findings.md``).
+            Every frame of the validation set from 1 / 4 spp against none: +0.04 / +0.07 dB, no clip below
+            -0.04 (the pans ``mi_env_thin`` and ``bl_env_thin`` +0.09 to +0.37); from colour alone, where
+            nothing else tells a pan's frames apart, +0.60 / +0.57 (``findings.md``).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
