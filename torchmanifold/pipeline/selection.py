@@ -56,6 +56,10 @@ _CORRELATED_CELL = 8
 #: them one sign half the time and splatted samples more often: 0.47-0.52 on every frame of the validation
 #: clips that has the pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five
 #: Mitsuba clips rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
+#: A frame with too few pairs on plain surfaces (texture everywhere) takes the residual's share (below) against
+#: this bound: every frame of the set, its probes and its clips at 256x256 stays under it (the fog probe's
+#: residual reads up to 0.527 from 1 spp), `mi_still_textures` rendered with Mitsuba's gaussian reads
+#: 0.568-0.601
 _CORRELATED_SIGNS = 0.535
 
 
@@ -101,38 +105,50 @@ def _cv_cell(e: Tensor, valid: Tensor, features: Tensor, sigmas: Tensor) -> Tens
     one sign (a difference of 0, as between two black pixels, tells nothing). With no such channel (``F`` 0:
     no albedo guides), in every row of four valid pixels of the residual about a blur
     (:data:`_RESIDUAL_BLUR`, :data:`_CORRELATED_RESIDUAL_SIGNS`), and the squares are
-    :data:`_CORRELATED_CELL_NO_ALBEDO` wide."""
+    :data:`_CORRELATED_CELL_NO_ALBEDO` wide. A frame with too few pairs on plain surfaces (texture
+    everywhere) is tested on the residual too, against its own bound (:data:`_CORRELATED_SIGNS`)."""
     with torch.no_grad():
-        T, _, H, W = e.shape
-        out = torch.ones(T, dtype=torch.int64)
+        T = e.shape[0]
         x = luminance(torch.where(valid, e, 0.0))
-        residual = features.shape[1] == 0
-        if residual:
-            x = x - footprint_blur(x, _RESIDUAL_BLUR)
+        if features.shape[1] == 0:
+            agree, total = _sign_pairs(x - footprint_blur(x, _RESIDUAL_BLUR), valid)
+            correlated = (total >= _MIN_SIGN_PAIRS) & (agree > _CORRELATED_RESIDUAL_SIGNS * total)
+            return torch.where(correlated, _CORRELATED_CELL_NO_ALBEDO, torch.ones(T, dtype=torch.int64))
+        plain_guide = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
+        agree, total = _sign_pairs(x, valid, plain_guide)
+        few = total < _MIN_SIGN_PAIRS
+        if bool(few.any()):
+            ids = few.nonzero()[:, 0]
+            agree[ids], total[ids] = _sign_pairs(x[ids] - footprint_blur(x[ids], _RESIDUAL_BLUR), valid[ids])
+        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > _CORRELATED_SIGNS * total)
+        return torch.where(correlated, _CORRELATED_CELL, torch.ones(T, dtype=torch.int64))
+
+
+def _sign_pairs(x: Tensor, valid: Tensor, plain_guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Per frame, of the rows and columns of four valid pixels of ``x`` ``(T, 1, H, W)`` (on one plain surface
+    of ``plain_guide`` ``(T, F, H, W)``, in units of its range sigmas, where given), how many have ``x1 - x0``
+    and ``x2 - x3`` of one sign, and how many have both nonzero: ``(T,)`` int64 each (:func:`_cv_cell`)."""
+    T = x.shape[0]
+    agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
+    for dim in (-1, -2):
+        n = x.shape[dim] - 3
+        if n <= 0:
+            continue
+        at = [x.narrow(dim, k, n) for k in range(4)]
+        near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
+        if plain_guide is None:
+            plain = torch.ones_like(near, dtype=torch.bool)
         else:
-            g = features / sigmas.to(features.dtype).clamp_min(1e-30)[:, :, None, None]
-        agree, total = torch.zeros(T, dtype=torch.int64), torch.zeros(T, dtype=torch.int64)
-        for dim in (-1, -2):
-            n = x.shape[dim] - 3
-            if n <= 0:
-                continue
-            at = [x.narrow(dim, k, n) for k in range(4)]
-            near, far = torch.sign(at[1] - at[0]), torch.sign(at[2] - at[3])
-            if residual:
-                plain = torch.ones_like(near, dtype=torch.bool)
-            else:
-                four = [g.narrow(dim, k, n) for k in range(4)]
-                hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
-                lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
-                plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
-            for k in range(4):
-                plain &= valid.narrow(dim, k, n)
-            counted = plain & (near != 0) & (far != 0)
-            agree += (counted & (near == far)).flatten(1).sum(1)
-            total += counted.flatten(1).sum(1)
-        bound = _CORRELATED_RESIDUAL_SIGNS if residual else _CORRELATED_SIGNS
-        correlated = (total >= _MIN_SIGN_PAIRS) & (agree > bound * total)
-        return torch.where(correlated, _CORRELATED_CELL_NO_ALBEDO if residual else _CORRELATED_CELL, out)
+            four = [plain_guide.narrow(dim, k, n) for k in range(4)]
+            hi = torch.maximum(torch.maximum(four[0], four[1]), torch.maximum(four[2], four[3]))
+            lo = torch.minimum(torch.minimum(four[0], four[1]), torch.minimum(four[2], four[3]))
+            plain = (hi - lo).amax(1, keepdim=True) < _PLAIN_SPAN
+        for k in range(4):
+            plain &= valid.narrow(dim, k, n)
+        counted = plain & (near != 0) & (far != 0)
+        agree += (counted & (near == far)).flatten(1).sum(1)
+        total += counted.flatten(1).sum(1)
+    return agree, total
 
 
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
