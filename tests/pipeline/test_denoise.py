@@ -216,7 +216,8 @@ def test_splatted_texture_everywhere_found_from_the_residual(monkeypatch):
     dB over per-pixel halves)."""
     c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2])
     settings = DenoiseSettings(temporal_radius=1)
-    cell = lambda c, f: D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).cv_cell  # noqa: E731
+    def cell(c, f):
+        return D.prepare_frames(c, f, names, None, settings, samples_per_pixel=1).cv_cell
     assert bool((cell(c, f) == 1).all())
     c, f, ref = _splat(c), _splat(f), _splat(ref)
     counted, pairs = [], SEL._sign_pairs

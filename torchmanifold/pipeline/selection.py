@@ -56,10 +56,10 @@ _CORRELATED_CELL = 8
 #: them one sign half the time and splatted samples more often: 0.47-0.52 on every frame of the validation
 #: clips that has the pairs (and of two Cycles clips with its Blackman-Harris filter), 0.557-0.63 on five
 #: Mitsuba clips rendered with its gaussian (benchmarks/validation/findings.md); the bound lies between.
-#: A frame with too few pairs on plain surfaces (texture everywhere) takes the residual's share (below) against
-#: this bound: every frame of the set, its probes and its clips at 256x256 stays under it (the fog probe's
-#: residual reads up to 0.527 from 1 spp), `mi_still_textures` rendered with Mitsuba's gaussian reads
-#: 0.568-0.601
+#: A frame with too few pairs on plain surfaces (texture everywhere) takes the residual's share (below)
+#: against this bound: every frame of the set, its probes and its clips at 256x256 stays under it (the fog
+#: probe's residual reads up to 0.527 from 1 spp), `mi_still_textures` rendered with Mitsuba's gaussian
+#: reads 0.568-0.601
 _CORRELATED_SIGNS = 0.535
 
 
