@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Sequence
 
 from torchmanifold._checks import MAX_TREE_HEIGHT, check_int, check_tree_height
 from torchmanifold._threads import set_threads
@@ -32,7 +33,7 @@ def _guide_sigmas(items):
 
 def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str, tree_height: int,
                      selection_softness: float | None = None, evidence_radius: int | None = None,
-                     frame_alone_bandwidths=None) -> None:
+                     frame_alone_bandwidths: Sequence[float] | None = None) -> None:
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
     d = DenoiseSettings()

@@ -25,8 +25,8 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
    set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
-   channel and the albedo stop steering (:func:`_noise_widening`). Colour alone adds the chromaticity, the
-   pilot's from the samples' (:func:`_chromaticity_from_pilot`).
+   channel and the albedo stop steering (:func:`_noise_widening`). Without albedo the chromaticity guides
+   too, the pilot's from the samples' (:func:`_chromaticity_from_pilot`).
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends them by
    their error, estimated by cross-validation between two interleaved halves of the samples (see
    :func:`~torchmanifold.pipeline.selection._select_bandwidth`): wide where the light is smooth and the
@@ -35,9 +35,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    squares of pixels (:func:`~torchmanifold.pipeline.selection._cv_cell`). Where no albedo guides, two
    narrower bandwidths join (:func:`adapt_to_features`): nothing else tells texture from noise.
 7. **Time**: optionally neighbour frames within ``temporal_radius`` join with Gaussian weights in
-   time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; with
-   colour alone each frame is also filtered alone, and the bandwidth selection keeps it where the window's
-   frames disagree (nothing else tells a moving view's frames apart).
+   time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; each frame
+   is also filtered alone at the narrow bandwidths, and the bandwidth selection keeps it where the window's
+   frames disagree (a pan's edges; with colour alone nothing else tells a moving view's frames apart).
 8. **Pixel footprint** (:mod:`torchmanifold.pipeline.footprint`): a 1-spp pixel shows one point of its
    area, so thin geometry comes out dotted and texture speckled; the result is averaged over a pixel-sized
    footprint, in a tone-mapped domain and only among pixels of similar brightness, so a light's edge does
@@ -310,8 +310,8 @@ class DenoiseSettings:
             view, and little in the guide that tells them apart) a pixel keeps its own frame. ``None``
             (default): the ``bandwidths`` narrower than ``sigma_s``, except where the window widens for a
             noisy pilot (:func:`_noisy_window`: a frame's own narrow candidate is its noise); ``()``: none.
-            Every frame of the validation set from 1 / 4 spp against none: +0.04 / +0.07 dB, no clip below
-            -0.04 (the pans ``mi_env_thin`` and ``bl_env_thin`` +0.09 to +0.37); from colour alone, where
+            Every frame of the validation set from 1 / 4 spp against none: +0.03 / +0.07 dB, no clip below
+            -0.05 (the pans ``mi_env_thin`` and ``bl_env_thin`` +0.09 to +0.37); from colour alone, where
             nothing else tells a pan's frames apart, +0.60 / +0.57 (``findings.md``).
         sigma_t: temporal sigma in frames.
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
