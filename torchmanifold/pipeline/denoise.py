@@ -763,7 +763,10 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
             lit = lit & ~scattered
     if bool(lit.any()):
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
-        alb, flat, f = torch.where(lit, 1.0, alb), flat & ~lit, torch.where(lit, 0.0, f)
+        # a frame with no albedo to demodulate by is filtered whole, its sky with its surfaces: apart, the
+        # surfaces would take the flat pixels' narrow average
+        whole = flat.flatten(1).all(1).view(-1, 1, 1, 1)
+        alb, flat, f = torch.where(lit, 1.0, alb), flat & (whole | ~lit), torch.where(lit, 0.0, f)
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
