@@ -313,7 +313,9 @@ def test_the_widest_candidate_keeps_a_cube_s_faces_apart():
     mask = torch.from_numpy(mask)
     inside, outside = [-10 * math.log10(float(err[m].mean())) for m in (mask, ~mask)]
     assert inside > outside - 1.0, (inside, outside)
-    assert [D.tree_height_at(DenoiseSettings(), b) for b in (0.5, 1.0, 2.0, 4.0, 64.0)] == [3, 3, 4, 5, 5]
+    assert [D.tree_height_at(DenoiseSettings(), b) for b in (0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 64.0)] == \
+        [2, 2, 3, 3, 4, 5, 5]
+    assert D.tree_height_at(DenoiseSettings(tree_height=1), 0.25) == 1
     assert D.tree_height_at(DenoiseSettings(levels_per_doubling=0), 4.0) == 3
 
 
