@@ -1189,6 +1189,31 @@ def test_fog_without_albedo_filters_its_ground():
         assert (out - truth)[where].abs().mean() < 0.2 * noise, (where, (out - truth)[where].abs().mean(), noise)
 
 
+def test_a_medium_s_frame_is_not_demodulated():
+    """In fog the ground's colour is mostly the light scattered on the way, which its albedo does not scale: a
+    checkered ground under a glow of one brightness. Divided by the checker, the glow took the checker's
+    pattern and the filter could not average it away (26.6 dB measured before the rule); a frame whose sky is
+    noise (a medium) is filtered whole as radiance, the albedo still guiding (34.8 measured). A clear sky's
+    frame is demodulated as before."""
+    T, H, W = 2, 48, 48
+    f, names, truth, color, sky = _fog(T, H, W, 11)
+    albedo = [k for k, n in enumerate(names) if D.feature_group(n) == "albedo"]
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    check = (((yy // 4) + (xx // 4)) % 2).float() * 0.6 + 0.2
+    f[:, albedo, 16:] = check[16:].expand(T, len(albedo), H - 16, W)
+    truth[:, :, 16:] = 0.3 + 0.05 * check[16:]
+    color = _noisy(truth, 12)
+    state = D.prepare_frames(color, f, names, None, DenoiseSettings(), samples_per_pixel=1)
+    assert bool((state.albedo == 1).all()) and bool(state.flat.all())
+    out = denoise_frames(color, f, names, samples_per_pixel=1)
+    ground = (slice(None), slice(None), slice(20, None))
+    assert M.psnr(out[ground], truth[ground]) > 32.0
+    clear = color.clone()
+    clear[sky] = truth[sky]
+    state = D.prepare_frames(clear, f, names, None, DenoiseSettings(), samples_per_pixel=1)
+    assert not bool(state.flat.all()) and bool((state.albedo[:, :, 16:] != 1).any())
+
+
 def test_sky_samples_in_a_pixel_are_divided_by_one():
     """In fog, a pixel whose samples mostly met no surface (posts thinner than a pixel, or a filter that
     splats sky samples beside them) averages the albedo, normal and depth of a few surface samples with the

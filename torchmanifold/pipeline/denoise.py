@@ -762,11 +762,16 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
             alb, flat = torch.where(scattered, alb_s, alb), torch.where(scattered, flat_s, flat)
             lit = lit & ~scattered
     if bool(lit.any()):
-        alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         # a frame with no albedo to demodulate by is filtered whole, its sky with its surfaces: apart, the
         # surfaces would take the flat pixels' narrow average
         whole = flat.flatten(1).all(1).view(-1, 1, 1, 1)
+        alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & (whole | ~lit), torch.where(lit, 0.0, f)
+    # in a medium (a frame whose sky is noise) the colour is largely light scattered on the way, which no
+    # surface's albedo scales: such a frame is not demodulated but filtered whole as radiance (the albedo still
+    # guides); divided by the albedo, the surfaces' texture was drawn into the fog's light
+    medium = noisy_sky.flatten(1).any(1).view(-1, 1, 1, 1)
+    alb, flat = torch.where(medium, 1.0, alb), flat | medium
     e = c / alb
     guide, sig, gnames = _guide(f, names, e, mask, settings)
     # texture gets its own footprint where the sample count, hence the samples' jitter, is known
@@ -1194,7 +1199,7 @@ def _sky_share_albedo(alb: Tensor, flat: Tensor, f: Tensor, names: Sequence[str]
     keeps its albedo."""
     canon = [canonical_name(n) for n in names]
     unit = next((g for g in feature_table.FEATURES if g.unit and all(c in canon for c in g.channels)), None)
-    raw = _albedo(f, names)
+    raw = _albedo(f, names) if settings.demodulate else None
     if unit is None or raw is None:
         return alb, flat
     normal = torch.stack([f[:, canon.index(c)] for c in unit.channels], 1)
