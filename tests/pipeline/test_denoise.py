@@ -140,8 +140,8 @@ def test_selection_pools_wider_where_the_pilot_is_noisy(clip, monkeypatch):
 
 def test_the_time_window_widens_where_the_pilot_is_noisy(monkeypatch):
     """The held-out room lit by bounce light alone: where its pilot is too noisy to trust, the space-time
-    window joins every frame the albedo's window holds (+-2, not +-1) and its candidates alone (no frame's own),
-    which scores better there; a query of each kind in one call gives each the bytes it gets alone."""
+    window joins every frame the albedo's window holds (+-2, not +-1) and its candidates alone (no frame's
+    own), which scores better there; a query of each kind in one call gives each the bytes it gets alone."""
     c, f, names, ref = _validation_clip("bl_indirect_dof", [0, 1, 2, 3, 4])
     settings = DenoiseSettings(temporal_radius=1)
     kw = dict(settings=settings, query_times=[2.0], samples_per_pixel=1)
@@ -365,7 +365,8 @@ def test_bad_bandwidths_named():
     for bad, err in [((), TypeError), ("wide", TypeError), ((1.0, 0.0), ValueError), ((float("nan"),), ValueError)]:
         with pytest.raises(err, match="bandwidths"):
             DenoiseSettings(bandwidths=bad).check()
-    for bad, err in [("wide", TypeError), (0.5, TypeError), ((0.5, -1.0), ValueError), ((math.inf,), ValueError)]:
+    bad_alone = [("wide", TypeError), (0.5, TypeError), ((0.5, -1.0), ValueError), ((math.inf,), ValueError)]
+    for bad, err in bad_alone:
         with pytest.raises(err, match="frame_alone_bandwidths"):
             DenoiseSettings(frame_alone_bandwidths=bad).check()
     assert DenoiseSettings(frame_alone_bandwidths=()).check().frame_alone == ()
@@ -1186,7 +1187,8 @@ def test_fog_without_albedo_filters_its_ground():
     ground = (slice(None), slice(None), slice(20, None))
     for where in (sky, ground):
         noise = (color - truth)[where].abs().mean()
-        assert (out - truth)[where].abs().mean() < 0.2 * noise, (where, (out - truth)[where].abs().mean(), noise)
+        error = (out - truth)[where].abs().mean()
+        assert error < 0.2 * noise, (where, error, noise)
 
 
 def test_a_medium_s_frame_is_not_demodulated():

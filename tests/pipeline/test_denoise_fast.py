@@ -127,7 +127,8 @@ def test_kuwahara_chromaticity_equals_reference_bitwise(frame):
         for dtype in (torch.float32, torch.float64):
             out, ref = _both(lambda x, w: D._kuwahara3(D._chromaticity(x, w)), e.to(dtype), m.to(dtype))
             _same(out, ref)
-            one = torch.cat([D._kuwahara3(c) for c in D._chromaticity(e.to(dtype), m.to(dtype)).split(1, 1)], 1)
+            chroma = D._chromaticity(e.to(dtype), m.to(dtype))
+            one = torch.cat([D._kuwahara3(c) for c in chroma.split(1, 1)], 1)
             _same(out, one)
 
 

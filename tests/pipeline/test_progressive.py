@@ -117,8 +117,8 @@ def test_inbetween_frames_and_errors():
 def test_spacetime_reduces_ghosting(tracer):
     """Around the moving sphere a plain time window mixes frames (ghosts); space-time keeps them apart.
 
-    Frames of 16 spp, so the ghost, not the noise, dominates the error inside the mask. The window's candidates
-    alone (each frame's own would keep a pixel where the frames disagree, in either mode).
+    Frames of 16 spp, so the ghost, not the noise, dominates the error inside the mask. The window's
+    candidates alone (each frame's own would keep a pixel where the frames disagree, in either mode).
     """
     from torchmanifold.pipeline import denoise_frames
     from torchmanifold.render import default_scene

@@ -138,8 +138,8 @@ def test_render_sharded_is_bitwise_one_process(cluster, render_reference, tmp_pa
 
 
 def test_colour_alone_sharded_is_bitwise_one_process(cluster, clip, tmp_path):
-    """Colour alone takes its own settings (narrower candidates, each frame also alone) in the sharded path too:
-    the same bytes as one process."""
+    """Colour alone takes its own settings (narrower candidates, each frame also alone) in the sharded path
+    too: the same bytes as one process."""
     paths = []
     for p in clip:
         d = read_exr(p)

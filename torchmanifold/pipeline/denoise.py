@@ -388,9 +388,9 @@ class DenoiseSettings:
 
     @property
     def frame_alone(self) -> tuple[float, ...]:
-        """The bandwidths at which a query's frame is also filtered alone: ``frame_alone_bandwidths`` (``None``:
-        the bandwidths under 1) where there is a time window, else none (every candidate is of the frame
-        alone)."""
+        """The bandwidths at which a query's frame is also filtered alone: ``frame_alone_bandwidths``
+        (``None``: the bandwidths under 1) where there is a time window, else none (every candidate is of the
+        frame alone)."""
         if self.temporal_radius == 0:
             return ()
         if self.frame_alone_bandwidths is None:
@@ -462,8 +462,8 @@ def radiance_sigma_at(settings: DenoiseSettings, samples_per_pixel: float | None
 _NO_ALBEDO_NARROWER = (0.25, 0.5)
 #: the factor on ``radiance_sigma`` where no albedo guides (with colour alone the log-radiance channel is the
 #: one edge beside the chromaticity). The validation set's tuning part from 1 / 4 spp, colour alone, every
-#: frame, against 1: 0.5 +0.18 / +0.19 dB, 0.6 +0.26 / +0.23, 0.7 +0.28 / +0.24, 0.8 +0.21 / +0.18, 1.4 -0.22 /
-#: -0.18; geometry alone, 0.7: -0.01 / +0.08
+#: frame, against 1: 0.5 +0.18 / +0.19 dB, 0.6 +0.26 / +0.23, 0.7 +0.28 / +0.24, 0.8 +0.21 / +0.18, 1.4
+#: -0.22 / -0.18; geometry alone, 0.7: -0.01 / +0.08
 _NO_ALBEDO_RADIANCE = 0.7
 #: the range sigma of the pilot's chromaticity guide channels, r / (r + g + b) and g / (r + g + b), where no
 #: albedo guides: a red ball on green grass has the grass's luminance. The tuning part, colour alone, each
@@ -768,8 +768,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & (whole | ~lit), torch.where(lit, 0.0, f)
     # in a medium (a frame whose sky is noise) the colour is largely light scattered on the way, which no
-    # surface's albedo scales: such a frame is not demodulated but filtered whole as radiance (the albedo still
-    # guides); divided by the albedo, the surfaces' texture was drawn into the fog's light
+    # surface's albedo scales: such a frame is not demodulated but filtered whole as radiance (the albedo
+    # still guides); divided by the albedo, the surfaces' texture was drawn into the fog's light
     medium = noisy_sky.flatten(1).any(1).view(-1, 1, 1, 1)
     alb, flat = torch.where(medium, 1.0, alb), flat | medium
     e = c / alb
@@ -1310,8 +1310,8 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
 
 
 def _chromaticity(x: Tensor, mask: Tensor) -> Tensor:
-    """``r / (r + g + b)`` and ``g / (r + g + b)`` of colours ``x`` ``(T, 3, H, W)``, ``(T, 2, H, W)`` (the sum
-    offset by a thousandth of the frame's mean luminance over ``mask``, so black pixels stay near 0)."""
+    """``r / (r + g + b)`` and ``g / (r + g + b)`` of colours ``x`` ``(T, 3, H, W)``, ``(T, 2, H, W)`` (the
+    sum offset by a thousandth of the frame's mean luminance over ``mask``, so black pixels stay near 0)."""
     p = x.clamp_min(0.0)
     return p[:, :2] / (p.sum(1, keepdim=True) + 1e-3 * _frame_mean(luminance(p), mask).clamp_min(1e-30))
 

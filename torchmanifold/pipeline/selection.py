@@ -35,8 +35,9 @@ _SELECTION_ERROR_CUT = 2.0
 
 #: levels fewer in the tree of each frame's own candidates than in the window's at the same bandwidth: a
 #: narrow kernel's filter is the costliest (its grid is the finest), and the validation set measured alike
-#: with one level fewer (the default's 2 px candidate: -0.005 / +0.003 dB from 1 / 4 spp, colour alone +0.003 /
-#: +0.006; two fewer -0.015 / -0.025) for a third of its time (19.5 -> 6.5 ms a 256x256 frame, one thread)
+#: with one level fewer (the default's 2 px candidate: -0.005 / +0.003 dB from 1 / 4 spp, colour alone
+#: +0.003 / +0.006; two fewer -0.015 / -0.025) for a third of its time (19.5 -> 6.5 ms a 256x256 frame, one
+#: thread)
 _FRAME_ALONE_FEWER_LEVELS = 1
 
 
