@@ -1216,6 +1216,23 @@ def test_a_medium_s_frame_is_not_demodulated():
     assert not bool(state.flat.all()) and bool((state.albedo[:, :, 16:] != 1).any())
 
 
+def test_a_medium_s_frames_beside_a_demodulated_one_are_filtered_as_radiance():
+    """A window whose middle frame's sky reads clear (demodulated) between two frames in fog (flat, filtered as
+    radiance): the fog's frames were flat pixels beside demodulated ones and took the flat pixels' narrow
+    average (their sky's error 0.12-0.13 of the noise's, measured); they are now filtered as radiance, their
+    flat pixels alone (0.07-0.09)."""
+    T, H, W = 3, 48, 48
+    f, names, truth, color, sky = _fog(T, H, W, 11)
+    color[1, :, :16] = truth[1, :, :16]
+    settings = DenoiseSettings(temporal_radius=1)
+    state = D.prepare_frames(color, f, names, None, settings, samples_per_pixel=1)
+    assert D._flat_frames(state.flat).flatten().tolist() == [True, False, True]
+    out = denoise_frames(color, f, names, settings=settings, samples_per_pixel=1)
+    for t in (0, 2):
+        noise = (color[t, :, :16] - truth[t, :, :16]).abs().mean()
+        assert (out[t, :, :16] - truth[t, :, :16]).abs().mean() < 0.1 * noise
+
+
 def test_sky_samples_in_a_pixel_are_divided_by_one():
     """In fog, a pixel whose samples mostly met no surface (posts thinner than a pixel, or a filter that
     splats sky samples beside them) averages the albedo, normal and depth of a few surface samples with the

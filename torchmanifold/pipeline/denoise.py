@@ -540,12 +540,24 @@ def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_si
     """``filt(values, mask)`` (a filter of frames to queries), except that flat pixels beside demodulated
     ones are left out of it (weight 0) and take ``average(values, weights, flat_sigma)`` (default
     :func:`_flat_average`), brought to the queries by ``at_queries``. A frame of flat pixels alone (no
-    albedo) is filtered whole."""
-    if not (bool(flat.any()) and not bool(flat.all())):
+    albedo, or a medium's) is filtered whole; beside frames that have demodulated pixels, by the filter of the
+    flat pixels alone (radiance and irradiance do not mix)."""
+    whole = _flat_frames(flat)
+    if not (bool(flat.any()) and not bool(whole.all())):
         return filt(values, mask)
     out = filt(values, mask * ~flat)
     own = (average or _flat_average)(values, mask * flat, flat_sigma)
-    return torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
+    out = torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
+    if bool(whole.any()):
+        whole = at_queries(whole.to(out.dtype)) > 0.5
+        out = torch.where(whole, filt(values, mask * flat), out)
+    return out
+
+
+def _flat_frames(flat: Tensor) -> Tensor:
+    """``(T, 1, 1, 1)`` bool: the frames whose pixels are all flat (``flat`` ``(T, 1, H, W)``), which have no
+    albedo to demodulate by and are filtered whole as radiance."""
+    return flat.flatten(1).all(1).view(-1, 1, 1, 1)
 
 
 def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
@@ -764,7 +776,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     if bool(lit.any()):
         # a frame with no albedo to demodulate by is filtered whole, its sky with its surfaces: apart, the
         # surfaces would take the flat pixels' narrow average
-        whole = flat.flatten(1).all(1).view(-1, 1, 1, 1)
+        whole = _flat_frames(flat)
         alb, flat = _sky_share_albedo(alb, flat, f, names, lit, settings)
         alb, flat, f = torch.where(lit, 1.0, alb), flat & (whole | ~lit), torch.where(lit, 0.0, f)
     # in a medium (a frame whose sky is noise) the colour is largely light scattered on the way, which no
@@ -783,7 +795,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
     # the demodulated pixels; every pixel of a frame that has no albedo to demodulate by
-    demodulated = ~flat | flat.flatten(1).all(1).view(-1, 1, 1, 1)
+    demodulated = ~flat | _flat_frames(flat)
     # a plain surface needs its albedo: normals alone take in texture
     plain = [k for k, n in enumerate(gnames) if feature_group(n) in _PLAIN_GROUPS] if _albedo_guides(gnames) \
         else []
