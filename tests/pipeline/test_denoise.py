@@ -1217,8 +1217,8 @@ def test_a_medium_s_frame_is_not_demodulated():
 
 
 def test_a_medium_s_frames_beside_a_demodulated_one_are_filtered_as_radiance():
-    """A window whose middle frame's sky reads clear (demodulated) between two frames in fog (flat, filtered as
-    radiance): the fog's frames were flat pixels beside demodulated ones and took the flat pixels' narrow
+    """A window whose middle frame's sky reads clear (demodulated) between two frames in fog (flat, filtered
+    as radiance): the fog's frames were flat pixels beside demodulated ones and took the flat pixels' narrow
     average (their sky's error 0.12-0.13 of the noise's, measured); they are now filtered as radiance, their
     flat pixels alone (0.07-0.09)."""
     T, H, W = 3, 48, 48

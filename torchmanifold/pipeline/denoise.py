@@ -1337,7 +1337,7 @@ def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask:
     sigmas = sigmas.clone()
     sigmas[:, at:at + 2] = _CHROMA_SIGMA
     if noise is not None:
-        sigmas[:, at:at + 2] *= _noise_widening(noise.to(sigmas.dtype) / _PILOT_NOISE_SCALE)[:, None]
+        sigmas = _noise_widened(sigmas, [at, at + 1], noise)
     chroma = _chromaticity(pilot, mask).to(guide.dtype)
     return torch.cat([guide[:, :at], chroma, guide[:, at + 2:]], 1), sigmas
 
@@ -1403,10 +1403,14 @@ def _albedo_widened(sigmas: Tensor, names: Sequence[str], noise: Tensor) -> Tens
     other scene) gain 0.3 / 0.8 dB (``mi_indirect_dof``, tuning part) and 0.8 / 1.3 dB (``bl_indirect_dof``,
     held out) from 1 / 4 spp, every other scene keeps its bits (``findings.md``)."""
     ai = [k for k, n in enumerate(names) if feature_group(n) == "albedo"]
-    if not ai:
-        return sigmas
+    return _noise_widened(sigmas, ai, noise) if ai else sigmas
+
+
+def _noise_widened(sigmas: Tensor, channels: list[int], noise: Tensor) -> Tensor:
+    """The range sigmas ``(T, G)`` with those of ``channels`` widened for the pilot's noise ``(T,)``
+    (:func:`_noise_widening`, in units of :data:`_PILOT_NOISE_SCALE`)."""
     out = sigmas.clone()
-    out[:, ai] *= _noise_widening(noise.to(sigmas.dtype) / _PILOT_NOISE_SCALE)[:, None]
+    out[:, channels] *= _noise_widening(noise.to(sigmas.dtype) / _PILOT_NOISE_SCALE)[:, None]
     return out
 
 

@@ -339,8 +339,9 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
     idx = [frame_at(ft, q) for q in qt]
     need = sorted(set(idx) | {n for ns in neighbours for n in ns})
     # an entry's key: the frames its window holds in this call's state (a call whose state cuts a neighbour's
-    # window short makes its own entry) and what another call's state may set otherwise
-    key = (settings.temporal_radius, float(sigma_s), float(range_scale), cell)
+    # window short makes its own entry) and what another call's state may set otherwise (a noisy pilot's
+    # window drops each frame's own candidates)
+    key = (settings.temporal_radius, settings.frame_alone, float(sigma_s), float(range_scale), cell)
 
     def compute(times: list) -> list:
         c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s, range_scale, level,
