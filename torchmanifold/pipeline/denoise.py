@@ -546,7 +546,8 @@ def _filter_flat_apart(filt, values: Tensor, mask: Tensor, flat: Tensor, flat_si
     if not (bool(flat.any()) and not bool(whole.all())):
         return filt(values, mask)
     out = filt(values, mask * ~flat)
-    own = (average or _flat_average)(values, mask * flat, flat_sigma)
+    beside = flat & ~whole  # the whole frames' flat pixels take no average: they are filtered below
+    own = (average or _flat_average)(values, mask * beside, flat_sigma)
     out = torch.where(at_queries(flat.to(out.dtype)) > 0.5, at_queries(own), out)
     if bool(whole.any()):
         whole = at_queries(whole.to(out.dtype)) > 0.5
