@@ -45,7 +45,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    narrower footprint than the light. A pixel that an edge crosses shows its few samples' share of either
    side; its neighbours along the edge share it, so the footprint reaches along edges, by the sample count.
    Where the renderer gives world positions, the window's other frames add their samples of each pixel's
-   albedo: a still view's of the same pixel, a moving view's that fall in the pixel's square.
+   albedo: a still view's of the same pixel, a moving view's that fall in the pixel's square. Where a lens
+   or a shutter mixes two surfaces in each pixel at random (the depth tells it), the footprint is the
+   blend's (:func:`~torchmanifold.pipeline.footprint._mixed_layers`).
 9. **Sky**: where the camera ray left the scene (depth 0) the colour is the environment itself, with no
    Monte Carlo noise: those pixels keep their samples (:func:`_escaped`), unless their colour is noise, as
    in fog (:func:`_noisy_sky`): then they are filtered with the rest, with no albedo or feature of their own.
@@ -71,7 +73,8 @@ from torchmanifold._checks import (check_choice, check_int, check_nonnegative, c
 from torchmanifold._threads import serial
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _any_within, _footprint_albedo, _known_count,
-                                              _normalised_blur, _position, _remodulate, _scattered_albedo,
+                                              _mixed_footprint, _mixed_pixels, _normalised_blur, _position,
+                                              _remodulate, _scattered_albedo,
                                               _smooth_surface, _window_albedo, footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
@@ -685,6 +688,9 @@ class FrameState:
             neighbouring pixels' noise is correlated, :func:`~torchmanifold.pipeline.selection._cv_cell`).
         clamped: ``(T, 1, H, W)`` the luminance of the radiance the firefly clamp took (0 without a clamp).
         lone: ``(T, 1, H, W)`` the part of ``clamped`` that lone fireflies took (:func:`_lone_fireflies`).
+        mixed: ``(T, 1, H, W)`` in [0, 1], how surely a pixel's samples mix two surfaces at random (a lens's
+            or a shutter's, :func:`~torchmanifold.pipeline.footprint._mixed_layers`), or ``None`` without
+            depth.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other
@@ -710,6 +716,7 @@ class FrameState:
     cv_cell: Tensor
     clamped: Tensor
     lone: Tensor
+    mixed: Tensor | None
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -724,7 +731,7 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
-                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone")
+                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone", "mixed")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -752,6 +759,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     em = None if emission is None else emission.to(dt)
     c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
     f = _scattered_albedo(f, names, mask)  # a defocused texture's samples: the reference shows the average
+    mixed = _mixed_pixels(f, names, mask)  # and where a lens mixes two surfaces, their blend
     alb, flat = _demodulation_albedo(f, names, settings)
     sky = _escaped(f, names)
     lone = _lone_flat_samples(c, flat & ~sky)
@@ -810,7 +818,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
-                       cell, torch.zeros_like(mask), torch.zeros_like(mask), False, point, counts, fp, base)
+                       cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point, counts, fp,
+                       base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -915,6 +924,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
+    if s.mixed is not None and bool((s.mixed > 0).any()):
+        out = _mixed_footprint(out, at_queries(s.mixed))
     noisy, widest = _noisy_pilot(s, ft, qt), base * max(settings.bandwidths)
 
     def window_mean(x: Tensor) -> Tensor:  # what the clamp took, held still from frame to frame

@@ -11,7 +11,9 @@ edge the footprint reaches further, as far as the few samples' share of either s
 samples of each pixel's albedo: a still view's of the same pixel, a moving view's that fall in the pixel's
 square (:func:`_window_albedo`); where they scatter across a surface against the pixel grid (a defocused
 texture), the albedo itself is averaged before the frame step reads it (:func:`_scattered_albedo`); without
-world positions, where the albedo is salt and pepper over one smooth surface (:func:`_speckled`).
+world positions, where the albedo is salt and pepper over one smooth surface (:func:`_speckled`). Where a lens
+or a shutter mixes two surfaces in each pixel at random, beside the surface it blurs, the result is averaged
+over the blend's wider footprint (:func:`_mixed_layers`).
 """
 from __future__ import annotations
 
@@ -467,6 +469,32 @@ def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> 
     return ((density - _SCATTER_DENSITY) / (0.5 * (1 - _SCATTER_DENSITY))).clamp(0.0, 1.0)
 
 
+def _ratio_of(a: Tensor, b: Tensor) -> Tensor:
+    """``a / b`` where ``b > 0``, else 0."""
+    return torch.where(b > 0, a / torch.where(b > 0, b, 1.0), 0.0)
+
+
+def _lag_squares(x: Tensor, h: Tensor, lags: int) -> dict:
+    """The squared differences of the pixels of ``x`` ``(T, 1, H, W)`` 1 to ``lags`` apart along each image
+    axis (``(axis, k)``: 2 down, 3 across), counted where both pixels have ``h`` (``x``'s dtype, 0 or 1; 0
+    past the end), each averaged over the (2 :data:`_SPECKLE_BOX` + 1)^2 box."""
+    def squared_differences(k: int, axis: int) -> Tensor:
+        n = x.shape[axis]
+        d = (x.narrow(axis, k, n - k) - x.narrow(axis, 0, n - k)).square()
+        d = d * h.narrow(axis, k, n - k) * h.narrow(axis, 0, n - k)
+        return torch.nn.functional.pad(d, (0, k, 0, 0) if axis == 3 else (0, 0, 0, k))
+    return {(axis, k): _box_mean(squared_differences(k, axis), _SPECKLE_BOX)
+            for axis in (2, 3) for k in range(1, lags + 1)}
+
+
+def _box_spread(x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    """The mean and the standard deviation of ``x`` ``(T, 1, H, W)`` (0 where ``h`` is 0) over the pixels of
+    ``h`` in the (2 :data:`_SPECKLE_BOX` + 1)^2 box; 0 where the box holds none."""
+    count = _box_mean(h, _SPECKLE_BOX)
+    mean = _ratio_of(_box_mean(x, _SPECKLE_BOX), count)
+    return mean, (_ratio_of(_box_mean(x.square(), _SPECKLE_BOX), count) - mean.square()).clamp_min(0.0).sqrt()
+
+
 def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
     """How surely each pixel's albedo is a lens's salt and pepper over one smooth surface, ``(T, 1, H, W)`` in
     [0, 1], from the albedo ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` alone (0: no hit), where ``valid``
@@ -483,27 +511,16 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     top = lum.detach().abs().amax((1, 2, 3), keepdim=True)
     lum = lum / torch.where(top > 0, top, torch.ones_like(top))
 
-    def squared_differences(k: int, axis: int) -> Tensor:  # of pixels k apart along an axis, 0 past the end
-        n = lum.shape[axis]
-        d = (lum.narrow(axis, k, n - k) - lum.narrow(axis, 0, n - k)).square()
-        d = d * h.narrow(axis, k, n - k) * h.narrow(axis, 0, n - k)
-        return torch.nn.functional.pad(d, (0, k, 0, 0) if axis == 3 else (0, 0, 0, k))
-
-    def ratio_of(a: Tensor, b: Tensor) -> Tensor:
-        return torch.where(b > 0, a / torch.where(b > 0, b, 1.0), 0.0)
-    lag = {(axis, k): _box_mean(squared_differences(k, axis), _SPECKLE_BOX)
-           for axis in (2, 3) for k in range(1, max(_SPECKLE_LAGS) + 1)}
-    ratio = ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
+    lag = _lag_squares(lum, h, max(_SPECKLE_LAGS))
+    ratio = _ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
     lo, hi = _SPECKLE_RATIO
-    count = _box_mean(h, _SPECKLE_BOX)
-    mean = ratio_of(_box_mean(lum, _SPECKLE_BOX), count)
-    spread = (ratio_of(_box_mean(lum.square(), _SPECKLE_BOX), count) - mean.square()).clamp_min(0.0).sqrt()
+    mean, spread = _box_spread(lum, h)
     w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * (spread > _SPECKLE_SPREAD * mean.abs()).to(lum.dtype)
     # no texture: no lag along either axis where the albedo repeats, no direction it runs along, over most of
     # the area's box
-    repeats = torch.stack([ratio_of(lag[axis, k], lag[axis, 1])
+    repeats = torch.stack([_ratio_of(lag[axis, k], lag[axis, 1])
                            for axis in (2, 3) for k in _SPECKLE_LAGS]).amin(0)
-    along = (ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
+    along = (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
     plain = ((repeats > _SPECKLE_REPEAT) & (along < _SPECKLE_ALONG)).to(lum.dtype)
     # one smooth surface: no depth jump, no pixel without a hit or a sample within reach
     median = _median3x3(depth)
@@ -513,6 +530,91 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
     core = ~_any_within(w <= 0.5, _SPECKLE_AREA) & ~_any_within(rough, _SPECKLE_REACH)
     area = _any_within(core, _SPECKLE_GROWTH) & (_box_mean(plain, _SPECKLE_AREA) > _SPECKLE_PLAIN)
     return w * (area & hit).to(lum.dtype)
+
+
+#: Where a lens or a shutter mixes two surfaces within each pixel (a defocused post before a wall, a ball
+#: blurred by its motion), each sample's features are one surface's, picked at random: the guide keeps the
+#: surfaces apart and a pixel shows the surface its samples hit, salt and pepper where the reference shows
+#: their blend. The depth tells it (:func:`_mixed_layers`): its log's squared differences of pixels 1 apart
+#: against those 2 apart, as the albedo's test (:data:`_SPECKLE_BOX`), the weight rising from
+#: :data:`_MIX_RATIO`'s first value to its second (lower than the albedo's: a lens's mix of two depths is
+#: white where it is dense and sparse at the band's rims); the log depth's spread over :data:`_MIX_SPREAD`; no
+#: axis along which the differences run (:data:`_MIX_ALONG`); every pixel of the box a hit; an area, cores of
+#: a (2 :data:`_SPECKLE_AREA` + 1)^2 square grown by :data:`_MIX_GROWTH` px. A wireframe ball before the
+#: ground passes these (its wires, under a pixel, are as random as a lens); unlike a lens's band it lies
+#: beside no solid surface of its near depth. The band holds where, within :data:`_MIX_CORE` px, a pixel of
+#: one surface (its log depth's spread under half of :data:`_MIX_SPREAD`, every neighbour a hit) lies within
+#: :data:`_MIX_DEPTH` of the band's nearest depth in the box, and :data:`_MIX_REACH` px on from there within
+#: the band. Found on `bl_indirect_dof` rendered at 256x256 (not in the set), set on the tuning part's
+#: `mi_indirect_dof` and `bl_env_thin` (the wireframe ball, which the core test is for; findings.md).
+_MIX_RATIO = (0.6, 0.85)
+_MIX_SPREAD, _MIX_ALONG = 0.05, 0.2
+_MIX_GROWTH = 2
+_MIX_CORE, _MIX_DEPTH, _MIX_REACH = 6, 0.05, 8
+#: the mixed band's footprint (pixels): the blend of the surfaces a pixel's lens or shutter covers; 1 / 2 / 3
+#: px on the defocused rooms from 1 spp gained 0.35-0.42 / 0.44-0.52 / 0.45-0.54 dB, a motion-blurred ball's
+#: narrow band +0.05 / -0.03 / -0.14 (findings.md)
+_MIX_FOOTPRINT = 1.5
+
+
+def _mixed_layers(depth: Tensor, valid: Tensor | None = None) -> Tensor:
+    """How surely each pixel's samples mix two surfaces at random (a lens's or a shutter's blend, see
+    :data:`_MIX_RATIO`), ``(T, 1, H, W)`` in [0, 1], from the depth ``(T, 1, H, W)`` (0: no hit), where
+    ``valid`` (bool, like depth; all by default) marks the pixels whose features are samples. 0 in a frame too
+    small for a difference of pixels 2 apart."""
+    if min(depth.shape[-2:]) < 3:
+        return torch.zeros_like(depth)
+    hit = (depth > 0) if valid is None else (depth > 0) & valid
+    h = hit.to(depth.dtype)
+    log_depth = torch.where(hit, depth, 1.0).log() * h
+    lag = _lag_squares(log_depth, h, 2)
+    ratio = _ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
+    along = (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
+    _, spread = _box_spread(log_depth, h)
+    lo, hi = _MIX_RATIO
+    w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * ((spread > _MIX_SPREAD) & (along < _MIX_ALONG)
+                                                      & ~_any_within(~hit, _SPECKLE_BOX)).to(depth.dtype)
+    core = ~_any_within(w <= 0.5, _SPECKLE_AREA)
+    w = w * _any_within(core, _SPECKLE_AREA + _MIX_GROWTH).to(w.dtype)
+    if not bool((w > 0).any()):
+        return w
+    # the band's nearest depth, and one surface's pixels within reach at it; searched over the band's box
+    far = torch.finfo(depth.dtype).max
+    nearest = -torch.nn.functional.max_pool2d(-torch.where(hit, log_depth, far), 2 * _SPECKLE_BOX + 1, 1,
+                                              _SPECKLE_BOX)
+    solid = torch.where(hit & (spread < 0.5 * _MIX_SPREAD) & ~_any_within(~hit, 1), log_depth, far)
+    band, r = w > 0, _MIX_CORE
+    rows = band.any(-1).flatten(0, -2).any(0).nonzero()[:, 0]
+    cols = band.any(-2).flatten(0, -2).any(0).nonzero()[:, 0]
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    padded = torch.nn.functional.pad(solid, (r, r, r, r), value=far)[..., y0:y1 + 2 * r, x0:x1 + 2 * r]
+    at, H, W = nearest[..., y0:y1, x0:x1], y1 - y0, x1 - x0
+    beside = torch.zeros_like(hit)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dy * dy + dx * dx <= r * r:
+                beside[..., y0:y1, x0:x1] |= (padded[..., r + dy:r + dy + H, r + dx:r + dx + W] - at).abs() \
+                    < _MIX_DEPTH
+    held = beside & band
+    for _ in range(_MIX_REACH):
+        held = _any_within(held, 1) & band
+    return w * held.to(w.dtype)
+
+
+def _mixed_pixels(f: Tensor, names: Sequence[str], mask: Tensor | None = None) -> Tensor | None:
+    """:func:`_mixed_layers` of features ``f`` ``(T, D, H, W)`` named ``names``, among the pixels of nonzero
+    ``mask`` ``(T, 1, H, W)`` (all by default); ``None`` without depth."""
+    canon = [feature_table.canonical_name(n) for n in names]
+    (depth,) = feature_table.feature("Z").channels
+    if depth not in canon:
+        return None
+    return _mixed_layers(f[:, canon.index(depth)][:, None], None if mask is None else mask > 0)
+
+
+def _mixed_footprint(x: Tensor, mixed: Tensor) -> Tensor:
+    """``x`` ``(Q, C, H, W)`` averaged over :data:`_MIX_FOOTPRINT` px where its pixels mix two surfaces,
+    by ``mixed`` ``(Q, 1, H, W)`` (:func:`_mixed_layers`)."""
+    return x + mixed * (footprint_blur(x, _MIX_FOOTPRINT) - x)
 
 
 def _any_within(mask: Tensor, r: int) -> Tensor:
