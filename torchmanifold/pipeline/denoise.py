@@ -868,7 +868,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                      range_scale: float = 1.0, cache: CandidateCache | None = None) -> Tensor:
     """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
     :func:`denoise_frames`). At a query whose frame's pilot is too noisy to trust, the time window joins
-    every frame the albedo's window holds (:func:`_noisy_window`). A query at a frame borrows evidence from
+    every frame the albedo's window holds (:func:`_noisy_window`) and, in large frames, wider candidates join
+    (:func:`_noisy_bandwidths`). A query at a frame borrows evidence from
     its neighbours' queries (``settings.lending_radius``), filtered here unless ``cache`` (one per clip and
     settings, shared by a clip's calls) holds them."""
     ft, qt = list(frame_times), list(query_times)
@@ -877,8 +878,11 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
             return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache)
                               for q in qt])
-        # the window's candidates alone: a frame's own narrow candidate is its noise there
-        settings = replace(settings, temporal_radius=settings.joined_radius, frame_alone_bandwidths=())
+        # the window's candidates alone: a frame's own narrow candidate is its noise there; wider ones where
+        # the frame is large enough for them
+        settings = replace(settings, temporal_radius=settings.joined_radius, frame_alone_bandwidths=(),
+                           bandwidths=_noisy_bandwidths(settings, state.sigma_s if sigma_s is None else sigma_s,
+                                                        min(state.values.shape[-2:])))
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     s = state
 
@@ -963,6 +967,26 @@ def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
     if settings.temporal_radius == 0 or settings.joined_radius <= settings.temporal_radius:
         return [False] * len(qt)
     return _noisy_pilot(state, ft, qt).tolist()
+
+
+#: Where the pilot is too noisy to trust (a room lit by bounce light alone, whose walls show splotches), the
+#: candidates grow by factor-2 steps beyond the widest while it stays within this share of the frame's shorter
+#: side: the tuned widest, 16 px from 1 spp, is an eighth of the set's 128x128 frames. The two such rooms at
+#: 256x256, every frame from 1 / 4 spp: `bl_indirect_dof` +0.12 / +0.10 dB, `mi_indirect_dof` +0.05 / 0.00;
+#: at 128x128 the same step lost `bl_indirect_dof` 0.06 / 0.01 (findings.md)
+_NOISY_WIDEST_SHARE = 1.0 / 8.0
+
+
+def _noisy_bandwidths(settings: DenoiseSettings, sigma_s: float, side: int) -> tuple[float, ...]:
+    """The candidates (multiples of ``sigma_s`` pixels) of a window whose pilot is too noisy to trust, in
+    frames whose shorter side is ``side`` pixels: ``settings.bandwidths`` and twice the widest, again and
+    again, while within :data:`_NOISY_WIDEST_SHARE` of ``side``."""
+    out = tuple(float(b) for b in settings.bandwidths)
+    if len(out) == 1:  # one bandwidth chosen by the caller: nothing to blend
+        return out
+    while 2.0 * max(out) * sigma_s <= _NOISY_WIDEST_SHARE * side:
+        out = out + (2.0 * max(out),)
+    return out
 
 
 def _noisy_pilot(state: FrameState, ft: list[float], qt: list[float]) -> Tensor:
