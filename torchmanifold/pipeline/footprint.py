@@ -409,6 +409,12 @@ _SPECKLE_RATIO = (0.75, 0.95)
 _SPECKLE_SPREAD = 0.05
 _SPECKLE_AREA = 4
 _SPECKLE_DEPTH, _SPECKLE_REACH = 0.05, 2
+#: Without depth (a renderer's albedo and normals alone, OIDN's own inputs) one smooth surface is where each
+#: unit normal is within this of its 3x3 median's (1 - cos, 0.1: 26 degrees). The tuning clips read with albedo
+#: and normals alone, all frames from 1 / 4 spp, against no test: 0.01 / 0.02 / 0.05 / 0.1 / 0.2 / 0.4
+#: +0.02 / +0.05, +0.02 / +0.11, +0.12 / +0.12, +0.16 / +0.13, +0.16 / +0.13, +0.16 / +0.13 dB (the mean of
+#: five; `mi_indirect_dof` +0.78 / +0.63 at 0.1); the smallest that reaches it (findings.md)
+_SPECKLE_BEND = 0.1
 #: A fine texture that the pixel grid aliases reads as white by the ratio too (`mi_still_textures` read
 #: without its positions lost 0.24 / 0.84 dB to the tests above: its fine checkers and stripes were averaged
 #: away). Unlike a lens's scatter it repeats or runs one way. Over more than :data:`_SPECKLE_PLAIN` of the
@@ -495,15 +501,33 @@ def _box_spread(x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     return mean, (_ratio_of(_box_mean(x.square(), _SPECKLE_BOX), count) - mean.square()).clamp_min(0.0).sqrt()
 
 
-def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
+def _surface_breaks(depth: Tensor | None, normal: Tensor | None, valid: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Where each pixel is a hit, and where one smooth surface breaks (a depth jump or a fold, no hit, no
+    sample), bool ``(T, 1, H, W)`` each: from the depth (0: no hit) within :data:`_SPECKLE_DEPTH` of its 3x3
+    median, or without depth from the normals (0: no hit) within :data:`_SPECKLE_BEND` of theirs."""
+    if depth is not None:
+        hit = (depth > 0) if valid is None else (depth > 0) & valid
+        median = _median3x3(depth)
+        return hit, ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
+    length = normal.square().sum(1, keepdim=True).sqrt()
+    hit = (length > 0) if valid is None else (length > 0) & valid
+    n = normal / torch.where(length > 0, length, 1.0)
+    median = torch.cat([_median3x3(n[:, k:k + 1]) for k in range(3)], 1)
+    median = median / median.square().sum(1, keepdim=True).sqrt().clamp_min(1e-30)
+    return hit, ~hit | (1.0 - (n * median).sum(1, keepdim=True) > _SPECKLE_BEND)
+
+
+def _speckled(albedo: Tensor, depth: Tensor | None, valid: Tensor | None = None,
+              normal: Tensor | None = None) -> Tensor:
     """How surely each pixel's albedo is a lens's salt and pepper over one smooth surface, ``(T, 1, H, W)`` in
-    [0, 1], from the albedo ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` alone (0: no hit), where ``valid``
-    (bool, like depth; all by default) marks the pixels whose features are samples (the tests above
-    :data:`_SPECKLE_BOX`). 0 in a frame too small for a difference of pixels 2 apart."""
+    [0, 1], from the albedo ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` alone (0: no hit), or without depth
+    (``None``) the normals ``(T, 3, H, W)`` (0: no hit), where ``valid`` (bool, ``(T, 1, H, W)``; all by
+    default) marks the pixels whose features are samples (the tests above :data:`_SPECKLE_BOX`). 0 in a frame
+    too small for a difference of pixels 2 apart."""
     if min(albedo.shape[-2:]) < 3:
-        return torch.zeros_like(depth)
+        return albedo.new_zeros(albedo.shape[0], 1, *albedo.shape[2:])
     # the statistics of the surface's samples alone: no sky's or sanitised pixel's albedo enters them
-    hit = (depth > 0) if valid is None else (depth > 0) & valid
+    hit, rough = _surface_breaks(depth, normal, valid)
     h = hit.to(albedo.dtype)
     lum = albedo.mean(1, keepdim=True) * h
     # in units of each frame's largest, so that the squares of squares neither overflow nor underflow: every
@@ -522,9 +546,6 @@ def _speckled(albedo: Tensor, depth: Tensor, valid: Tensor | None = None) -> Ten
                            for axis in (2, 3) for k in _SPECKLE_LAGS]).amin(0)
     along = (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
     plain = ((repeats > _SPECKLE_REPEAT) & (along < _SPECKLE_ALONG)).to(lum.dtype)
-    # one smooth surface: no depth jump, no pixel without a hit or a sample within reach
-    median = _median3x3(depth)
-    rough = ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
     # an area: what survives an erosion by the square on one smooth surface, grown from there, also into the
     # band past its silhouette where the lens mixes it with what lies behind
     core = ~_any_within(w <= 0.5, _SPECKLE_AREA) & ~_any_within(rough, _SPECKLE_REACH)
@@ -643,16 +664,23 @@ def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = Non
     """Features ``f`` ``(T, D, H, W)`` named ``names`` with the albedo averaged over
     :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`, among
     the pixels of nonzero ``mask`` ``(T, 1, H, W)``, all by default), or without world positions where the
-    albedo is salt and pepper over one smooth surface (:func:`_speckled`); ``f`` itself without depth or
-    albedo, or where nothing scatters."""
+    albedo is salt and pepper over one smooth surface (:func:`_speckled`; without depth the normals tell the
+    surface); ``f`` itself without albedo, without depth and normals, or where nothing scatters."""
     canon = [feature_table.canonical_name(n) for n in names]
     position = _position(f, names)
     albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
+    normal = [canon.index(c) for c in feature_table.feature("N").channels if c in canon]
     (depth,) = feature_table.feature("Z").channels
-    if depth not in canon or len(albedo) != 3:
+    valid = None if mask is None else mask > 0
+    if len(albedo) != 3:
         return f
-    z, valid = f[:, canon.index(depth)][:, None], None if mask is None else mask > 0
-    w = _speckled(f[:, albedo], z, valid) if position is None else _scattered(position, z, valid)
+    if depth in canon:
+        z = f[:, canon.index(depth)][:, None]
+        w = _speckled(f[:, albedo], z, valid) if position is None else _scattered(position, z, valid)
+    elif len(normal) == 3:  # the normals tell one smooth surface
+        w = _speckled(f[:, albedo], None, valid, f[:, normal])
+    else:
+        return f
     if not bool((w > 0).any()):
         return f
     a = f[:, albedo]
