@@ -2402,15 +2402,15 @@ def test_a_defocused_post_with_albedo_and_normals_alone_loses_its_salt_and_peppe
 
 
 def test_a_noisy_window_reaches_wider_in_larger_frames():
-    """Where the pilot is too noisy to trust, the candidates grow by factor-2 steps while the widest stays
-    within an eighth of the frame's shorter side: none at the set's 128x128 (16 px from 1 spp already is), 8 x
-    sigma_s at 256x256 from 1 and 4 spp, two more at 512; one bandwidth the caller chose stays alone."""
+    """Where the pilot is too noisy to trust, one candidate twice the widest joins where it stays within an
+    eighth of the frame's shorter side: not at the set's 128x128 (16 px from 1 spp already is), 8 x sigma_s at
+    256x256 from 1 and 4 spp and beyond; one bandwidth the caller chose stays alone."""
     st = DenoiseSettings()
     assert D._noisy_bandwidths(st, 4.0, 128) == (0.5, 1.0, 2.0, 4.0)
     assert D._noisy_bandwidths(st, 4.0, 256) == (0.5, 1.0, 2.0, 4.0, 8.0)
     assert D._noisy_bandwidths(st, 4.0 * 4 ** -0.25, 256) == (0.5, 1.0, 2.0, 4.0, 8.0)
-    assert D._noisy_bandwidths(st, 4.0, 512) == (0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
-    assert D._noisy_bandwidths(replace(st, bandwidths=(2.0, 1.0)), 4.0, 256) == (2.0, 1.0, 4.0, 8.0)
+    assert D._noisy_bandwidths(st, 4.0, 1024) == (0.5, 1.0, 2.0, 4.0, 8.0)
+    assert D._noisy_bandwidths(replace(st, bandwidths=(2.0, 1.0)), 4.0, 256) == (2.0, 1.0, 4.0)
     assert D._noisy_bandwidths(replace(st, bandwidths=(1.0,)), 4.0, 1024) == (1.0,)
 
 

@@ -969,24 +969,23 @@ def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
     return _noisy_pilot(state, ft, qt).tolist()
 
 
-#: Where the pilot is too noisy to trust (a room lit by bounce light alone, whose walls show splotches), the
-#: candidates grow by factor-2 steps beyond the widest while it stays within this share of the frame's shorter
-#: side: the tuned widest, 16 px from 1 spp, is an eighth of the set's 128x128 frames. The two such rooms at
-#: 256x256, every frame from 1 / 4 spp: `bl_indirect_dof` +0.12 / +0.10 dB, `mi_indirect_dof` +0.05 / 0.00;
-#: at 128x128 the same step lost `bl_indirect_dof` 0.06 / 0.01 (findings.md)
+#: Where the pilot is too noisy to trust (a room lit by bounce light alone, whose walls show splotches), one
+#: candidate twice the widest joins where it stays within this share of the frame's shorter side: the tuned
+#: widest, 16 px from 1 spp, is an eighth of the set's 128x128 frames. The two such rooms at 256x256, every
+#: frame from 1 / 4 spp: `bl_indirect_dof` +0.12 / +0.10 dB, `mi_indirect_dof` +0.05 / 0.00; at 128x128 the
+#: same candidate lost `bl_indirect_dof` 0.06 / 0.01 (findings.md). One step, as far as it was measured.
 _NOISY_WIDEST_SHARE = 1.0 / 8.0
 
 
 def _noisy_bandwidths(settings: DenoiseSettings, sigma_s: float, side: int) -> tuple[float, ...]:
     """The candidates (multiples of ``sigma_s`` pixels) of a window whose pilot is too noisy to trust, in
-    frames whose shorter side is ``side`` pixels: ``settings.bandwidths`` and twice the widest, again and
-    again, while within :data:`_NOISY_WIDEST_SHARE` of ``side``."""
+    frames whose shorter side is ``side`` pixels: ``settings.bandwidths``, and twice the widest where that is
+    within :data:`_NOISY_WIDEST_SHARE` of ``side``."""
     out = tuple(float(b) for b in settings.bandwidths)
-    if len(out) == 1:  # one bandwidth chosen by the caller: nothing to blend
+    wider = 2.0 * max(out)
+    if len(out) == 1 or wider * sigma_s > _NOISY_WIDEST_SHARE * side:  # one bandwidth a caller chose: kept
         return out
-    while 2.0 * max(out) * sigma_s <= _NOISY_WIDEST_SHARE * side:
-        out = out + (2.0 * max(out),)
-    return out
+    return out + (wider,)
 
 
 def _noisy_pilot(state: FrameState, ft: list[float], qt: list[float]) -> Tensor:
