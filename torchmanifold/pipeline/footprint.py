@@ -611,11 +611,11 @@ def _mixed_layers(depth: Tensor, valid: Tensor | None = None) -> Tensor:
     padded = torch.nn.functional.pad(solid, (r, r, r, r), value=far)[..., y0:y1 + 2 * r, x0:x1 + 2 * r]
     at, H, W = nearest[..., y0:y1, x0:x1], y1 - y0, x1 - x0
     beside = torch.zeros_like(hit)
+    inside = beside[..., y0:y1, x0:x1]  # a view: the search writes into beside
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             if dy * dy + dx * dx <= r * r:
-                beside[..., y0:y1, x0:x1] |= (padded[..., r + dy:r + dy + H, r + dx:r + dx + W] - at).abs() \
-                    < _MIX_DEPTH
+                inside |= (padded[..., r + dy:r + dy + H, r + dx:r + dx + W] - at).abs() < _MIX_DEPTH
     held = beside & band
     for _ in range(_MIX_REACH):
         held = _any_within(held, 1) & band
