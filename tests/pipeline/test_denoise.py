@@ -2380,6 +2380,9 @@ def test_without_depth_the_normals_tell_one_smooth_surface(kind):
         names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z"]
         out = FP._scattered_albedo(torch.cat([a, n], 1), names)
         assert float(out[0, :3, 8:-8, 24:40].std()) < 0.6 * float(a[0, :, 8:-8, 24:40].std())
+        # a depth channel that is 0 everywhere is a placeholder: the normals still tell the surface
+        placeholder = FP._scattered_albedo(torch.cat([a, n, torch.zeros_like(z)], 1), names + ["Z"])
+        assert torch.equal(placeholder[:, :6], out)
     else:
         assert float(w.max()) == 0.0
 

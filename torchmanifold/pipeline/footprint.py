@@ -664,8 +664,9 @@ def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = Non
     """Features ``f`` ``(T, D, H, W)`` named ``names`` with the albedo averaged over
     :data:`_SCATTERED_ALBEDO_SIGMA` pixels where the samples scatter over an area (:func:`_scattered`, among
     the pixels of nonzero ``mask`` ``(T, 1, H, W)``, all by default), or without world positions where the
-    albedo is salt and pepper over one smooth surface (:func:`_speckled`; without depth the normals tell the
-    surface); ``f`` itself without albedo, without depth and normals, or where nothing scatters."""
+    albedo is salt and pepper over one smooth surface (:func:`_speckled`; without depth, or in a frame whose
+    depth is a placeholder of zeros, the normals tell the surface); ``f`` itself without albedo, without depth
+    and normals, or where nothing scatters."""
     canon = [feature_table.canonical_name(n) for n in names]
     position = _position(f, names)
     albedo = [canon.index(c) for c in feature_table.feature("albedo").channels if c in canon]
@@ -674,11 +675,15 @@ def _scattered_albedo(f: Tensor, names: Sequence[str], mask: Tensor | None = Non
     valid = None if mask is None else mask > 0
     if len(albedo) != 3:
         return f
+    normals = f[:, normal] if len(normal) == 3 else None
     if depth in canon:
         z = f[:, canon.index(depth)][:, None]
         w = _speckled(f[:, albedo], z, valid) if position is None else _scattered(position, z, valid)
-    elif len(normal) == 3:  # the normals tell one smooth surface
-        w = _speckled(f[:, albedo], None, valid, f[:, normal])
+        placeholder = ~(z > 0).flatten(1).any(1).view(-1, 1, 1, 1)  # a frame whose depth is 0 everywhere
+        if normals is not None and bool(placeholder.any()):
+            w = torch.where(placeholder, _speckled(f[:, albedo], None, valid, normals), w)
+    elif normals is not None:  # the normals tell one smooth surface
+        w = _speckled(f[:, albedo], None, valid, normals)
     else:
         return f
     if not bool((w > 0).any()):
