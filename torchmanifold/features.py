@@ -82,6 +82,9 @@ class Feature:
         unit: each sample's value is a unit vector (0 where the ray left the scene), so a pixel averaging
             samples of different directions is shorter: how a file's point samples are told from pixel
             averages (:func:`torchmanifold.io.frames.samples_per_pixel_shown`).
+        other_names: base names (any case) under which other renderers write the feature's components as
+            ``<base>.X/Y/Z`` or ``.R/G/B`` (any case) or ``<base>X``; read where no name above is in a file
+            (:func:`other_renderer_channels`).
     """
 
     group: str
@@ -99,6 +102,7 @@ class Feature:
     zero_is_no_hit: bool = False
     may_be_all_zero: bool = False
     unit: bool = False
+    other_names: tuple[str, ...] = ()
 
     def __post_init__(self):
         n = len(self.channels)
@@ -135,14 +139,19 @@ FEATURES: tuple[Feature, ...] = (
     Feature("Z", ("Z",), tracer=("Z",), mitsuba=("Z",), blender=("Denoising Depth.Z",), half=False,
             sigma=0.15, sigma_source=_TUNED, sigma_of_extent=True, guides=True, superseded_by=("P",),
             zero_is_no_hit=True),
+    # other_names: pbrt-v4's gbuffer film (Albedo, Ns for the shading normal, P; its AOV film Px), the names
+    # users give Mitsuba's aov integrator and OIDN's examples (albedo.r, normal, normals, nn, position)
     Feature("albedo", _rgb("albedo"), tracer=("Mr", "Mg", "Mb"), mitsuba=_rgb("albedo"),
-            blender=_rgb("Denoising Albedo"), sigma=0.1, sigma_source=_TUNED, guides=True),
+            blender=_rgb("Denoising Albedo"), sigma=0.1, sigma_source=_TUNED, guides=True,
+            other_names=("albedo", "diffuse_albedo", "diffusealbedo")),
     Feature("N", _xyz("N"), tracer=("Nx", "Ny", "Nz"), mitsuba=_xyz("N"), blender=_xyz("Normal"),
-            sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True),
+            sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True,
+            other_names=("ns", "n", "normal", "normals", "nn", "shading_normal")),
     Feature("D", _xyz("D"), tracer=("Dx", "Dy", "Dz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.1,
-            sigma_source=_P_VALIDATED, sigma_of_extent=True, guides=True),
+            sigma_source=_P_VALIDATED, sigma_of_extent=True, guides=True,
+            other_names=("p", "position", "positions", "world_position")),
     # Blender's denoising normal goes with its denoising albedo: both look through near-specular
     # surfaces, as OIDN wants (seen on a Blender 5.0.1 render of a glass sphere before a red wall:
     # through the glass both are the wall's, at about half weight; the Normal pass is the sphere's), so it
@@ -282,6 +291,33 @@ def channel_aliases(renderer: str) -> dict[str, str]:
     """Channel name ``renderer`` writes -> canonical name, for every feature it writes
     (``renderer`` one of :data:`RENDERERS`)."""
     return {a: c for f in FEATURES for a, c in zip(f.aliases(renderer), f.channels)}
+
+
+#: the component suffixes other renderers write a 3-vector's channels with (any case)
+_COMPONENTS = (("x", "y", "z"), ("r", "g", "b"))
+
+
+def other_renderer_channels(channels: Iterable[str], missing: Iterable[str]) -> dict[str, str]:
+    """File channel -> canonical name for the groups ``missing`` (none of whose names above a file holds)
+    that ``channels`` hold under one of their ``other_names``: every component as ``<base>.<c>`` or
+    ``<base><c>``, base and component in any case (``Albedo.R``, ``normal.x``, ``Px``). The first of a
+    group's names (then suffix forms) that a file holds wins; groups without such names are left out."""
+    lower: dict[str, str] = {}
+    for c in channels:
+        lower.setdefault(c.lower(), c)
+    out: dict[str, str] = {}
+    for group in missing:
+        f = feature(group)
+        if len(f.channels) != 3:
+            continue
+        for base in f.other_names:
+            found = next(([lower[n] for n in names] for names in
+                          ([f"{base}{sep}{c}" for c in comps] for comps in _COMPONENTS for sep in (".", ""))
+                          if all(n in lower for n in names)), None)
+            if found is not None:
+                out.update(zip(found, f.channels))
+                break
+    return out
 
 
 def renderer_channel(name: str, renderer: str) -> str | None:

@@ -40,6 +40,34 @@ def test_flat_file_features_in_table_order(tmp_path):
     np.testing.assert_array_equal(fr.features["N.X"], chans["N.X"])
 
 
+def test_other_renderers_names_read_where_ours_are_missing(tmp_path):
+    """pbrt-v4's gbuffer film writes Albedo.R/G/B and its shading normal as Ns.X/Y/Z; a user's Mitsuba AOVs
+    may be albedo.r and normal.x, pbrt's AOV film Px/Py/Pz: each is read as the table's feature, and a note
+    says what was read as what. Where a file has the table's own names they win, and a group with a component
+    missing is not guessed."""
+    pbrt = _rand("R", "G", "B", "Albedo.R", "Albedo.G", "Albedo.B", "Ns.X", "Ns.Y", "Ns.Z", "P.X", "P.Y", "P.Z")
+    write_exr(tmp_path / "pbrt.exr", pbrt)
+    fr = read_render_frame(tmp_path / "pbrt.exr")
+    assert fr.feature_names == ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    np.testing.assert_array_equal(fr.features["albedo.G"], pbrt["Albedo.G"])
+    np.testing.assert_array_equal(fr.features["N.Z"], pbrt["Ns.Z"])
+    assert any("Albedo.R, Albedo.G, Albedo.B as albedo.R, albedo.G, albedo.B" in n for n in fr.notes)
+    assert not any("not read" in n for n in fr.notes)
+    user = _rand("R", "G", "B", "albedo.r", "albedo.g", "albedo.b", "normal.x", "normal.y", "normal.z", "Px",
+                 "Py", "Pz")
+    write_exr(tmp_path / "user.exr", user)
+    fr = read_render_frame(tmp_path / "user.exr")
+    assert fr.feature_names == ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
+    np.testing.assert_array_equal(fr.features["P.Y"], user["Py"])
+    # our names win; an incomplete group is no feature
+    mitsuba_like(tmp_path / "both.exr", **_rand("Albedo.R", "Albedo.G", "Albedo.B"))
+    fr = read_render_frame(tmp_path / "both.exr")
+    assert any("not read" in n and "Albedo.B" in n for n in fr.notes) and not any("as albedo" in n for n in fr.notes)
+    write_exr(tmp_path / "part.exr", _rand("R", "G", "B", "Albedo.R", "Albedo.G", "N.X", "N.Y", "N.Z"))
+    fr = read_render_frame(tmp_path / "part.exr")
+    assert fr.feature_names == ["N.X", "N.Y", "N.Z"] and any("not read" in n and "Albedo.R" in n for n in fr.notes)
+
+
 def test_sample_count_told_by_the_normals(tmp_path):
     """Without a count in the header, unit normals at every pixel that hits mean 1 sample per pixel and
     one pixel averaging two directions at least 2; too few hits or no normals leave the count unknown; a

@@ -104,6 +104,35 @@ def test_denoise_end_to_end(tmp_path, capsys, mitsuba_dir):
     assert not (out / ".partial").exists()
 
 
+def test_denoise_reads_other_renderers_names(tmp_path, capsys, mitsuba_dir):
+    """Frames of the shared clip with their AOVs under pbrt-v4's gbuffer names (Albedo.R/G/B, Ns.X/Y/Z for the
+    normal, no depth) give the command's bytes for the same AOVs under ours, and the summary says what it
+    read as what."""
+    rename = {"albedo.R": "Albedo.R", "albedo.G": "Albedo.G", "albedo.B": "Albedo.B", "N.X": "Ns.X", "N.Y": "Ns.Y",
+              "N.Z": "Ns.Z"}
+    crop = (slice(96, 160), slice(80, 176))
+    ours, pbrt = tmp_path / "ours", tmp_path / "pbrt"
+    ours.mkdir()
+    pbrt.mkdir()
+    for i in range(2):
+        d = read_exr(mitsuba_dir / f"frame_{i:04d}.exr")
+        d = {k: v[crop] for k, v in d.items() if k in ("R", "G", "B", "P.X", "P.Y", "P.Z") or k in rename}
+        write_exr(ours / f"frame_{i:04d}.exr", d)
+        write_exr(pbrt / f"frame_{i:04d}.exr", {rename.get(k, k): v for k, v in d.items()})
+    for src in (ours, pbrt):
+        rc = main(["denoise", *map(str, sorted(src.glob("*.exr"))), "--out", str(tmp_path / f"out_{src.name}"),
+                   "--tree-height", "2"])
+        assert rc == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["feature_channels"] == ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y",
+                                           "P.Z"]
+    assert any("Ns.X, Ns.Y, Ns.Z as N.X, N.Y, N.Z" in n for n in summary["notes"])
+    for i in range(2):
+        a, b = (read_exr(tmp_path / f"out_{name}" / f"frame_{i:04d}.exr") for name in ("ours", "pbrt"))
+        for c in "RGB":
+            np.testing.assert_array_equal(a[c], b[c])
+
+
 def test_denoise_bad_inputs(tmp_path, capsys, mitsuba_dir):
     paths = _link_frames(tmp_path, mitsuba_dir)
     out = tmp_path / "out"

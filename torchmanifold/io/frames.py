@@ -12,6 +12,10 @@ Two layouts are recognised from the channel names:
   ``Emission`` pass (``Emit`` before) is the emission at the first hit, like our ``emission.R/G/B``.
   Blender 5 writes one part per pass, older versions one part with every channel; both read the same.
 
+In a flat file without the names above, albedo, normals and positions are also read under the names other
+renderers give them (pbrt-v4's ``Albedo.R``, ``Ns.X``, ``Px``; ``normal.x``; ``other_names`` in
+:mod:`torchmanifold.features`), and a note says what was read as what.
+
 Features come back under their canonical names (:mod:`torchmanifold.features`). Bad input raises a
 ``ValueError`` naming the file, the layer and the channel; nothing is guessed silently: what the
 reader changed (background depth read as 0, no feature passes at all) is listed in ``notes``.
@@ -188,6 +192,15 @@ def _read_flat(path: Path, chans: dict, color_channels: Sequence[str], frame: Re
                              f"{absent[0]!r}; "
                              f"expected all of {list(f.channels)}")
         frame.sources.update({c: got[c] for c in f.channels})
+    # other renderers' names for the groups not found under ours (pbrt-v4's Albedo.R, a user's normal.x)
+    found = {F.group_of(c) for c in frame.sources}
+    free = [c for c in chans if c not in frame.sources.values()]
+    guessed = F.other_renderer_channels(free, [f.group for f in F.FEATURES if f.group not in found])
+    for group in dict.fromkeys(F.group_of(c) for c in guessed.values()):
+        read = {c: a for a, c in guessed.items() if F.group_of(c) == group}
+        frame.sources.update(read)
+        frame.notes.append(f"read {', '.join(read.values())} as {', '.join(read)} (names other renderers "
+                           f"use for {group!r})")
 
 
 def _choose_features(path: Path, frame: RenderFrame, chans: dict, wanted: Sequence[str] | None) -> list[str]:
