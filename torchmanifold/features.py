@@ -85,6 +85,9 @@ class Feature:
         other_names: base names (any case) under which other renderers write the feature's components as
             ``<base>.X/Y/Z`` or ``.R/G/B`` (any case) or ``<base>X``; read where no name above is in a file
             (:func:`other_renderer_channels`).
+        preferred_names: those of ``other_names`` read even where a file holds a name above too (pbrt-v4
+            writes its geometric normal as ``N.*`` and the shading normal, smooth over a mesh's facets and
+            what OIDN asks for, as ``Ns.*``).
     """
 
     group: str
@@ -103,6 +106,7 @@ class Feature:
     may_be_all_zero: bool = False
     unit: bool = False
     other_names: tuple[str, ...] = ()
+    preferred_names: tuple[str, ...] = ()
 
     def __post_init__(self):
         n = len(self.channels)
@@ -146,7 +150,7 @@ FEATURES: tuple[Feature, ...] = (
             other_names=("albedo", "diffuse_albedo", "diffusealbedo")),
     Feature("N", _xyz("N"), tracer=("Nx", "Ny", "Nz"), mitsuba=_xyz("N"), blender=_xyz("Normal"),
             sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True,
-            other_names=("ns", "n", "normal", "normals", "nn", "shading_normal")),
+            other_names=("ns", "n", "normal", "normals", "nn", "shading_normal"), preferred_names=("ns",)),
     Feature("D", _xyz("D"), tracer=("Dx", "Dy", "Dz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.1,
@@ -297,20 +301,23 @@ def channel_aliases(renderer: str) -> dict[str, str]:
 _COMPONENTS = (("x", "y", "z"), ("r", "g", "b"))
 
 
-def other_renderer_channels(channels: Iterable[str], missing: Iterable[str]) -> dict[str, str]:
+def other_renderer_channels(channels: Iterable[str], missing: Iterable[str],
+                            found: Iterable[str] = ()) -> dict[str, str]:
     """File channel -> canonical name for the groups ``missing`` (none of whose names above a file holds)
-    that ``channels`` hold under one of their ``other_names``: every component as ``<base>.<c>`` or
-    ``<base><c>``, base and component in any case (``Albedo.R``, ``normal.x``, ``Px``). The first of a
-    group's names (then suffix forms) that a file holds wins; groups without such names are left out."""
+    that ``channels`` hold under one of their ``other_names``, and for the groups ``found`` (read under a
+    name above) under one of their ``preferred_names``: every component as ``<base>.<c>`` or ``<base><c>``,
+    base and component in any case (``Albedo.R``, ``normal.x``, ``Px``). The first of a group's names (then
+    suffix forms) that a file holds wins; groups without such names are left out."""
     lower: dict[str, str] = {}
     for c in channels:
         lower.setdefault(c.lower(), c)
     out: dict[str, str] = {}
-    for group in missing:
+    wanted = [(g, feature(g).other_names) for g in missing] + [(g, feature(g).preferred_names) for g in found]
+    for group, bases in wanted:
         f = feature(group)
         if len(f.channels) != 3:
             continue
-        for base in f.other_names:
+        for base in bases:
             found = next(([lower[n] for n in names] for names in
                           ([f"{base}{sep}{c}" for c in comps] for comps in _COMPONENTS for sep in (".", ""))
                           if all(n in lower for n in names)), None)

@@ -43,8 +43,8 @@ def test_flat_file_features_in_table_order(tmp_path):
 def test_other_renderers_names_read_where_ours_are_missing(tmp_path):
     """pbrt-v4's gbuffer film writes Albedo.R/G/B and its shading normal as Ns.X/Y/Z; a user's Mitsuba AOVs
     may be albedo.r and normal.x, pbrt's AOV film Px/Py/Pz: each is read as the table's feature, and a note
-    says what was read as what. Where a file has the table's own names they win, and a group with a component
-    missing is not guessed."""
+    says what was read as what. Where a file has the table's own names they win, but a shading normal beside
+    the geometric N is read in its place; a group with a component missing is not guessed."""
     pbrt = _rand("R", "G", "B", "Albedo.R", "Albedo.G", "Albedo.B", "Ns.X", "Ns.Y", "Ns.Z", "P.X", "P.Y", "P.Z")
     write_exr(tmp_path / "pbrt.exr", pbrt)
     fr = read_render_frame(tmp_path / "pbrt.exr")
@@ -59,7 +59,12 @@ def test_other_renderers_names_read_where_ours_are_missing(tmp_path):
     fr = read_render_frame(tmp_path / "user.exr")
     assert fr.feature_names == ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
     np.testing.assert_array_equal(fr.features["P.Y"], user["Py"])
-    # our names win; an incomplete group is no feature
+    # pbrt-v4's gbuffer holds its geometric normal as N too: the shading normal is read in its place
+    write_exr(tmp_path / "both_normals.exr", {**pbrt, **_rand("N.X", "N.Y", "N.Z")})
+    fr = read_render_frame(tmp_path / "both_normals.exr")
+    np.testing.assert_array_equal(fr.features["N.X"], pbrt["Ns.X"])
+    assert any("Ns.X, Ns.Y, Ns.Z as N.X, N.Y, N.Z" in n and "in place of N.X, N.Y, N.Z" in n for n in fr.notes)
+    # our names win (but for a shading normal); an incomplete group is no feature
     mitsuba_like(tmp_path / "both.exr", **_rand("Albedo.R", "Albedo.G", "Albedo.B"))
     fr = read_render_frame(tmp_path / "both.exr")
     assert any("not read" in n and "Albedo.B" in n for n in fr.notes) and not any("as albedo" in n for n in fr.notes)

@@ -192,15 +192,17 @@ def _read_flat(path: Path, chans: dict, color_channels: Sequence[str], frame: Re
                              f"{absent[0]!r}; "
                              f"expected all of {list(f.channels)}")
         frame.sources.update({c: got[c] for c in f.channels})
-    # other renderers' names for the groups not found under ours (pbrt-v4's Albedo.R, a user's normal.x)
-    found = {F.group_of(c) for c in frame.sources}
+    # other renderers' names for the groups not found under ours (pbrt-v4's Albedo.R, a user's normal.x), and
+    # those preferred to ours (pbrt-v4's shading normal Ns beside its geometric N)
+    found = {F.group_of(c) for c in frame.sources} & {f.group for f in F.FEATURES}
     free = [c for c in chans if c not in frame.sources.values()]
-    guessed = F.other_renderer_channels(free, [f.group for f in F.FEATURES if f.group not in found])
+    guessed = F.other_renderer_channels(free, [f.group for f in F.FEATURES if f.group not in found], found)
     for group in dict.fromkeys(F.group_of(c) for c in guessed.values()):
         read = {c: a for a, c in guessed.items() if F.group_of(c) == group}
+        instead = [frame.sources[c] for c in read if c in frame.sources]
         frame.sources.update(read)
         frame.notes.append(f"read {', '.join(read.values())} as {', '.join(read)} (names other renderers "
-                           f"use for {group!r})")
+                           f"use for {group!r}" + (f"; in place of {', '.join(instead)})" if instead else ")"))
 
 
 def _choose_features(path: Path, frame: RenderFrame, chans: dict, wanted: Sequence[str] | None) -> list[str]:
