@@ -144,10 +144,11 @@ FEATURES: tuple[Feature, ...] = (
             sigma=0.15, sigma_source=_TUNED, sigma_of_extent=True, guides=True, superseded_by=("P",),
             zero_is_no_hit=True),
     # other_names: pbrt-v4's gbuffer film (Albedo, Ns for the shading normal, P; its AOV film Px), the names
-    # users give Mitsuba's aov integrator and OIDN's examples (albedo.r, normal, normals, nn, position)
+    # users give Mitsuba's aov integrator and OIDN's examples (albedo.r, normal, normals, nn, position),
+    # Blender's Diffuse Color pass (DiffCol) where its denoising data was not rendered
     Feature("albedo", _rgb("albedo"), tracer=("Mr", "Mg", "Mb"), mitsuba=_rgb("albedo"),
             blender=_rgb("Denoising Albedo"), sigma=0.1, sigma_source=_TUNED, guides=True,
-            other_names=("albedo", "diffuse_albedo", "diffusealbedo")),
+            other_names=("albedo", "diffuse_albedo", "diffusealbedo", "diffcol")),
     Feature("N", _xyz("N"), tracer=("Nx", "Ny", "Nz"), mitsuba=_xyz("N"), blender=_xyz("Normal"),
             sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True,
             other_names=("ns", "n", "normal", "normals", "nn", "shading_normal"), preferred_names=("ns",)),

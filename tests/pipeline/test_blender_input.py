@@ -81,6 +81,21 @@ def test_multipart_and_single_part_read_the_same(tmp_path, mitsuba_dir):
         assert any("Depth.Z" in n and "1e+10" in n for n in fr.notes)
 
 
+def test_blender_diffuse_color_read_as_albedo_without_denoising_data(tmp_path, mitsuba_dir):
+    """A Blender render without its denoising data but with the Diffuse Color pass (``DiffCol``): that pass
+    is the albedo, read with a note; beside the denoising albedo it is left alone."""
+    passes = blender_passes(mitsuba_dir, 0)
+    albedo = passes.pop("Denoising Albedo")
+    fr = read_render_frame(write_blender(tmp_path / "diffcol.exr", {**passes, "DiffCol": albedo}))
+    assert {"albedo.R", "albedo.G", "albedo.B"} <= set(fr.feature_names)
+    np.testing.assert_array_equal(fr.features["albedo.G"], albedo["G"])
+    assert any(f"{LAYER}.DiffCol.R" in n and "as albedo.R" in n for n in fr.notes)
+    both = read_render_frame(write_blender(tmp_path / "both.exr", {**passes, "Denoising Albedo": albedo,
+                                                                   "DiffCol": passes["Normal"]}))
+    np.testing.assert_array_equal(both.features["albedo.R"], albedo["R"])
+    assert not any("as albedo" in n for n in both.notes)
+
+
 def test_blender_clip_denoised_by_the_cli(tmp_path, capsys, mitsuba_dir):
     import torch
 

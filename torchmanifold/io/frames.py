@@ -12,9 +12,10 @@ Two layouts are recognised from the channel names:
   ``Emission`` pass (``Emit`` before) is the emission at the first hit, like our ``emission.R/G/B``.
   Blender 5 writes one part per pass, older versions one part with every channel; both read the same.
 
-In a flat file without the names above, albedo, normals and positions are also read under the names other
-renderers give them (pbrt-v4's ``Albedo.R``, ``Ns.X``, ``Px``; ``normal.x``; ``other_names`` in
-:mod:`torchmanifold.features`), and a note says what was read as what.
+Where a file lacks the names above, albedo, normals and positions are also read under the names other
+renderers give them (pbrt-v4's ``Albedo.R``, ``Ns.X``, ``Px``; ``normal.x``; Blender's ``Diffuse Color`` pass
+``DiffCol`` without the denoising data; ``other_names`` in :mod:`torchmanifold.features`), and a note says
+what was read as what.
 
 Features come back under their canonical names (:mod:`torchmanifold.features`). Bad input raises a
 ``ValueError`` naming the file, the layer and the channel; nothing is guessed silently: what the
@@ -166,6 +167,7 @@ def _read_blender(path: Path, chans: dict, layers: dict, layer: str | None, fram
         _check_pass(path, layer, name, passes[name], [a.rsplit(".", 1)[1] for a in f.blender])
         for alias, canon in zip(f.blender, f.channels):
             frame.sources[canon] = f"{layer}.{alias}"
+    _read_other_names(chans, frame, f"{layer}.")
 
 
 def _color_from(path: Path, chans: dict, color_channels: Sequence[str], frame: RenderFrame) -> None:
@@ -192,13 +194,21 @@ def _read_flat(path: Path, chans: dict, color_channels: Sequence[str], frame: Re
                              f"{absent[0]!r}; "
                              f"expected all of {list(f.channels)}")
         frame.sources.update({c: got[c] for c in f.channels})
-    # other renderers' names for the groups not found under ours (pbrt-v4's Albedo.R, a user's normal.x), and
-    # those preferred to ours (pbrt-v4's shading normal Ns beside its geometric N)
+    _read_other_names(chans, frame)
+
+
+def _read_other_names(chans: dict, frame: RenderFrame, prefix: str = "") -> None:
+    """Add to ``frame.sources`` the features its file holds under names other renderers use, among the
+    channels starting with ``prefix`` (a Blender layer's ``<layer>.``) that nothing reads yet: for the groups
+    not found under ours (pbrt-v4's ``Albedo.R``, a user's ``normal.x``, Blender's ``DiffCol``), and those
+    preferred to ours (pbrt-v4's shading normal ``Ns`` beside its geometric ``N``); a note says what was read
+    as what."""
     found = {F.group_of(c) for c in frame.sources} & {f.group for f in F.FEATURES}
-    free = [c for c in chans if c not in frame.sources.values()]
+    used = set(frame.sources.values())
+    free = {c[len(prefix):]: c for c in chans if c.startswith(prefix) and c not in used}
     guessed = F.other_renderer_channels(free, [f.group for f in F.FEATURES if f.group not in found], found)
     for group in dict.fromkeys(F.group_of(c) for c in guessed.values()):
-        read = {c: a for a, c in guessed.items() if F.group_of(c) == group}
+        read = {c: free[a] for a, c in guessed.items() if F.group_of(c) == group}
         instead = [frame.sources[c] for c in read if c in frame.sources]
         frame.sources.update(read)
         frame.notes.append(f"read {', '.join(read.values())} as {', '.join(read)} (names other renderers "
