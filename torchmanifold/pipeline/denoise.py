@@ -736,8 +736,9 @@ class FrameState:
                           states[0].footprint, states[0].sigma_s)
 
     def stats(self) -> dict:
-        """Non-finite samples, masked pixels, clamped samples, the fraction of energy clamped and the frames
-        whose sky was filtered as noise (``noisy_sky_frames``)."""
+        """Non-finite samples, masked pixels, clamped samples, the fraction of energy clamped, the frames
+        whose sky was filtered as noise (``noisy_sky_frames``) and the infinite depths and positions read as
+        no hit (``infinite_as_no_hit``)."""
         c = dict(self.counts)
         removed, total = c.pop("firefly_energy"), c.pop("energy")
         return {**c, "firefly_energy_removed": removed / max(total, 1e-30)}
@@ -757,7 +758,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     base = spatial_sigma(settings, samples_per_pixel) if sigma_s is None else float(sigma_s)
     settings = replace(settings, radiance_sigma=radiance_sigma_at(settings, samples_per_pixel))
     em = None if emission is None else emission.to(dt)
-    c, f, mask, em, counts = _sanitize(color.to(dt), features.to(dt), em)
+    f, infinite = _infinite_as_no_hit(features.to(dt), names)
+    c, f, mask, em, counts = _sanitize(color.to(dt), f, em)
+    counts["infinite_as_no_hit"] = infinite
     f = _scattered_albedo(f, names, mask)  # a defocused texture's samples: the reference shows the average
     mixed = _mixed_pixels(f, names, mask)  # and where a lens mixes two surfaces, their blend
     alb, flat = _demodulation_albedo(f, names, settings)
@@ -993,6 +996,26 @@ def _noisy_pilot(state: FrameState, ft: list[float], qt: list[float]) -> Tensor:
     1, :func:`_selection_pooling`): bool ``(Q,)``."""
     at = [frame_at(ft, q) for q in qt]
     return torch.tensor([k is not None and float(state.pooling[k]) > 1.0 for k in at], dtype=torch.bool)
+
+
+def _infinite_as_no_hit(f: Tensor, names: Sequence[str]) -> tuple[Tensor, int]:
+    """Features ``f`` ``(T, D, H, W)`` named ``names`` with the infinite values of their geometry (depth and
+    positions, ``sigma_of_extent`` in :mod:`torchmanifold.features`) read as 0, a ray that left the scene
+    (ours, Mitsuba's and Blender's, once read, write 0 there; other renderers an infinite depth), and how many
+    there were. Taken for bad samples, they dropped an open scene's sky from the filter (`mi_env_thin` with
+    an infinite background, frame 1: 31.40 -> 29.02 dB)."""
+    geometry = [k for k, n in enumerate(names)
+                if (row := feature_table.feature_of(n)) is not None and row.sigma_of_extent]
+    if not geometry:
+        return f, 0
+    x = f[:, geometry]
+    infinite = torch.isinf(x)
+    count = int(infinite.sum())
+    if count == 0:
+        return f, 0
+    f = f.clone()
+    f[:, geometry] = torch.where(infinite, 0.0, x)
+    return f, count
 
 
 def _sanitize(c: Tensor, f: Tensor, em: Tensor | None):

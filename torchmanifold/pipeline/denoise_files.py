@@ -31,7 +31,7 @@ __all__ = ["denoise_files", "clip_summary", "denoised_frames", "denoise_window",
 OUTPUT_LAYOUTS = ("input", "plain")
 #: what each frame's record counts, summed over the clip in the summary
 FRAME_STATS = ("nonfinite_color", "nonfinite_features", "firefly_energy_removed", "noisy_sky_frames",
-               "kept_flat_frames")
+               "kept_flat_frames", "infinite_as_no_hit")
 
 
 def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
@@ -49,6 +49,7 @@ def clip_summary(records: Iterable[Mapping], settings: DenoiseSettings,
             "nonfinite_color": total["nonfinite_color"], "nonfinite_features": total["nonfinite_features"],
             "firefly_energy_removed": total["firefly_energy_removed"] / max(n, 1),
             "noisy_sky_frames": total["noisy_sky_frames"], "kept_flat_frames": total["kept_flat_frames"],
+            "infinite_as_no_hit": total["infinite_as_no_hit"],
             "samples_per_pixel": samples_per_pixel,
             "sigma_s": spatial_sigma(settings, samples_per_pixel),
             "footprint_sigma": footprint_width(settings, samples_per_pixel),
@@ -261,7 +262,8 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         "nonfinite_color": n, "nonfinite_features": n, "firefly_energy_removed": x, "noisy_sky_frames": n
         (frames whose pixels of depth 0 were filtered as noise, a scene in fog), "kept_flat_frames": n
         (frames whose flat pixels, no albedo beside pixels with one, kept their samples, their colour no
-        noise: a picture on a black emitter), "samples_per_pixel":
+        noise: a picture on a black emitter), "infinite_as_no_hit": n (depth and position values that were
+        infinite, read as a ray that left the scene), "samples_per_pixel":
         n or None (the first frame's header), "sigma_s": s (the spatial sigma used), "footprint_sigma": s (the
         footprint width used), "seconds_per_frame": s, "outputs": [...]}``; ``notes`` lists what the reader
         changed or found missing (deduplicated).
