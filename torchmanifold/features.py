@@ -319,11 +319,11 @@ def other_renderer_channels(channels: Iterable[str], missing: Iterable[str],
         if len(f.channels) != 3:
             continue
         for base in bases:
-            found = next(([lower[n] for n in names] for names in
+            match = next(([lower[n] for n in names] for names in
                           ([f"{base}{sep}{c}" for c in comps] for comps in _COMPONENTS for sep in (".", ""))
                           if all(n in lower for n in names)), None)
-            if found is not None:
-                out.update(zip(found, f.channels))
+            if match is not None:
+                out.update(zip(match, f.channels))
                 break
     return out
 

@@ -4,7 +4,8 @@ Plain joint filtering of 1-spp colour loses to a Gaussian blur on real renders (
 blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op with:
 
 1. **Sanitising**: non-finite colour or feature samples are counted and given zero weight (the filter
-   runs on ``[w * colour, w]`` and divides, so they never enter any sum).
+   runs on ``[w * colour, w]`` and divides, so they never enter any sum); an infinite depth or position is
+   a ray that left the scene, read as 0 (:func:`_infinite_as_no_hit`).
 2. **Emission apart**: emitted radiance at the first hit (when the renderer gives it) is removed
    before filtering and added back unfiltered, so lights do not bleed into walls.
 3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
