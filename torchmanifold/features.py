@@ -83,8 +83,8 @@ class Feature:
             samples of different directions is shorter: how a file's point samples are told from pixel
             averages (:func:`torchmanifold.io.frames.samples_per_pixel_shown`).
         other_names: base names (any case) under which other renderers write the feature's components as
-            ``<base>.X/Y/Z`` or ``.R/G/B`` (any case) or ``<base>X``; read where no name above is in a file
-            (:func:`other_renderer_channels`).
+            ``<base>.X/Y/Z`` or ``.R/G/B`` (any case) or ``<base>X``, a scalar as ``<base>`` or ``<base>.Z``
+            (``.Y``, ``.V``, ``.R``); read where no name above is in a file (:func:`other_renderer_channels`).
         preferred_names: those of ``other_names`` read even where a file holds a name above too (pbrt-v4
             writes its geometric normal as ``N.*`` and the shading normal, smooth over a mesh's facets and
             what OIDN asks for, as ``Ns.*``).
@@ -142,16 +142,18 @@ FEATURES: tuple[Feature, ...] = (
     Feature("T", ("T",), tracer=("T",), half=False, may_be_all_zero=True),  # frame 0, no shutter
     Feature("Z", ("Z",), tracer=("Z",), mitsuba=("Z",), blender=("Denoising Depth.Z",), half=False,
             sigma=0.15, sigma_source=_TUNED, sigma_of_extent=True, guides=True, superseded_by=("P",),
-            zero_is_no_hit=True),
+            zero_is_no_hit=True, other_names=("z", "depth", "dd", "distance")),
     # other_names: pbrt-v4's gbuffer film (Albedo, Ns for the shading normal, P; its AOV film Px), the names
-    # users give Mitsuba's aov integrator and OIDN's examples (albedo.r, normal, normals, nn, position),
-    # Blender's Diffuse Color pass (DiffCol) where its denoising data was not rendered
+    # users give Mitsuba's aov integrator (its documentation's dd.y:depth and nn:sh_normal) and OIDN's examples
+    # (albedo.r, normal, normals, position), Blender's Diffuse Color pass (DiffCol) where its denoising data
+    # was not rendered
     Feature("albedo", _rgb("albedo"), tracer=("Mr", "Mg", "Mb"), mitsuba=_rgb("albedo"),
             blender=_rgb("Denoising Albedo"), sigma=0.1, sigma_source=_TUNED, guides=True,
             other_names=("albedo", "diffuse_albedo", "diffusealbedo", "diffcol")),
     Feature("N", _xyz("N"), tracer=("Nx", "Ny", "Nz"), mitsuba=_xyz("N"), blender=_xyz("Normal"),
             sigma=0.3, sigma_source=_TUNED, guides=True, superseded_by=("Ncam",), unit=True,
-            other_names=("ns", "n", "normal", "normals", "nn", "shading_normal"), preferred_names=("ns",)),
+            other_names=("ns", "n", "normal", "normals", "nn", "sh_normal", "shading_normal"),
+            preferred_names=("ns",)),
     Feature("D", _xyz("D"), tracer=("Dx", "Dy", "Dz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.1,
@@ -298,8 +300,9 @@ def channel_aliases(renderer: str) -> dict[str, str]:
     return {a: c for f in FEATURES for a, c in zip(f.aliases(renderer), f.channels)}
 
 
-#: the component suffixes other renderers write a 3-vector's channels with (any case)
+#: the component suffixes other renderers write a 3-vector's channels with (any case), and a scalar's
 _COMPONENTS = (("x", "y", "z"), ("r", "g", "b"))
+_SCALAR_SUFFIXES = ("", ".z", ".y", ".v", ".r")
 
 
 def other_renderer_channels(channels: Iterable[str], missing: Iterable[str],
@@ -316,12 +319,12 @@ def other_renderer_channels(channels: Iterable[str], missing: Iterable[str],
     wanted = [(g, feature(g).other_names) for g in missing] + [(g, feature(g).preferred_names) for g in found]
     for group, bases in wanted:
         f = feature(group)
-        if len(f.channels) != 3:
+        if len(f.channels) not in (1, 3):
             continue
         for base in bases:
-            match = next(([lower[n] for n in names] for names in
-                          ([f"{base}{sep}{c}" for c in comps] for comps in _COMPONENTS for sep in (".", ""))
-                          if all(n in lower for n in names)), None)
+            forms = ([[f"{base}{sep}{c}" for c in comps] for comps in _COMPONENTS for sep in (".", "")]
+                     if len(f.channels) == 3 else [[f"{base}{suffix}"] for suffix in _SCALAR_SUFFIXES])
+            match = next(([lower[n] for n in names] for names in forms if all(n in lower for n in names)), None)
             if match is not None:
                 out.update(zip(match, f.channels))
                 break

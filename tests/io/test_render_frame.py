@@ -59,6 +59,11 @@ def test_other_renderers_names_read_where_ours_are_missing(tmp_path):
     fr = read_render_frame(tmp_path / "user.exr")
     assert fr.feature_names == ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
     np.testing.assert_array_equal(fr.features["P.Y"], user["Py"])
+    # the Mitsuba documentation's own example of its aov integrator: dd.y:depth, nn:sh_normal
+    write_exr(tmp_path / "doc.exr", _rand("R", "G", "B", "albedo.R", "albedo.G", "albedo.B", "dd.y", "nn.X",
+                                          "nn.Y", "nn.Z"))
+    fr = read_render_frame(tmp_path / "doc.exr")
+    assert fr.feature_names == ["Z", "albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z"]
     # pbrt-v4's gbuffer holds its geometric normal as N too: the shading normal is read in its place
     write_exr(tmp_path / "both_normals.exr", {**pbrt, **_rand("N.X", "N.Y", "N.Z")})
     fr = read_render_frame(tmp_path / "both_normals.exr")

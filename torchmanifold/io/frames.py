@@ -12,10 +12,10 @@ Two layouts are recognised from the channel names:
   ``Emission`` pass (``Emit`` before) is the emission at the first hit, like our ``emission.R/G/B``.
   Blender 5 writes one part per pass, older versions one part with every channel; both read the same.
 
-Where a file lacks the names above, albedo, normals and positions are also read under the names other
-renderers give them (pbrt-v4's ``Albedo.R``, ``Ns.X``, ``Px``; ``normal.x``; Blender's ``Diffuse Color`` pass
-``DiffCol`` without the denoising data; ``other_names`` in :mod:`torchmanifold.features`), and a note says
-what was read as what.
+Where a file lacks the names above, albedo, normals, positions and depth are also read under the names other
+renderers give them (pbrt-v4's ``Albedo.R``, ``Ns.X``, ``Px``; ``normal.x``, ``depth``, Mitsuba's documented
+``dd.y`` and ``nn.X``; Blender's ``Diffuse Color`` pass ``DiffCol`` without the denoising data; ``other_names``
+in :mod:`torchmanifold.features`), and a note says what was read as what.
 
 Features come back under their canonical names (:mod:`torchmanifold.features`). Bad input raises a
 ``ValueError`` naming the file, the layer and the channel; nothing is guessed silently: what the
