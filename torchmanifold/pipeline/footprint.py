@@ -447,7 +447,7 @@ def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> 
     position (a position stored as half cannot tell finer steps). 0 in a frame with no such pair."""
     if min(position.shape[-2:]) < 3:  # no second difference
         return torch.zeros_like(depth)
-    hit = (depth > 0) if valid is None else (depth > 0) & valid
+    hit = _hits(depth, valid)
     pairs = hit[..., :, 1:] & hit[..., :, :-1]
     # sums of squares: torch's vector norm over the channels is several times slower here
     step = (position[..., :, 1:] - position[..., :, :-1]).square().sum(1, keepdim=True).sqrt()
@@ -493,6 +493,20 @@ def _lag_squares(x: Tensor, h: Tensor, lags: int) -> dict:
             for axis in (2, 3) for k in range(1, lags + 1)}
 
 
+def _whiteness(lag: dict) -> tuple[Tensor, Tensor]:
+    """From :func:`_lag_squares`: the squared differences of adjacent pixels over those of pixels 2 apart
+    (1 for white noise, about 0.5 across an edge, 0.25 on a gradient), and how far the horizontal share of the
+    adjacent ones lies from a half (0 where no axis is preferred)."""
+    ratio = _ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
+    return ratio, (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
+
+
+def _hits(depth: Tensor, valid: Tensor | None) -> Tensor:
+    """Where the depth ``(T, 1, H, W)`` is a hit (above 0) and, where ``valid`` (bool, like depth) is given,
+    a sample."""
+    return (depth > 0) if valid is None else (depth > 0) & valid
+
+
 def _box_spread(x: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     """The mean and the standard deviation of ``x`` ``(T, 1, H, W)`` (0 where ``h`` is 0) over the pixels of
     ``h`` in the (2 :data:`_SPECKLE_BOX` + 1)^2 box; 0 where the box holds none."""
@@ -506,7 +520,7 @@ def _surface_breaks(depth: Tensor | None, normal: Tensor | None, valid: Tensor |
     sample), bool ``(T, 1, H, W)`` each: from the depth (0: no hit) within :data:`_SPECKLE_DEPTH` of its 3x3
     median, or without depth from the normals (0: no hit) within :data:`_SPECKLE_BEND` of theirs."""
     if depth is not None:
-        hit = (depth > 0) if valid is None else (depth > 0) & valid
+        hit = _hits(depth, valid)
         median = _median3x3(depth)
         return hit, ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
     length = normal.square().sum(1, keepdim=True).sqrt()
@@ -536,7 +550,7 @@ def _speckled(albedo: Tensor, depth: Tensor | None, valid: Tensor | None = None,
     lum = lum / torch.where(top > 0, top, torch.ones_like(top))
 
     lag = _lag_squares(lum, h, max(_SPECKLE_LAGS))
-    ratio = _ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
+    ratio, along = _whiteness(lag)
     lo, hi = _SPECKLE_RATIO
     mean, spread = _box_spread(lum, h)
     w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * (spread > _SPECKLE_SPREAD * mean.abs()).to(lum.dtype)
@@ -544,7 +558,6 @@ def _speckled(albedo: Tensor, depth: Tensor | None, valid: Tensor | None = None,
     # the area's box
     repeats = torch.stack([_ratio_of(lag[axis, k], lag[axis, 1])
                            for axis in (2, 3) for k in _SPECKLE_LAGS]).amin(0)
-    along = (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
     plain = ((repeats > _SPECKLE_REPEAT) & (along < _SPECKLE_ALONG)).to(lum.dtype)
     # an area: what survives an erosion by the square on one smooth surface, grown from there, also into the
     # band past its silhouette where the lens mixes it with what lies behind
@@ -585,12 +598,10 @@ def _mixed_layers(depth: Tensor, valid: Tensor | None = None) -> Tensor:
     small for a difference of pixels 2 apart."""
     if min(depth.shape[-2:]) < 3:
         return torch.zeros_like(depth)
-    hit = (depth > 0) if valid is None else (depth > 0) & valid
+    hit = _hits(depth, valid)
     h = hit.to(depth.dtype)
     log_depth = torch.where(hit, depth, 1.0).log() * h
-    lag = _lag_squares(log_depth, h, 2)
-    ratio = _ratio_of(lag[3, 1] + lag[2, 1], lag[3, 2] + lag[2, 2])
-    along = (_ratio_of(lag[3, 1], lag[3, 1] + lag[2, 1]) - 0.5).abs()
+    ratio, along = _whiteness(_lag_squares(log_depth, h, 2))
     _, spread = _box_spread(log_depth, h)
     lo, hi = _MIX_RATIO
     w = ((ratio - lo) / (hi - lo)).clamp(0.0, 1.0) * ((spread > _MIX_SPREAD) & (along < _MIX_ALONG)
