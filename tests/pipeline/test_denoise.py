@@ -2214,6 +2214,17 @@ def test_scatter_is_found_where_a_lens_spreads_the_samples(kind):
         assert float(w.max()) == 0.0
 
 
+def test_scatter_is_found_far_from_the_origin_where_the_positions_can_tell_it():
+    """A scene 1000 units from the origin scatters as it does at the origin when its positions are single
+    floats; stored as half floats (a step of 0.5 there, many pixels) they cannot tell a lens's scatter from
+    their rounding, and nothing is found."""
+    p, z = _scatter_case("lens")
+    near = FP._scattered(p.float(), z.float())
+    far = p.float() + 1000.0
+    assert torch.equal(FP._scattered(far, z.float()), near)
+    assert float(FP._scattered(far.half().float(), z.float()).max()) == 0.0
+
+
 def test_sanitised_positions_are_no_scatter():
     """Positions that were not finite come to the rule as 0 (`_sanitize`) beside finite depth: they jump
     across the scene, but they are no samples, so neither they nor the pixels beside them scatter."""

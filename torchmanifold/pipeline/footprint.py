@@ -438,13 +438,21 @@ _SPECKLE_REPEAT, _SPECKLE_ALONG, _SPECKLE_PLAIN = 0.5, 0.1, 0.5
 _SPECKLE_GROWTH = 16
 
 
+def _precision(position: Tensor) -> float:
+    """The relative step of the float format world positions ``(T, 3, H, W)`` were stored in: half's where
+    every finite value is a half (the set's EXR files; a scene far from the origin then cannot tell finer
+    steps), else single's (a position 1000 units out still tells a pixel's scatter)."""
+    x = position[torch.isfinite(position)]
+    return 2.0 ** -10 if bool((x == x.half().float()).all()) else 2.0 ** -23
+
+
 def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
     """How surely each pixel's samples scatter over an area, ``(T, 1, H, W)`` in [0, 1], from world positions
     ``(T, 3, H, W)`` and depth ``(T, 1, H, W)`` (0: no hit), where ``valid`` (bool, like depth; all by
     default) marks the pixels whose features are samples (not sanitised non-finite ones): a second
     difference counts where its three pixels are hit and valid. A frame's pixel spacing per unit of depth is
-    the median of the horizontal neighbours' distance over their depth; at least half-float precision of the
-    position (a position stored as half cannot tell finer steps). 0 in a frame with no such pair."""
+    the median of the horizontal neighbours' distance over their depth; at least the precision the positions
+    were stored with (:func:`_precision`). 0 in a frame with no such pair."""
     if min(position.shape[-2:]) < 3:  # no second difference
         return torch.zeros_like(depth)
     hit = _hits(depth, valid)
@@ -454,7 +462,7 @@ def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> 
     step = step / depth[..., :, 1:].clamp_min(1e-30)
     angle = torch.stack([step[t][pairs[t]].median() if bool(pairs[t].any()) else step.new_zeros(())
                          for t in range(step.shape[0])]).view(-1, 1, 1, 1)
-    spacing = torch.maximum(depth * angle, position.square().sum(1, keepdim=True).sqrt() * 2.0 ** -10)
+    spacing = torch.maximum(depth * angle, position.square().sum(1, keepdim=True).sqrt() * _precision(position))
 
     def second(axis: int) -> tuple[Tensor, Tensor]:
         # the squared second differences of position and depth along an image axis; 0 at the border and
