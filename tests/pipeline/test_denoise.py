@@ -2644,3 +2644,18 @@ def test_radiance_channel_narrows_beyond_four_samples_per_pixel():
     kept = run(16, 0.5)
     err = [float((x - truth)[band].mean() / truth[band].mean()) for x in (narrowed, kept)]
     assert err[0] < 0.9 * err[1], err  # the shadow fills in less (0.76-0.86 of it over six seeds)
+
+
+@pytest.mark.parametrize("shape", [(3, 40), (40, 3), (2, 50), (4, 4)])
+@pytest.mark.parametrize("names", [("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"),
+                                   ("albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z")])
+def test_a_strip_narrower_than_the_texture_tests_reach_is_denoised(shape, names):
+    """A frame fewer pixels across than the speckle test's lags (4 px) has no pair that far apart along that
+    axis: it is denoised like any other (a constant clip stays constant), not refused by a shape error."""
+    H, W = shape
+    g = torch.Generator().manual_seed(5)
+    f = torch.rand(3, len(names), H, W, generator=g)
+    f[:, :3] = 0.5  # one grey surface of random normals and depths, under light of 0.37
+    c = torch.full((3, 3, H, W), 0.37)
+    out = denoise_frames(c, f, list(names), settings=DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
+    assert torch.allclose(out, c, rtol=1e-5)

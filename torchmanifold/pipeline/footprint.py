@@ -494,6 +494,8 @@ def _lag_squares(x: Tensor, h: Tensor, lags: int) -> dict:
     past the end), each averaged over the (2 :data:`_SPECKLE_BOX` + 1)^2 box."""
     def squared_differences(k: int, axis: int) -> Tensor:
         n = x.shape[axis]
+        if k >= n:  # no pair that far apart in a frame this small
+            return torch.zeros_like(x)
         d = (x.narrow(axis, k, n - k) - x.narrow(axis, 0, n - k)).square()
         d = d * h.narrow(axis, k, n - k) * h.narrow(axis, 0, n - k)
         return torch.nn.functional.pad(d, (0, k, 0, 0) if axis == 3 else (0, 0, 0, k))
