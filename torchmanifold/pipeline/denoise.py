@@ -888,6 +888,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                            bandwidths=_noisy_bandwidths(settings, state.sigma_s if sigma_s is None else sigma_s,
                                                         min(state.values.shape[-2:])))
     base = state.sigma_s if sigma_s is None else float(sigma_s)
+    pooled = settings.selection_blur * _frame_pooling(*state.values.shape[-2:])
+    settings = replace(settings, selection_blur=pooled)
     s = state
 
     def at_queries(x: Tensor) -> Tensor:
@@ -1423,6 +1425,23 @@ def _pilot_trust(relative_noise: Tensor) -> Tensor:
     """How far the pilot is trusted, in [0, 1], from its noise in units of a range sigma: 1 up to
     :data:`_PILOT_TRUSTED`, falling linearly to 0 at :data:`_PILOT_UNTRUSTED`."""
     return ((_PILOT_UNTRUSTED - relative_noise) / (_PILOT_UNTRUSTED - _PILOT_TRUSTED)).clamp(0.0, 1.0)
+
+
+#: the frame side ``selection_blur`` was measured at (the validation set's 128x128). A larger frame pools its
+#: errors wider, by the square root of its shorter side over this (:func:`_frame_pooling`): a candidate's bias
+#: varies on the scene's scale, which grows with the frame, and the noise on the pixel's, which does not.
+#: All frames from 1 / 4 spp, ``selection_blur`` 3 / 4 / 5 / 5.66 / 6 / 8: the five Cycles clips at 256x256
+#: (not in the set) 29.39 / 33.04, 29.46 / 33.09, 29.49 / 33.10, 29.49 / 33.10, 29.49 / 33.09, 29.47 / 33.06
+#: dB; the six Mitsuba clips at 256x256 with 12 frames 29.62 / 32.02, 29.70 / 32.07, 29.74 / 32.09, 29.75 /
+#: 32.09, 29.75 / 32.08, 29.75 / 32.06; the set at 128x128 (3 / 4 / 5 / 6) 26.85 / 29.90, 26.87 / 29.90,
+#: 26.86 / 29.89, 26.84 / 29.87 (``findings.md``)
+_POOLING_SIDE = 128
+
+
+def _frame_pooling(height: int, width: int) -> float:
+    """The factor on ``selection_blur`` for a frame of ``height`` x ``width`` pixels: the square root of its
+    shorter side over :data:`_POOLING_SIDE`, at least 1 (smaller frames pool as the set's)."""
+    return max(1.0, math.sqrt(min(height, width) / _POOLING_SIDE))
 
 
 def _selection_pooling(relative_noise: Tensor) -> Tensor:
