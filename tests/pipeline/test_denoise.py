@@ -2662,18 +2662,22 @@ def test_a_strip_narrower_than_the_texture_tests_reach_is_denoised(shape, names)
 
 
 def test_a_larger_frame_pools_the_selection_s_errors_wider(monkeypatch):
-    """The bandwidth selection pools its errors over ``selection_blur`` at the set's 128 px and by the square
-    root of the shorter side beyond (a 256x256 frame as with ``selection_blur * sqrt(2)`` at the set's
-    width); smaller frames as the set's."""
-    assert D._frame_pooling(64, 64) == 1.0 and D._frame_pooling(128, 300) == 1.0
-    assert D._frame_pooling(256, 512) == pytest.approx(math.sqrt(2.0))
+    """The bandwidth selection pools its errors over ``selection_blur`` in a frame ``selection_side`` (128)
+    pixels across and by the square root of the shorter side beyond (a 256x256 frame as with
+    ``selection_blur * sqrt(2)`` at that side); smaller frames as at that side, and without albedo (or with
+    ``selection_side=None``) every frame."""
+    assert D._frame_pooling(64, 64, 128.0) == 1.0 and D._frame_pooling(128, 300, 128.0) == 1.0
+    assert D._frame_pooling(256, 512, 128.0) == pytest.approx(math.sqrt(2.0))
+    assert D._frame_pooling(256, 512, None) == 1.0
+    assert D.adapt_to_features(DenoiseSettings(), ["N.X", "N.Y", "N.Z"])[0].selection_side is None
+    albedo = ["albedo.R", "albedo.G", "albedo.B"]
+    assert D.adapt_to_features(DenoiseSettings(), albedo)[0].selection_side == 128
     g = torch.Generator().manual_seed(6)
     c, f = torch.rand(2, 3, 256, 256, generator=g), torch.rand(2, 3, 256, 256, generator=g)
     names = ["albedo.R", "albedo.G", "albedo.B"]
     out = denoise_frames(c, f, names, samples_per_pixel=1)
-    monkeypatch.setattr(D, "_frame_pooling", lambda height, width: 1.0)
-    unscaled = denoise_frames(c, f, names, samples_per_pixel=1)
-    wider = denoise_frames(c, f, names, settings=DenoiseSettings(selection_blur=4.0 * math.sqrt(2.0)),
-                           samples_per_pixel=1)
+    unscaled = denoise_frames(c, f, names, settings=DenoiseSettings(selection_side=None), samples_per_pixel=1)
+    wider = denoise_frames(c, f, names, settings=DenoiseSettings(selection_blur=4.0 * math.sqrt(2.0),
+                                                                 selection_side=None), samples_per_pixel=1)
     assert not torch.equal(out, unscaled)
     assert torch.allclose(out, wider, atol=1e-6)

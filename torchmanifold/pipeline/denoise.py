@@ -232,9 +232,14 @@ class DenoiseSettings:
             One value filters at that bandwidth alone. Factor-2 steps from 0.5 to 4 (2 to 16 px) measured best
             on the validation set's tuning part from 1 and 4 spp (``benchmarks/validation``): a 1-spp wall
             wants 16 px, a 4-spp leaf edge 2.
-        selection_blur: sigma (pixels) over which a pixel's cross-validated errors are pooled: one
-            held-out sample is too noisy an error estimate (2 to 8 measured alike; 4 is the middle). It
-            widens where the firefly pilot is noisy (:func:`_selection_pooling`).
+        selection_blur: sigma (pixels) over which a pixel's cross-validated errors are pooled in a frame
+            ``selection_side`` pixels across: one held-out sample is too noisy an error estimate (on the set
+            3 / 4 / 5 / 6 within 0.03 dB, 4 the best). It widens where the firefly pilot is noisy
+            (:func:`_selection_pooling`).
+        selection_side: the frame side (pixels) at which ``selection_blur`` holds; a frame whose shorter side
+            is larger pools wider, by the square root of the ratio (:func:`_frame_pooling`; the set's 128x128
+            frames, where ``selection_blur`` was measured). ``None``: the same width in every frame, as where
+            no albedo guides (:func:`adapt_to_features`).
         selection_softness: how sure the evidence must be before a bandwidth is left out: weights are
             ``exp(-z^2 / (2 softness^2))``, ``z`` a bandwidth's pooled error in excess of the least one's in
             standard errors of that excess (see :func:`~torchmanifold.pipeline.selection._excess_error_z2`); 0
@@ -326,6 +331,7 @@ class DenoiseSettings:
     sigma_s: float = 4.0
     bandwidths: Sequence[float] = (0.5, 1.0, 2.0, 4.0)
     selection_blur: float = 4.0
+    selection_side: float | None = 128.0
     selection_softness: float = 1.0
     guide: Sequence[str] | None = None
     guide_sigmas: Mapping[str, float] = field(default_factory=dict)
@@ -365,6 +371,8 @@ class DenoiseSettings:
             check_positive(f"frame_alone_bandwidths[{k}]", b)
         for name in ("radiance_sigma", "selection_blur", "selection_softness"):
             check_nonnegative(name, getattr(self, name))
+        if self.selection_side is not None:
+            check_positive("selection_side", self.selection_side)
         if self.footprint_sigma is not None:
             check_nonnegative("footprint_sigma", self.footprint_sigma)
         check_choice("firefly", self.firefly, FIREFLY_MODES)
@@ -487,7 +495,9 @@ def adapt_to_features(settings: DenoiseSettings,
     nor, on glass, what it shows: the candidates reach down to a quarter of the narrowest
     (:data:`_NO_ALBEDO_NARROWER`), and so, with a time window, does each frame's own filter (by default at
     the candidates narrower than ``sigma_s``, ``frame_alone_bandwidths``), and the log-radiance channel
-    narrows by :data:`_NO_ALBEDO_RADIANCE` (the guide also holds the colour's chromaticity, :func:`_guide`).
+    narrows by :data:`_NO_ALBEDO_RADIANCE` (the guide also holds the colour's chromaticity, :func:`_guide`);
+    the selection pools over ``selection_blur`` in any frame size (``selection_side``: the narrow candidates'
+    errors vary on the texture's scale).
     Nothing in colour alone tells a moving view's frames apart (the +-1 window smeared a pan's moving ball,
     -1.2 / -1.4 dB from 4 spp on two validation scenes, and gained 0.7-0.9 dB on still views): the bandwidth
     selection keeps a pixel's own frame where the window's disagree. The validation set from 1 / 4 spp,
@@ -502,9 +512,10 @@ def adapt_to_features(settings: DenoiseSettings,
     low = min(float(b) for b in settings.bandwidths)
     bandwidths = tuple(sorted({low * f for f in _NO_ALBEDO_NARROWER} | set(map(float, settings.bandwidths))))
     adapted = replace(settings, bandwidths=bandwidths,
-                      radiance_sigma=settings.radiance_sigma * _NO_ALBEDO_RADIANCE)
+                      radiance_sigma=settings.radiance_sigma * _NO_ALBEDO_RADIANCE, selection_side=None)
     note = (f"no albedo guides: bandwidths {list(bandwidths)} times sigma_s, radiance sigma "
-            f"{adapted.radiance_sigma:g}, the colour's chromaticity guides")
+            f"{adapted.radiance_sigma:g}, the colour's chromaticity guides, the selection pools over "
+            f"{adapted.selection_blur:g} px in any frame size")
     if adapted.frame_alone:
         note += f", each frame also filtered alone at bandwidths {list(adapted.frame_alone)}"
     if not guide:
@@ -888,7 +899,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                            bandwidths=_noisy_bandwidths(settings, state.sigma_s if sigma_s is None else sigma_s,
                                                         min(state.values.shape[-2:])))
     base = state.sigma_s if sigma_s is None else float(sigma_s)
-    pooled = settings.selection_blur * _frame_pooling(*state.values.shape[-2:])
+    pooled = settings.selection_blur * _frame_pooling(*state.values.shape[-2:], settings.selection_side)
     settings = replace(settings, selection_blur=pooled)
     s = state
 
@@ -1427,21 +1438,21 @@ def _pilot_trust(relative_noise: Tensor) -> Tensor:
     return ((_PILOT_UNTRUSTED - relative_noise) / (_PILOT_UNTRUSTED - _PILOT_TRUSTED)).clamp(0.0, 1.0)
 
 
-#: the frame side ``selection_blur`` was measured at (the validation set's 128x128). A larger frame pools its
-#: errors wider, by the square root of its shorter side over this (:func:`_frame_pooling`): a candidate's bias
-#: varies on the scene's scale, which grows with the frame, and the noise on the pixel's, which does not.
-#: All frames from 1 / 4 spp, ``selection_blur`` 3 / 4 / 5 / 5.66 / 6 / 8: the five Cycles clips at 256x256
-#: (not in the set) 29.39 / 33.04, 29.46 / 33.09, 29.49 / 33.10, 29.49 / 33.10, 29.49 / 33.09, 29.47 / 33.06
-#: dB; the six Mitsuba clips at 256x256 with 12 frames 29.62 / 32.02, 29.70 / 32.07, 29.74 / 32.09, 29.75 /
-#: 32.09, 29.75 / 32.08, 29.75 / 32.06; the set at 128x128 (3 / 4 / 5 / 6) 26.85 / 29.90, 26.87 / 29.90,
-#: 26.86 / 29.89, 26.84 / 29.87 (``findings.md``)
-_POOLING_SIDE = 128
-
-
-def _frame_pooling(height: int, width: int) -> float:
+def _frame_pooling(height: int, width: int, side: float | None) -> float:
     """The factor on ``selection_blur`` for a frame of ``height`` x ``width`` pixels: the square root of its
-    shorter side over :data:`_POOLING_SIDE`, at least 1 (smaller frames pool as the set's)."""
-    return max(1.0, math.sqrt(min(height, width) / _POOLING_SIDE))
+    shorter side over ``side`` (``DenoiseSettings.selection_side``), at least 1 (smaller frames pool as at
+    ``side``); 1 where ``side`` is ``None``.
+
+    A candidate's bias varies on the scene's scale, which grows with the frame, and the noise on the pixel's,
+    which does not. All frames from 1 / 4 spp, ``selection_blur`` 3 / 4 / 5 / 5.66 / 6 / 8 (the set's
+    128x128 frames: 3 / 4 / 5 / 6): the five Cycles clips at 256x256 (not in the set) 29.39 / 33.04, 29.46 /
+    33.09, 29.49 / 33.10, 29.49 / 33.10, 29.49 / 33.09, 29.47 / 33.06 dB; the six Mitsuba clips at 256x256
+    with 12 frames 29.62 / 32.02, 29.70 / 32.07, 29.74 / 32.09, 29.75 / 32.09, 29.75 / 32.08, 29.75 / 32.06;
+    the set 26.85 / 29.90, 26.87 / 29.90, 26.86 / 29.89, 26.84 / 29.87 (eleven clips; ``findings.md``).
+    Without albedo the 256x256 clips pooled at 5.66 lost 0.03 / 0.02 dB and the shared clip 0.15 / 0.11."""
+    if side is None:
+        return 1.0
+    return max(1.0, math.sqrt(min(height, width) / side))
 
 
 def _selection_pooling(relative_noise: Tensor) -> Tensor:
