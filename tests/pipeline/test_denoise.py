@@ -2045,7 +2045,7 @@ def test_a_texture_sliding_under_a_panning_view_is_not_averaged_over_frames(monk
 
 
 def test_the_albedo_window_reaches_beyond_the_filters():
-    """The albedo's samples come from +-2 frames while the filter joins +-1: a still view over fine
+    """The albedo's samples come from +-3 frames while the filter joins +-1: a still view over fine
     textures (`mi_still_textures`, held out) gets closer to its reference, and a query reads the wider
     window (none per frame)."""
     c, f, names, ref = _validation_clip("mi_still_textures", [0, 1, 2, 3, 4])
@@ -2054,13 +2054,13 @@ def test_the_albedo_window_reaches_beyond_the_filters():
     one = DenoiseSettings(temporal_radius=1, albedo_radius=1)
     narrow = M.psnr(denoise_frames(c, f, names, settings=one, **kw), ref[2:3])
     assert wide > narrow + 0.1, (wide, narrow)
-    assert DenoiseSettings(temporal_radius=1).joined_radius == 2
-    assert DenoiseSettings(temporal_radius=3).joined_radius == 3 and DenoiseSettings().joined_radius == 0
+    assert DenoiseSettings(temporal_radius=1).joined_radius == 3
+    assert DenoiseSettings(temporal_radius=4).joined_radius == 4 and DenoiseSettings().joined_radius == 0
     # and the frames a query's output depends on: its neighbours' lending evidence join as much again
-    assert DenoiseSettings(temporal_radius=1).window_radius == 3 and DenoiseSettings().window_radius == 0
-    assert DenoiseSettings(temporal_radius=1, evidence_radius=0).window_radius == 2
+    assert DenoiseSettings(temporal_radius=1).window_radius == 4 and DenoiseSettings().window_radius == 0
+    assert DenoiseSettings(temporal_radius=1, evidence_radius=0).window_radius == 3
     # one bandwidth has no choice to make: no neighbour lends it evidence
-    assert DenoiseSettings(temporal_radius=1, bandwidths=(1.0,)).window_radius == 2
+    assert DenoiseSettings(temporal_radius=1, bandwidths=(1.0,)).window_radius == 3
     assert DenoiseSettings(temporal_radius=1).query_radius == 2 and DenoiseSettings().query_radius == 0
     with pytest.raises(ValueError, match="albedo_radius"):
         DenoiseSettings(albedo_radius=-1).check()

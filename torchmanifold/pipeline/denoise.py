@@ -303,8 +303,11 @@ class DenoiseSettings:
             renderer, the frames on each side whose samples of each pixel's albedo join it
             (:func:`~torchmanifold.pipeline.footprint._window_albedo`); it may reach beyond the filter's
             window, as texture holds still where light does not need to. Validation set, 1 spp, against 1: 2
-            +0.09 dB on the tuning part (``cbox_glossy_tex`` +0.24), 3 +0.13 at twice the cost; no scene below
-            -0.03 (``benchmarks/validation/findings.md``).
+            +0.09 dB on the tuning part (``cbox_glossy_tex`` +0.24), 3 +0.13; no scene below -0.03. All
+            frames from 1 / 4 spp, against 2: 3 the eleven 128x128 clips +0.05 / +0.04 (``mi_still_textures``
+            +0.25 / +0.23, no clip below 0), the six Mitsuba clips at 256x256 with 12 frames +0.10 / +0.07
+            (Blender's, without positions, the same), 4 the same as 3; the ``denoise`` command on the shared
+            clip about 1% slower (``benchmarks/validation/findings.md``).
         evidence_radius: with a time window, the frames on each side whose queries lend their
             cross-validated residuals to a query's bandwidth selection, where their guides agree with its
             own (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
@@ -346,7 +349,7 @@ class DenoiseSettings:
     demodulate: bool = True
     keep_sky: bool = True
     temporal_radius: int = 0
-    albedo_radius: int = 2
+    albedo_radius: int = 3
     evidence_radius: int = 1
     frame_alone_bandwidths: Sequence[float] | None = None
     sigma_t: float = 1.0
