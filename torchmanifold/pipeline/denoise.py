@@ -307,7 +307,7 @@ class DenoiseSettings:
             frames from 1 / 4 spp, against 2: 3 the eleven 128x128 clips +0.05 / +0.04 (``mi_still_textures``
             +0.25 / +0.23, no clip below 0), the six Mitsuba clips at 256x256 with 12 frames +0.10 / +0.07
             (Blender's, without positions, the same), 4 the same as 3; the ``denoise`` command on the shared
-            clip about 1% slower (``benchmarks/validation/findings.md``).
+            clip 7% slower on one thread, 2% on two (``benchmarks/validation/findings.md``).
         evidence_radius: with a time window, the frames on each side whose queries lend their
             cross-validated residuals to a query's bandwidth selection, where their guides agree with its
             own (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
@@ -983,7 +983,9 @@ def _noisy_window(state: FrameState, settings: DenoiseSettings, ft: list[float],
     (``state.pooling`` above 1, :func:`_selection_pooling`), as the selection's pooling widens there. Only
     the two rooms lit by bounce light alone are that noisy: frames 0-5 from 1 / 4 spp, ``mi_indirect_dof``
     (tuning part) +0.15 / +0.11 dB and ``bl_indirect_dof`` (held out) +0.11 / +0.14 with +-2 frames against
-    +-1 (for 5/3 of the op's time there); every other scene keeps its bits."""
+    +-1 (for 5/3 of the op's time there); every other scene keeps its bits. With the albedo's +-3 (all frames,
+    against +-2, the albedo's window included): ``mi_indirect_dof`` +0.09 / +0.09, ``bl_indirect_dof`` +0.02 /
+    +0.01."""
     if settings.temporal_radius == 0 or settings.joined_radius <= settings.temporal_radius:
         return [False] * len(qt)
     return _noisy_pilot(state, ft, qt).tolist()
