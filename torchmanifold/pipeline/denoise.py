@@ -325,7 +325,13 @@ class DenoiseSettings:
             Every frame of the validation set from 1 / 4 spp against none: +0.03 / +0.07 dB, no clip below
             -0.05 (the pans ``mi_env_thin`` and ``bl_env_thin`` +0.09 to +0.37); from colour alone, where
             nothing else tells a pan's frames apart, +0.60 / +0.57 (``findings.md``).
-        sigma_t: temporal sigma in frames.
+        sigma_t: temporal sigma in frames: the Gaussian weight of a window's other frames (the space-time
+            guide keeps what moved apart). All frames from 1 / 4 spp, 1 / 1.5 / 2 / 3: the set's eleven
+            128x128 clips 26.92 / 29.94, 26.99 / 29.99, 27.01 / 30.00, 27.02 / 30.00 dB (2: the bounce-lit
+            rooms, whose noisy pilot's window joins +-3, +0.37 / +0.29 and +0.40 / +0.26, every other clip
+            within -0.01 to +0.05; inside the moving objects +0.06 on average, none below -0.03); the Cycles
+            and Mitsuba clips at 256x256 +0.06 / +0.05 and +0.05 / +0.02 at 2 and 3 alike; 0.7 lost 0.1. 2,
+            the smallest that reaches the plateau (``benchmarks/validation/findings.md``).
         mode: ``"spacetime"`` or ``"window"`` (see :func:`~torchmanifold.ops.temporal_adaptive_manifold_filter`).
         dtype: working precision; float32 (fast C++ paths) bounds each result by the range of the
             samples near it, float64 keeps S/S0 exact where the weights get tiny.
@@ -352,7 +358,7 @@ class DenoiseSettings:
     albedo_radius: int = 3
     evidence_radius: int = 1
     frame_alone_bandwidths: Sequence[float] | None = None
-    sigma_t: float = 1.0
+    sigma_t: float = 2.0
     mode: str = "spacetime"
     dtype: torch.dtype = torch.float32
 
