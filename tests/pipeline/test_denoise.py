@@ -2661,7 +2661,7 @@ def test_a_strip_narrower_than_the_texture_tests_reach_is_denoised(shape, names)
     assert torch.allclose(out, c, rtol=1e-5)
 
 
-def test_a_larger_frame_pools_the_selection_s_errors_wider(monkeypatch):
+def test_a_larger_frame_pools_the_selection_s_errors_wider():
     """The bandwidth selection pools its errors over ``selection_blur`` in a frame ``selection_side`` (128)
     pixels across and by the square root of the shorter side beyond (a 256x256 frame as with
     ``selection_blur * sqrt(2)`` at that side); smaller frames as at that side, and without albedo (or with

@@ -462,7 +462,8 @@ def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> 
     step = step / depth[..., :, 1:].clamp_min(1e-30)
     angle = torch.stack([step[t][pairs[t]].median() if bool(pairs[t].any()) else step.new_zeros(())
                          for t in range(step.shape[0])]).view(-1, 1, 1, 1)
-    spacing = torch.maximum(depth * angle, position.square().sum(1, keepdim=True).sqrt() * _precision(position))
+    floor = position.square().sum(1, keepdim=True).sqrt() * _precision(position)
+    spacing = torch.maximum(depth * angle, floor)
 
     def second(axis: int) -> tuple[Tensor, Tensor]:
         # the squared second differences of position and depth along an image axis; 0 at the border and
