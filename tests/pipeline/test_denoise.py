@@ -2223,6 +2223,10 @@ def test_scatter_is_found_far_from_the_origin_where_the_positions_can_tell_it():
     far = p.float() + 1000.0
     assert torch.equal(FP._scattered(far, z.float()), near)
     assert float(FP._scattered(far.half().float(), z.float()).max()) == 0.0
+    # each frame by its own storage, whatever the other frames of the call hold
+    mixed = torch.cat([far.half().float(), far])
+    assert FP._precision(mixed).flatten().tolist() == [2.0 ** -10, 2.0 ** -23]
+    assert torch.equal(FP._scattered(mixed, torch.cat([z, z]).float())[1:], near)
 
 
 def test_sanitised_positions_are_no_scatter():

@@ -438,12 +438,14 @@ _SPECKLE_REPEAT, _SPECKLE_ALONG, _SPECKLE_PLAIN = 0.5, 0.1, 0.5
 _SPECKLE_GROWTH = 16
 
 
-def _precision(position: Tensor) -> float:
-    """The relative step of the float format world positions ``(T, 3, H, W)`` were stored in: half's where
-    every finite value is a half (the set's EXR files; a scene far from the origin then cannot tell finer
-    steps), else single's (a position 1000 units out still tells a pixel's scatter)."""
-    x = position[torch.isfinite(position)]
-    return 2.0 ** -10 if bool((x == x.half().float()).all()) else 2.0 ** -23
+def _precision(position: Tensor) -> Tensor:
+    """Per frame, ``(T, 1, 1, 1)``, the relative step of the float format world positions ``(T, 3, H, W)``
+    were stored in: half's where every finite value of the frame is a half (the set's EXR files; a scene far
+    from the origin then cannot tell finer steps), else single's (a position 1000 units out still tells a
+    pixel's scatter). Each frame alone, so a frame's bytes do not depend on the others in the call."""
+    exact = (position == position.half().to(position.dtype)) | ~torch.isfinite(position)
+    half = exact.flatten(1).all(1).view(-1, 1, 1, 1)
+    return torch.where(half, 2.0 ** -10, 2.0 ** -23).to(position.dtype)
 
 
 def _scattered(position: Tensor, depth: Tensor, valid: Tensor | None = None) -> Tensor:
