@@ -897,6 +897,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     its neighbours' queries (``settings.lending_radius``), filtered here unless ``cache`` (one per clip and
     settings, shared by a clip's calls) holds them."""
     ft, qt = list(frame_times), list(query_times)
+    base = state.sigma_s if sigma_s is None else float(sigma_s)
     wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
     if any(wide):
         if not all(wide):  # each query with its own window: a frame's bytes do not depend on the others'
@@ -905,9 +906,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         # the window's candidates alone: a frame's own narrow candidate is its noise there; wider ones where
         # the frame is large enough for them
         settings = replace(settings, temporal_radius=settings.joined_radius, frame_alone_bandwidths=(),
-                           bandwidths=_noisy_bandwidths(settings, state.sigma_s if sigma_s is None else sigma_s,
-                                                        min(state.values.shape[-2:])))
-    base = state.sigma_s if sigma_s is None else float(sigma_s)
+                           bandwidths=_noisy_bandwidths(settings, base, min(state.values.shape[-2:])))
     pooled = settings.selection_blur * _frame_pooling(*state.values.shape[-2:], settings.selection_side)
     settings = replace(settings, selection_blur=pooled)
     s = state
