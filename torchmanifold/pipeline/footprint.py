@@ -537,9 +537,9 @@ def _surface_breaks(depth: Tensor | None, normal: Tensor | None, valid: Tensor |
         median = _median3x3(depth)
         return hit, ~hit | ((depth - median).abs() > _SPECKLE_DEPTH * median.abs())
     length = normal.square().sum(1, keepdim=True).sqrt()
-    hit = (length > 0) if valid is None else (length > 0) & valid
+    hit = _hits(length, valid)
     n = normal / torch.where(length > 0, length, 1.0)
-    median = torch.cat([_median3x3(n[:, k:k + 1]) for k in range(3)], 1)
+    median = _median3x3(n)  # per component
     median = median / median.square().sum(1, keepdim=True).sqrt().clamp_min(1e-30)
     return hit, ~hit | (1.0 - (n * median).sum(1, keepdim=True) > _SPECKLE_BEND)
 
