@@ -532,6 +532,61 @@ def clip_materials(scene, n: int):
     return animate, desc, ["panel"]
 
 
+def bumped(name: str, bsdf_kind: str, rgb, scale: float, strength: float, roughness: float = 0.0):
+    """A diffuse or metal BSDF whose shading normal follows a bump map of procedural noise (``scale`` its
+    frequency per object-space unit, ``strength`` its depth): the normals Cycles writes carry detail finer than a pixel."""
+    m, nt, out = _material(name)
+    if bsdf_kind == "diffuse":
+        bsdf = nt.nodes.new("ShaderNodeBsdfDiffuse")
+        bsdf.inputs["Color"].default_value = (*rgb, 1.0)
+    else:
+        bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
+        bsdf.inputs["Metallic"].default_value = 1.0
+        bsdf.inputs["Roughness"].default_value = roughness
+    coord = nt.nodes.new("ShaderNodeTexCoord")
+    tex = nt.nodes.new("ShaderNodeTexNoise")
+    tex.inputs["Scale"].default_value = scale
+    tex.inputs["Detail"].default_value = 8.0
+    nt.links.new(coord.outputs["Object"], tex.inputs["Vector"])
+    bump = nt.nodes.new("ShaderNodeBump")
+    bump.inputs["Strength"].default_value = strength
+    bump.inputs["Distance"].default_value = 0.1  # Blender 5's default, 1 mm, draws no visible bump at these scales
+    nt.links.new(tex.outputs["Fac"], bump.inputs["Height"])
+    nt.links.new(bump.outputs["Normal"], bsdf.inputs["Normal"])
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    return m
+
+
+def clip_bump(scene, n: int):
+    """Bump-mapped surfaces under a sun: a stucco wall and ground, a hammered-metal ball, a bumpy cube that
+    slides; hard shadows. The normals Cycles writes vary within a pixel, so a guide that trusts them keeps
+    the noise along with the bumps."""
+    sky_world((0.3, 0.5, 0.9), (0.85, 0.85, 0.8), 0.4)
+    light("SUN", (0, 0, 5), 2.0, rotation=(40, 0, -30), angle=math.radians(0.5))
+    add("plane", bumped("ground", "diffuse", (0.55, 0.5, 0.42), 12.0, 0.6), (0, 0, 0), size=20)
+    add("plane", bumped("wall", "diffuse", (0.75, 0.7, 0.62), 6.0, 0.5), (0, 1.2, 1.5), (90, 0, 0), size=6)
+    add("uv_sphere", bumped("hammered", "metal", (0.95, 0.75, 0.5), 8.0, 0.4, roughness=0.25),
+        (0.55, 0.3, 0.35), radius=0.35, segments=64, ring_count=32, smooth=True)
+    cube = add("cube", bumped("stone", "diffuse", (0.45, 0.5, 0.6), 6.0, 0.8), (0, 0, 0.2),
+               scale=(0.2, 0.2, 0.2))
+    cube.pass_index = 1
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        cube.location = (-0.8 + 0.7 * t, -0.2, 0.2)
+        cube.rotation_euler = (0, 0, math.radians(15 + 30 * t))
+        origin = lerp([-0.3, -3.2, 1.1], [0.3, -3.2, 1.1], t)
+        camera(scene, origin, (0, 0.3, 0.5), 40)
+        return {"cube": {"location": list(cube.location), "rotate_z_deg": 15 + 30 * t},
+                "camera": {"origin": origin, "target": [0, 0.3, 0.5]}}
+
+    desc = ("Open scene under a procedural sky (strength 0.4) and a sun (strength 2, 0.5 degrees): bump-mapped "
+            "noise (Cycles' Bump node) on the ground, a wall, a hammered gold-metal ball (roughness 0.25) and a "
+            "stone cube that slides and turns (contact shadow). The camera dollies sideways.")
+    return animate, desc, ["cube"]
+
+
 def clip_still(scene, n: int, pan: bool = False):
     """A checkered cube sliding and a checkered ball turning in place (its points keep their positions, its
     texture moves) before a checkered floor, under a still camera or, ``pan``, one sliding sideways about
@@ -597,6 +652,8 @@ CLIPS = {
                  512, None),
     "bl_slowpan": (lambda scene, n: clip_still(scene, n, pan=True), 19,
                    ["slow_camera_pan", "texture_turning_in_place", "moving_object", "textures"], 512, None),
+    # A probe of shading normals finer than a pixel (bump maps): rendered on demand, not committed.
+    "bl_bump": (clip_bump, 20, ["bump_mapping", "sun", "hard_shadows", "moving_object", "camera_pan"], 512, None),
 }
 
 
