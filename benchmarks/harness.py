@@ -59,7 +59,7 @@ class Dataset:
                  samples_per_pixel=None):
         self.name, self.color, self.features, self.names = name, color, features, tuple(names)
         self.reference, self.times, self.spp_frames, self.emission = reference, times, spp_frames, emission
-        self.samples_per_pixel = samples_per_pixel  # what the renderer's header says, as the CLI reads it
+        self.samples_per_pixel = samples_per_pixel  # as the CLI reads it: the header's, else what the features show
 
     @property
     def trace_ms(self) -> float:
@@ -89,6 +89,7 @@ def _stack(d: dict, keys) -> torch.Tensor:
 def load_mitsuba(frames=None, crop: Optional[int] = None) -> Dataset:
     """The Mitsuba 3 clip of ``/work/shared/data`` (12 frames 256x256), optionally a subset and a centre crop."""
     from torchmanifold.io import exr
+    from torchmanifold.io.frames import read_render_frame
 
     if not DATA.is_dir():
         raise FileNotFoundError(f"Mitsuba sample data not found at {DATA} (set TORCHMANIFOLD_DATA)")
@@ -107,7 +108,7 @@ def load_mitsuba(frames=None, crop: Optional[int] = None) -> Dataset:
         out = [x[..., y0 : y0 + crop, x0 : x0 + crop].contiguous() for x in out]
     return Dataset("mitsuba", out[0], out[1], list(_MITSUBA_NAMES.values()), out[2],
                    torch.tensor(frames, dtype=torch.float32), {1: (out[0], None), 4: (out[3], None)},
-                   samples_per_pixel=exr.exr_samples_per_pixel(DATA / f"frame_{frames[0]:04d}.exr"))
+                   samples_per_pixel=read_render_frame(DATA / f"frame_{frames[0]:04d}.exr").samples_per_pixel)
 
 
 def tracer_available() -> tuple[bool, str]:

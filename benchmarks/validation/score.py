@@ -86,11 +86,11 @@ def load_scene(path: Path, spp: int, prefix: str | None = None) -> tuple[harness
     color = _stack(frames, "RGB")
     feats = _stack(frames, feat_names)
     ref = _stack([read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
-    from torchmanifold.io.exr import exr_samples_per_pixel
+    from torchmanifold.io.frames import read_render_frame
 
-    # the sample count as the denoise command reads it, from the renderer's header
+    # the sample count as the denoise command reads it: the renderer's header, else what the features show
     ds = harness.Dataset(path.name, color, feats, feat_names, ref, torch.tensor(idx, dtype=torch.float32),
-                         {spp: (color, None)}, samples_per_pixel=exr_samples_per_pixel(files[0]))
+                         {spp: (color, None)}, samples_per_pixel=read_render_frame(files[0]).samples_per_pixel)
     extra = {}
     masks = [path / f"mask_{i:04d}.exr" for i in idx]
     if all(m.exists() for m in masks):

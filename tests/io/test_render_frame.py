@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from torchmanifold.io import read_exr, read_render_frame, write_color, write_exr
-from torchmanifold.io.frames import samples_per_pixel_shown
+from torchmanifold.io.frames import mixed_count, samples_per_pixel_shown
 
 H, W = 6, 7
 RNG = np.random.default_rng(1)
@@ -102,6 +102,51 @@ def test_sample_count_told_by_the_normals(tmp_path):
     assert samples_per_pixel_shown({"R": chans["R"]}) is None
     write_exr(tmp_path / "four.exr", chans, attributes={"spp": "4"})
     assert read_render_frame(tmp_path / "four.exr").samples_per_pixel == 4
+
+
+def _discs(n: int, size: int = 64, weighted: bool = False, seed: int = 3) -> dict:
+    """Features of a scene of flat discs over a plane (each its own albedo, normal and depth) rendered with
+    ``n`` jittered samples per pixel, averaged as a box filter does, or ``weighted`` by a Gaussian of each
+    sample's offset from the pixel's centre (a renderer's gaussian pixel filter)."""
+    rng = np.random.default_rng(seed)
+    k = 14
+    centre, radius = rng.uniform(0, size, (k, 2)), rng.uniform(4, 12, k)
+    albedo, depth = rng.uniform(0.05, 0.95, (k + 1, 3)), np.sort(rng.uniform(1, 9, k + 1))
+    normal = rng.normal(size=(k + 1, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    y, x = np.mgrid[:size, :size].astype(np.float64)
+    acc, total = np.zeros((size, size, 7)), np.zeros((size, size, 1))
+    for _ in range(n):
+        jy, jx = rng.random((size, size)), rng.random((size, size))
+        py, px = y + jy, x + jx
+        hit = np.full((size, size), k)  # the plane behind every disc
+        for i in range(k - 1, -1, -1):  # nearest last
+            inside = (py - centre[i, 0]) ** 2 + (px - centre[i, 1]) ** 2 < radius[i] ** 2
+            hit = np.where(inside, i, hit)
+        w = np.exp(-((jy - 0.5) ** 2 + (jx - 0.5) ** 2) / 0.18)[..., None] if weighted else 1.0
+        acc += w * np.concatenate([albedo[hit], normal[hit], depth[hit][..., None]], -1)
+        total += w
+    v = (acc / total).astype(np.float32)
+    names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
+    return {c: v[..., i] for i, c in enumerate(names)}
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 8, 16])
+def test_sample_count_told_by_the_edges_mixes(tmp_path, n):
+    """Without a count in the header, a pixel across an edge holds k/n of one surface's features: the
+    count is read from those fractions (a brute-force render of discs at n samples per pixel)."""
+    feats = _discs(n)
+    write_exr(tmp_path / "f.exr", {**feats, **{c: feats["albedo.R"] for c in "RGB"}})
+    fr = read_render_frame(tmp_path / "f.exr")
+    assert fr.samples_per_pixel == n and any(f"fractions k/{n}" in note for note in fr.notes)
+
+
+def test_sample_count_from_weighted_samples_is_the_least():
+    """Samples weighted by a pixel filter put the mixes off the grid of k/n: no count shows, and the count
+    taken is 2, the least the shortened normals allow; one sample per pixel stays 1."""
+    assert mixed_count(_discs(4, weighted=True)) is None
+    assert samples_per_pixel_shown(_discs(4, weighted=True)) == 2
+    assert samples_per_pixel_shown(_discs(1)) == 1
 
 
 def test_flat_file_errors_name_file_and_channel(tmp_path):

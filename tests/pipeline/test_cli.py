@@ -48,14 +48,14 @@ def _link_frames(tmp_path, data, n=2):
     return paths
 
 
-def test_denoise_sample_count_from_the_normals(tmp_path, capsys, mitsuba_dir):
+def test_denoise_sample_count_from_the_features(tmp_path, capsys, mitsuba_dir):
     """Frames whose header records no sample count: the shared clip's 1-spp frames have unit normals
     everywhere, so the command takes them for 1 spp, says so, and gives the bytes the header's count
-    gives; its 4-spp frames average normals at edges, so they hold at least 2 samples: taken as 2, the
-    bytes of --spp 2."""
+    gives; its 4-spp frames average normals at edges, whose mixes take fractions k/4: taken as 4, the
+    bytes of --spp 4."""
     outs = {}
     for name, src, extra in (("header", "frame", []), ("normals", "frame", []), ("averaged", "frame4spp", []),
-                             ("flag", "frame4spp", ["--spp", "2"])):
+                             ("flag", "frame4spp", ["--spp", "4"])):
         paths = []
         for i in range(2):
             p = tmp_path / name / "in" / f"frame_{i:04d}.exr"
@@ -74,8 +74,8 @@ def test_denoise_sample_count_from_the_normals(tmp_path, capsys, mitsuba_dir):
     assert outs["header"][0]["samples_per_pixel"] == 1 and "sample count" not in outs["header"][1]
     assert outs["normals"][0]["samples_per_pixel"] == 1 and "no sample count" in outs["normals"][1]
     np.testing.assert_array_equal(outs["normals"][2], outs["header"][2])
-    assert outs["averaged"][0]["samples_per_pixel"] == 2 and "taken as 2" in outs["averaged"][1]
-    assert outs["flag"][0]["samples_per_pixel"] == 2
+    assert outs["averaged"][0]["samples_per_pixel"] == 4 and "fractions k/4" in outs["averaged"][1]
+    assert outs["flag"][0]["samples_per_pixel"] == 4
     np.testing.assert_array_equal(outs["averaged"][2], outs["flag"][2])
 
 

@@ -33,7 +33,7 @@ import numpy as np
 from torchmanifold import features as F
 from torchmanifold.io.exr import header_samples_per_pixel, read_exr, write_exr
 
-__all__ = ["RenderFrame", "read_render_frame", "write_color", "samples_per_pixel_shown", "LAYOUTS"]
+__all__ = ["RenderFrame", "read_render_frame", "write_color", "samples_per_pixel_shown", "mixed_count", "LAYOUTS"]
 
 LAYOUTS = ("flat", "blender")
 _COMBINED = "Combined"
@@ -50,6 +50,26 @@ _AVERAGED_LENGTH = (0.01, 0.99)
 #: pixels that hit needed before their normals' lengths are evidence: at the least share of shortened
 #: normals in a 4-spp frame of the validation set (1.2% of the hit pixels, cbox_glossy_tex) 512 hold 6
 _MIN_HITS = 512
+#: Where the normals show averaged samples, the count shows in the mixes themselves: a pixel across an edge
+#: whose n samples fall k on one surface and n - k on the other holds features k / n of the way from one
+#: surface's to the other's. Along each image axis and diagonal, a line of five pixels whose two outer pairs
+#: each agree (one surface each, within :data:`_MIX_PURE` of the pairs' difference, which exceeds
+#: :data:`_MIX_STEP`) and whose centre lies on the segment between the inner pair (off it by less than
+#: :data:`_MIX_OFF` of its length, :data:`_MIX_INSIDE` or more from either end) gives the fraction t of a
+#: mix; albedo, unit vectors and depth (in units of the line's farthest: a per-line scale keeps the mix
+#: linear) make the vector. The count is the least n from 2 to :data:`_MOST_COUNT` at which the mean of
+#: cos(2 pi n t) over at least :data:`_MIN_MIXES` such lines reaches :data:`_COUNT_PEAK` (1 where every t is a
+#: multiple of 1 / n). Frame 3 of every validation clip (Mitsuba's mean of n 1-spp passes, Cycles' n samples
+#: of one sequence), 2 / 4 / 8 / 16 spp, the clips at 256x256 and the probes: every count found was the
+#: file's, the rest none (thin rods and sky, fine textures: too few lines, or t not on the grid); Cycles'
+#: Blackman-Harris pixel filter keeps the grid (its samples are placed by the filter, weighted alike), Mitsuba's
+#: gaussian does not (its samples are weighted: none found). With the outer pairs' test left out, mixed
+#: pixels at the line's ends put t at other fractions (1/3, 2/3) and 8 spp through a lens read as 24. A
+#: divisor of the count found whose mean reaches :data:`_DIVISOR_PEAK` of the count's is taken instead: 2
+#: spp over fine textures (`mi_still_textures`, 64x64, a third of its t off the grid) peaked at 0.4996 for 2
+#: and 0.56 for 4
+_MIX_PURE, _MIX_OFF, _MIX_STEP, _MIX_INSIDE = 0.02, 0.02, 0.2, 0.03
+_COUNT_PEAK, _MIN_MIXES, _MOST_COUNT, _DIVISOR_PEAK = 0.5, 64, 64, 0.8
 
 
 @dataclass
@@ -70,8 +90,8 @@ class RenderFrame:
             ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
         samples_per_pixel: the sample count the header records (see
-            :func:`~torchmanifold.io.exr.header_samples_per_pixel`); where it records none, the least
-            count the normals allow (:func:`samples_per_pixel_shown`, said in ``notes``), else ``None``.
+            :func:`~torchmanifold.io.exr.header_samples_per_pixel`); where it records none, the count the
+            features show (:func:`samples_per_pixel_shown`, said in ``notes``), else ``None``.
     """
 
     path: Path
@@ -323,24 +343,26 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
                            f"torchmanifold.features does, or register them there): {', '.join(unread)}")
     _check_feature_values(path, frame)
     if frame.samples_per_pixel is None:
-        frame.samples_per_pixel = samples_per_pixel_shown(frame.features)
-        if frame.samples_per_pixel == 1:
-            frame.notes.append("the header records no sample count; every normal has one sample's unit "
-                               "length, so each pixel holds 1 sample")
-        elif frame.samples_per_pixel is not None:
-            frame.notes.append("the header records no sample count; normals shortened by averaging show "
-                               "several samples per pixel: taken as 2, the least there can be")
+        frame.samples_per_pixel, how = _count_shown(frame.features)
+        if how is not None:
+            frame.notes.append(how)
     return frame
 
 
 def samples_per_pixel_shown(features: dict[str, np.ndarray]) -> int | None:
-    """The least sample count per pixel that a frame's unit features allow (the normals,
-    :attr:`~torchmanifold.features.Feature.unit`; ``features`` by canonical channel name), where at least
-    :data:`_MIN_HITS` pixels hit: 1 where no vector is shortened by averaging samples that point
-    different ways, 2 where one is; ``None`` without that evidence. A frame that is one flat surface
-    shows 1 at any sample count: nothing in it points another way."""
+    """The sample count per pixel that a frame's features show (``features`` by canonical channel name),
+    where at least :data:`_MIN_HITS` pixels hit: 1 where no unit vector (the normals,
+    :attr:`~torchmanifold.features.Feature.unit`) is shortened by averaging samples that point different
+    ways; where one is, the count its edges' mixes show (:func:`mixed_count`), else 2, the least there can
+    be; ``None`` without that evidence. A frame that is one flat surface shows 1 at any sample count:
+    nothing in it points another way."""
+    return _count_shown(features)[0]
+
+
+def _count_shown(features: dict[str, np.ndarray]) -> tuple[int | None, str | None]:
+    """:func:`samples_per_pixel_shown` and the note that says how (``None`` with no count)."""
     lo, hi = _AVERAGED_LENGTH
-    shown = None
+    shown = None, None
     for feat in F.FEATURES:
         if not feat.unit or not all(c in features for c in feat.channels):
             continue
@@ -348,9 +370,62 @@ def samples_per_pixel_shown(features: dict[str, np.ndarray]) -> int | None:
         if int((length > lo).sum()) < _MIN_HITS:
             continue
         if bool(((length > lo) & (length < hi)).any()):
-            return 2
-        shown = 1
+            n = mixed_count(features)
+            if n is not None:
+                return n, (f"the header records no sample count; the features mixed across its edges take "
+                           f"fractions k/{n}: {n} samples per pixel")
+            return 2, ("the header records no sample count; normals shortened by averaging show several "
+                       "samples per pixel, its edges' mixes no count: taken as 2, the least there can be")
+        shown = 1, ("the header records no sample count; every normal has one sample's unit length, so each "
+                    "pixel holds 1 sample")
     return shown
+
+
+def _mix_fractions(features: dict[str, np.ndarray]) -> np.ndarray:
+    """The fractions t of the edge pixels that lie between two surfaces (see :data:`_MIX_PURE`), 1-D."""
+    unit = [c for f in F.FEATURES if f.unit and all(c in features for c in f.channels) for c in f.channels]
+    chans = [c for c in F.feature("albedo").channels if c in features] + unit
+    (depth,) = F.feature("Z").channels
+    if depth in features:
+        chans.append(depth)
+    if not chans:
+        return np.zeros(0, np.float32)
+    v = np.stack([features[c] for c in chans], -1).astype(np.float32)
+    v = np.where(np.isfinite(v), v, 0.0)
+    h, w = v.shape[:2]
+    padded = np.pad(v, ((2, 2), (2, 2), (0, 0)), mode="edge")
+    found = []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        line = [padded[2 + k * dy:2 + k * dy + h, 2 + k * dx:2 + k * dx + w] for k in (-2, -1, 0, 1, 2)]
+        if depth in features:
+            far = np.max([x[..., -1] for x in line], 0)
+            scale = np.where(far > 0, far, 1.0)[..., None]
+            line = [np.concatenate([x[..., :-1], x[..., -1:] / scale], -1) for x in line]
+        outer_a, a, centre, b, outer_b = line
+        d = b - a
+        step = np.square(d).sum(-1)
+        t = ((centre - a) * d).sum(-1) / np.where(step > 0, step, 1.0)
+        off = np.square(centre - a - t[..., None] * d).sum(-1)
+        ok = ((step > _MIX_STEP ** 2) & (off < _MIX_OFF ** 2 * step) & (t > _MIX_INSIDE) & (t < 1 - _MIX_INSIDE)
+              & (np.square(outer_a - a).sum(-1) < _MIX_PURE ** 2 * step)
+              & (np.square(outer_b - b).sum(-1) < _MIX_PURE ** 2 * step))
+        found.append(t[ok])
+    return np.concatenate(found)
+
+
+def mixed_count(features: dict[str, np.ndarray]) -> int | None:
+    """The samples per pixel that the mixes across a frame's edges show (:data:`_MIX_PURE`): the least n
+    whose fractions k / n they take; ``None`` where too few pixels mix two surfaces cleanly, or their
+    fractions keep to no such grid (samples weighted unevenly by a pixel filter)."""
+    t = _mix_fractions(features).astype(np.float64)
+    if len(t) < _MIN_MIXES:
+        return None
+    peak = {n: float(np.cos(2 * np.pi * n * t).mean()) for n in range(2, _MOST_COUNT + 1)}
+    n = next((n for n, p in peak.items() if p >= _COUNT_PEAK), None)
+    if n is None:
+        return None
+    # a count's divisors peak near 0 (n / 2 at P(k even) - P(k odd)); one that peaks nearly as high is the count
+    return next(d for d in range(2, n + 1) if n % d == 0 and peak[d] >= _DIVISOR_PEAK * peak[n])
 
 
 def write_color(path: str | os.PathLike, color: np.ndarray, like: RenderFrame | None = None,
