@@ -1375,6 +1375,32 @@ def test_same_bytes_for_any_thread_count(clip, splatted):
     assert torch.equal(outs[0][0], outs[1][0]) and outs[0][1] == outs[1][1]
 
 
+def test_frames_side_by_side_give_the_bytes_of_one_call(clip):
+    """On two threads, with enough queries per thread (``_SIDE_BY_SIDE``), each frame is prepared alone and
+    each query filtered over its window, side by side: the bytes of one thread's single call, with frame
+    times that skip, queries between frames and past the last, a caller's pilot and emission, statistics
+    included. A query at a frame borrows its neighbours' evidence whatever other queries the call holds: the
+    bytes of that query asked alone."""
+    c, f, _ = clip
+    c = torch.cat([c, c.flip(-1)])  # six frames
+    f = torch.cat([f, f.flip(-1)])
+    kw = dict(settings=DenoiseSettings(temporal_radius=1), frame_times=[0, 1, 2, 4, 5, 7],
+              query_times=[0.5, 2, 3.25, 4, 5, 7.5], pilot=c.roll(1, -1), emission=0.1 * c.flip(-2),
+              samples_per_pixel=1, return_stats=True)
+    before = torch.get_num_threads()
+    try:
+        outs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            outs.append(denoise_frames(c, f, FEATURES, **kw))
+    finally:
+        torch.set_num_threads(before)
+    assert len(kw["query_times"]) >= D._SIDE_BY_SIDE * 2
+    assert torch.equal(outs[0][0], outs[1][0]) and outs[0][1] == outs[1][1]
+    alone = denoise_frames(c, f, FEATURES, **{**kw, "query_times": [2], "return_stats": False})
+    assert torch.equal(outs[0][0][1:2], alone)
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads, monkeypatch):
     """The denoise command prepares each frame once and reuses it in every window that holds it, and filters
