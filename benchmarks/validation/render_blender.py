@@ -587,6 +587,58 @@ def clip_bump(scene, n: int):
     return animate, desc, ["cube"]
 
 
+def hairy(ob, count: int, length: float, radius_mm: float, rgb, seed: int):
+    """Give mesh ``ob`` a particle system of ``count`` hair strands ``length`` long, rendered by Cycles as
+    curves ``radius_mm`` thick at the root, in a Principled Hair BSDF of colour ``rgb``."""
+    mod = ob.modifiers.new("hair", "PARTICLE_SYSTEM")
+    ps = mod.particle_system
+    ps.seed = seed
+    st = ps.settings
+    st.type = "HAIR"
+    st.count = count
+    st.hair_length = length
+    st.use_advanced_hair = True
+    st.brownian_factor = 0.02
+    st.root_radius, st.tip_radius = radius_mm * 1e-3, 0.2 * radius_mm * 1e-3
+    st.radius_scale = 1.0
+    m, nt, out = _material(f"{ob.name}_hair")
+    bsdf = nt.nodes.new("ShaderNodeBsdfHairPrincipled")
+    bsdf.parametrization = "COLOR"
+    bsdf.inputs["Color"].default_value = (*rgb, 1.0)
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    ob.data.materials.append(m)
+    st.material = len(ob.data.materials)
+    return ob
+
+
+def clip_hair(scene, n: int):
+    """A furry ball rolling over a patch of grass strands in a room lit by an area light: thousands of
+    curves thinner than a pixel, each sample's features one strand's or what lies behind."""
+    room(diffuse("floor", (0.5, 0.45, 0.35)), diffuse("back", (0.6, 0.6, 0.6), ("noise", (0.3, 0.35, 0.4),
+                                                                                 (0.7, 0.7, 0.65), 4.0)),
+         diffuse("left", (0.6, 0.25, 0.15)), diffuse("right", (0.2, 0.45, 0.3)), diffuse("ceil", (0.75, 0.75, 0.75)))
+    light("AREA", (0, -0.2, 1.995), 45.0, size=0.6)
+    patch = add("plane", diffuse("soil", (0.25, 0.18, 0.1)), (0.25, 0.2, 0.002), scale=(0.55, 0.45, 1), size=2)
+    hairy(patch, 6000, 0.12, 0.6, (0.25, 0.45, 0.1), 1)
+    ball = add("uv_sphere", diffuse("skin", (0.6, 0.5, 0.4)), (0, 0, 0.25), radius=0.18, segments=32,
+               ring_count=16, smooth=True)
+    hairy(ball, 4000, 0.06, 0.4, (0.75, 0.55, 0.3), 2)
+    ball.pass_index = 1
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        ball.location = (-0.6 + 0.6 * t, -0.45, 0.25)
+        ball.rotation_euler = (0, math.radians(-60 * t), 0)
+        origin = lerp([-0.2, -3.4, 1.1], [0.2, -3.4, 1.1], t)
+        camera(scene, origin, (0, 0, 0.45), 34)
+        return {"ball": {"location": list(ball.location)}, "camera": {"origin": origin, "target": [0, 0, 0.45]}}
+
+    desc = ("Box room lit by a 0.6x0.6 area light under the ceiling: a patch of 6000 grass strands (Cycles hair "
+            "curves, 0.6 mm at the root) on the floor and a ball with 4000 strands of fur that rolls beside it "
+            "(contact shadow); the camera slides sideways.")
+    return animate, desc, ["ball"]
+
+
 def clip_still(scene, n: int, pan: bool = False):
     """A checkered cube sliding and a checkered ball turning in place (its points keep their positions, its
     texture moves) before a checkered floor, under a still camera or, ``pan``, one sliding sideways about
@@ -654,6 +706,9 @@ CLIPS = {
                    ["slow_camera_pan", "texture_turning_in_place", "moving_object", "textures"], 512, None),
     # A probe of shading normals finer than a pixel (bump maps): rendered on demand, not committed.
     "bl_bump": (clip_bump, 20, ["bump_mapping", "sun", "hard_shadows", "moving_object", "camera_pan"], 512, None),
+    # A probe of hair (curves thinner than a pixel, by the thousand): rendered on demand, not committed.
+    "bl_hair": (clip_hair, 21, ["hair", "thin_geometry", "moving_object", "contact_shadow", "camera_pan",
+                                "area_light_in_ceiling"], 512, None),
 }
 
 
