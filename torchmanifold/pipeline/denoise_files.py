@@ -83,7 +83,7 @@ def _same_as_first(frame: RenderFrame, first: RenderFrame) -> None:
 
 def clip_samples_per_pixel(first: RenderFrame, samples_per_pixel: int | None) -> int | None:
     """A clip's sample count: the caller's (a positive int), else the first frame's (its header's, or the
-    least its normals allow: :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`)."""
+    count its features show: :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`)."""
     if samples_per_pixel is None:
         return first.samples_per_pixel
     return check_int("samples_per_pixel", samples_per_pixel, min=1)
@@ -253,7 +253,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
         output_layout: ``"input"`` (colour under the channels it came from; Blender files keep
             ``<layer>.Combined.R/G/B`` and the input's ``A``) or ``"plain"`` (``R, G, B``).
         samples_per_pixel: the frames' sample count, for a renderer whose header does not record it
-            (``None``: the first frame's, its header's or the least its normals allow; it sets the bandwidth
+            (``None``: the first frame's, its header's or the count its features show; it sets the bandwidth
             and the footprint width, see :func:`~torchmanifold.pipeline.denoise.footprint_width`).
 
     Returns:
