@@ -16,7 +16,8 @@ Measured:
   ``render_small``: the same at 128x96, the job's former size, where the Python around each small frame's
   ops weighs most.
 - ``frame step``: :func:`denoise_frames` of 3 frames of 256x256 with the default guide (space-time +-1),
-  no GL context in the process.
+  no GL context in the process; ``frame_step_12``: the same call with 12 frames, enough queries for it to
+  prepare frames and filter queries side by side on workers as the command does (seconds per frame).
 - ``clip``: the ``denoise`` command's frame step over the shared clip (12 frames of 256x256), the command's
   own loop (:func:`~torchmanifold.pipeline.denoise_files.denoised_frames`: each frame prepared once and
   each window filtered, side by side on workers), files read on the clip's thread, nothing written;
@@ -78,17 +79,18 @@ def _child(kind: str, threads: list[int], iterations: int) -> dict:
             torch.mm(x, x, out=y) if kind == "matmul" else y.copy_(x)
             return time.perf_counter() - t0, 0.0
     else:
+        frames = FRAME_STEPS[kind]
         gen = torch.Generator().manual_seed(0)
-        color = torch.rand(3, 3, 256, 256, generator=gen)
+        color = torch.rand(frames, 3, 256, 256, generator=gen)
         names = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
-        feats = torch.rand(3, len(names), 256, 256, generator=gen)
+        feats = torch.rand(frames, len(names), 256, 256, generator=gen)
         feats[:, :3, :, 128:] += 0.5  # an edge in the guide
         settings = DenoiseSettings(temporal_radius=1, mode="spacetime")
 
         def once():
             t0 = time.perf_counter()
             denoise_frames(color, feats, names, None, settings)
-            return (time.perf_counter() - t0) / 3, 0.0
+            return (time.perf_counter() - t0) / frames, 0.0
 
     once()  # warm-up: shader compile, first allocations
     # the thread counts alternate, so a change in the machine's load hits all of them alike
@@ -142,6 +144,7 @@ def _clip_step(kind: str):
 RENDER_SIZES = {"render": None, "render_small": (128, 96)}
 #: the machine's ceilings: arithmetic-bound and memory-bound work
 CEILINGS = ("matmul", "copy")
+FRAME_STEPS = {"frame_step": 3, "frame_step_12": 12}  # kind: frames in the call
 
 ENVS = {
     # libgomp's default with OMP_WAIT_POLICY unset: workers spin for a while after each parallel region
@@ -177,7 +180,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--iterations", type=int, default=4)
     p.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    kinds = [*CEILINGS, "frame_step", "clip", "command", *RENDER_SIZES]
+    kinds = [*CEILINGS, *FRAME_STEPS, "clip", "command", *RENDER_SIZES]
     p.add_argument("--kinds", nargs="+", default=kinds, choices=kinds)
     p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     p.add_argument("--rounds", type=int, default=2, help="rounds of processes in the cli environment")
