@@ -59,7 +59,7 @@ class Dataset:
                  samples_per_pixel=None):
         self.name, self.color, self.features, self.names = name, color, features, tuple(names)
         self.reference, self.times, self.spp_frames, self.emission = reference, times, spp_frames, emission
-        self.samples_per_pixel = samples_per_pixel  # as the CLI reads it: the header's, else what the features show
+        self.samples_per_pixel = samples_per_pixel  # as the CLI reads it: the header's, else the features'
 
     @property
     def trace_ms(self) -> float:

@@ -219,8 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "plain: R,G,B (%(default)s)")
     d.add_argument("--spp", type=int, default=None, metavar="N",
                    help="samples per pixel of the frames, where their header does not say (it sets the "
-                        "bandwidth and the footprint width; default: the header's, else the count the features "
-                        "show)")
+                        "bandwidth and the footprint width; default: the header's, else the count the "
+                        "features show)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_threads_arg(d)
     # denoise filters each frame once and can afford one more level: against the brute-force filter

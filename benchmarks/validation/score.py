@@ -89,8 +89,9 @@ def load_scene(path: Path, spp: int, prefix: str | None = None) -> tuple[harness
     from torchmanifold.io.frames import read_render_frame
 
     # the sample count as the denoise command reads it: the renderer's header, else what the features show
+    count = read_render_frame(files[0]).samples_per_pixel
     ds = harness.Dataset(path.name, color, feats, feat_names, ref, torch.tensor(idx, dtype=torch.float32),
-                         {spp: (color, None)}, samples_per_pixel=read_render_frame(files[0]).samples_per_pixel)
+                         {spp: (color, None)}, samples_per_pixel=count)
     extra = {}
     masks = [path / f"mask_{i:04d}.exr" for i in idx]
     if all(m.exists() for m in masks):

@@ -33,7 +33,8 @@ import numpy as np
 from torchmanifold import features as F
 from torchmanifold.io.exr import header_samples_per_pixel, read_exr, write_exr
 
-__all__ = ["RenderFrame", "read_render_frame", "write_color", "samples_per_pixel_shown", "mixed_count", "LAYOUTS"]
+__all__ = ["RenderFrame", "read_render_frame", "write_color", "samples_per_pixel_shown", "mixed_count",
+           "LAYOUTS"]
 
 LAYOUTS = ("flat", "blender")
 _COMBINED = "Combined"
@@ -55,21 +56,23 @@ _MIN_HITS = 512
 #: surface's to the other's. Along each image axis and diagonal, a line of five pixels whose two outer pairs
 #: each agree (one surface each, within :data:`_MIX_PURE` of the pairs' difference, which exceeds
 #: :data:`_MIX_STEP`) and whose centre lies on the segment between the inner pair (off it by less than
-#: :data:`_MIX_OFF` of its length, :data:`_MIX_INSIDE` or more from either end) gives the fraction t of a
-#: mix; albedo, unit vectors and depth (in units of the line's farthest: a per-line scale keeps the mix
-#: linear) make the vector. The count is the least n from 2 to :data:`_MOST_COUNT` at which the mean of
-#: cos(2 pi n t) over at least :data:`_MIN_MIXES` such lines reaches :data:`_COUNT_PEAK` (1 where every t is a
-#: multiple of 1 / n). Frame 3 of every validation clip (Mitsuba's mean of n 1-spp passes, Cycles' n samples
-#: of one sequence), 2 / 4 / 8 / 16 spp, the clips at 256x256 and the probes: every count found was the
-#: file's, the rest none (thin rods and sky, fine textures: too few lines, or t not on the grid); Cycles'
-#: Blackman-Harris pixel filter keeps the grid (its samples are placed by the filter, weighted alike), Mitsuba's
-#: gaussian does not (its samples are weighted: none found). With the outer pairs' test left out, mixed
-#: pixels at the line's ends put t at other fractions (1/3, 2/3) and 8 spp through a lens read as 24. A
-#: divisor of the count found whose mean reaches :data:`_DIVISOR_PEAK` of the count's is taken instead: 2
-#: spp over fine textures (`mi_still_textures`, 64x64, a third of its t off the grid) peaked at 0.4996 for 2
-#: and 0.56 for 4
+#: :data:`_MIX_OFF` of its length, :data:`_MIX_INSIDE` or more from either end) gives the fraction t of a mix;
+#: albedo, unit vectors and depth (in units of the line's farthest: a per-line scale keeps the mix linear)
+#: make the vector. The count is the least n from 2 to :data:`_MOST_COUNT` at which the mean of cos(2 pi n t)
+#: over at least :data:`_MIN_MIXES` such lines reaches :data:`_COUNT_PEAK` (1 where every t is a multiple of
+#: 1/n). Frame 3 of every validation clip (Mitsuba's mean of n 1-spp passes, Cycles' n samples of one
+#: sequence), 2 / 4 / 8 / 16 spp, the clips at 256x256 and the probes: every count found was the file's, the
+#: rest none (thin rods and sky, fine textures: too few lines, or t not on the grid); Cycles' Blackman-Harris
+#: pixel filter keeps the grid (its samples are placed by the filter, weighted alike), Mitsuba's gaussian does
+#: not (its samples are weighted: none found). With the outer pairs' test left out, mixed pixels at the line's
+#: ends put t at other fractions (1/3, 2/3) and 8 spp through a lens read as 24. A divisor of the count found
+#: whose mean reaches :data:`_DIVISOR_PEAK` of the count's is taken instead: 2 spp over fine textures
+#: (`mi_still_textures`, 64x64, a third of its t off the grid) peaked at 0.4996 for 2 and 0.56 for 4
 _MIX_PURE, _MIX_OFF, _MIX_STEP, _MIX_INSIDE = 0.02, 0.02, 0.2, 0.03
 _COUNT_PEAK, _MIN_MIXES, _MOST_COUNT, _DIVISOR_PEAK = 0.5, 64, 64, 0.8
+#: rows read at a time, and the mixes after which the reading stops: a 1920x1080 frame is read until its
+#: edges give as many as the validation set's busiest 256x256 frame holds in all (5254)
+_MIX_BAND, _ENOUGH_MIXES = 64, 4096
 
 
 @dataclass
@@ -382,7 +385,9 @@ def _count_shown(features: dict[str, np.ndarray]) -> tuple[int | None, str | Non
 
 
 def _mix_fractions(features: dict[str, np.ndarray]) -> np.ndarray:
-    """The fractions t of the edge pixels that lie between two surfaces (see :data:`_MIX_PURE`), 1-D."""
+    """The fractions t of the edge pixels that lie between two surfaces (see :data:`_MIX_PURE`), 1-D: read in
+    bands of :data:`_MIX_BAND` rows from the top until :data:`_ENOUGH_MIXES` are found (a large frame's time
+    and memory stay bounded)."""
     unit = [c for f in F.FEATURES if f.unit and all(c in features for c in f.channels) for c in f.channels]
     chans = [c for c in F.feature("albedo").channels if c in features] + unit
     (depth,) = F.feature("Z").channels
@@ -394,22 +399,28 @@ def _mix_fractions(features: dict[str, np.ndarray]) -> np.ndarray:
     v = np.where(np.isfinite(v), v, 0.0)
     h, w = v.shape[:2]
     padded = np.pad(v, ((2, 2), (2, 2), (0, 0)), mode="edge")
-    found = []
-    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        line = [padded[2 + k * dy:2 + k * dy + h, 2 + k * dx:2 + k * dx + w] for k in (-2, -1, 0, 1, 2)]
-        if depth in features:
-            far = np.max([x[..., -1] for x in line], 0)
-            scale = np.where(far > 0, far, 1.0)[..., None]
-            line = [np.concatenate([x[..., :-1], x[..., -1:] / scale], -1) for x in line]
-        outer_a, a, centre, b, outer_b = line
-        d = b - a
-        step = np.square(d).sum(-1)
-        t = ((centre - a) * d).sum(-1) / np.where(step > 0, step, 1.0)
-        off = np.square(centre - a - t[..., None] * d).sum(-1)
-        ok = ((step > _MIX_STEP ** 2) & (off < _MIX_OFF ** 2 * step) & (t > _MIX_INSIDE) & (t < 1 - _MIX_INSIDE)
-              & (np.square(outer_a - a).sum(-1) < _MIX_PURE ** 2 * step)
-              & (np.square(outer_b - b).sum(-1) < _MIX_PURE ** 2 * step))
-        found.append(t[ok])
+    found, count = [], 0
+    for y0 in range(0, h, _MIX_BAND):
+        band = padded[y0:y0 + _MIX_BAND + 4]
+        rows = band.shape[0] - 4
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            line = [band[2 + k * dy:2 + k * dy + rows, 2 + k * dx:2 + k * dx + w] for k in (-2, -1, 0, 1, 2)]
+            if depth in features:
+                far = np.max([x[..., -1] for x in line], 0)
+                scale = np.where(far > 0, far, 1.0)[..., None]
+                line = [np.concatenate([x[..., :-1], x[..., -1:] / scale], -1) for x in line]
+            outer_a, a, centre, b, outer_b = line
+            d = b - a
+            step = np.square(d).sum(-1)
+            t = ((centre - a) * d).sum(-1) / np.where(step > 0, step, 1.0)
+            off = np.square(centre - a - t[..., None] * d).sum(-1)
+            ok = ((step > _MIX_STEP ** 2) & (off < _MIX_OFF ** 2 * step) & (t > _MIX_INSIDE)
+                  & (t < 1 - _MIX_INSIDE) & (np.square(outer_a - a).sum(-1) < _MIX_PURE ** 2 * step)
+                  & (np.square(outer_b - b).sum(-1) < _MIX_PURE ** 2 * step))
+            found.append(t[ok])
+            count += len(found[-1])
+        if count >= _ENOUGH_MIXES:
+            break
     return np.concatenate(found)
 
 
@@ -424,7 +435,7 @@ def mixed_count(features: dict[str, np.ndarray]) -> int | None:
     n = next((n for n, p in peak.items() if p >= _COUNT_PEAK), None)
     if n is None:
         return None
-    # a count's divisors peak near 0 (n / 2 at P(k even) - P(k odd)); one that peaks nearly as high is the count
+    # a count's divisors peak near 0 (n / 2 at P(k even) - P(k odd)); one peaking nearly as high is the count
     return next(d for d in range(2, n + 1) if n % d == 0 and peak[d] >= _DIVISOR_PEAK * peak[n])
 
 

@@ -946,7 +946,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     between = sum(frame_at(ft, q) is None for q in qt)  # a query at a frame borrows evidence, one between not
     if len(qt) > 1 and (0 < sum(wide) < len(qt) or (settings.lending_radius > 0 and 0 < between < len(qt))):
         # each query with its own window and evidence: a frame's bytes do not depend on the other queries
-        return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache) for q in qt])
+        return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache)
+                          for q in qt])
     if any(wide):
         # the window's candidates alone: a frame's own narrow candidate is its noise there; wider ones where
         # the frame is large enough for them

@@ -101,8 +101,8 @@ class ClipWindow:
         inputs: the frame files, in order.
         first: the first frame, already read (it fixes size, layout, layer and feature channels).
         color_channels: as :func:`~torchmanifold.io.frames.read_render_frame`.
-        samples_per_pixel: the frames' sample count (``None``: the first frame's, its header's or the least
-            its normals allow, see :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`).
+        samples_per_pixel: the frames' sample count (``None``: the first frame's, its header's or the count
+            its features show, see :attr:`~torchmanifold.io.frames.RenderFrame.samples_per_pixel`).
         pool: where frames are prepared (:meth:`~torchmanifold._threads.InOrder.ahead`), or ``None``: on the
             calling thread.
     """
