@@ -395,14 +395,14 @@ def _mix_fractions(features: dict[str, np.ndarray]) -> np.ndarray:
         chans.append(depth)
     if not chans:
         return np.zeros(0, np.float32)
-    v = np.stack([features[c] for c in chans], -1).astype(np.float32)
-    v = np.where(np.isfinite(v), v, 0.0)
-    h, w = v.shape[:2]
-    padded = np.pad(v, ((2, 2), (2, 2), (0, 0)), mode="edge")
+    h, w = features[chans[0]].shape
     found, count = [], 0
     for y0 in range(0, h, _MIX_BAND):
-        band = padded[y0:y0 + _MIX_BAND + 4]
-        rows = band.shape[0] - 4
+        # the band's rows and 2 more on each side (the image's edge rows repeated past it)
+        rows = min(_MIX_BAND, h - y0)
+        take = np.clip(np.arange(y0 - 2, y0 + rows + 2), 0, h - 1)
+        band = np.stack([features[c][take] for c in chans], -1).astype(np.float32)
+        band = np.pad(np.where(np.isfinite(band), band, 0.0), ((0, 0), (2, 2), (0, 0)), mode="edge")
         for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
             line = [band[2 + k * dy:2 + k * dy + rows, 2 + k * dx:2 + k * dx + w] for k in (-2, -1, 0, 1, 2)]
             if depth in features:
