@@ -1401,6 +1401,28 @@ def test_frames_side_by_side_give_the_bytes_of_one_call(clip):
     assert torch.equal(outs[0][0][1:2], alone)
 
 
+def test_gradient_of_one_call_on_several_threads(clip, monkeypatch):
+    """A clip that needs a gradient is denoised in one call on any thread count: side by side, each query's
+    graph would add up a frame's gradient in another order. On two threads, six frames (enough to go side by
+    side without a gradient) give the gradient bytes of one call."""
+    c, f, _ = clip
+    c = torch.cat([c, c.flip(-1)])
+    f = torch.cat([f, f.flip(-1)])
+    assert len(c) >= D._SIDE_BY_SIDE * 2
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        grads = []
+        for side_by_side in (D._SIDE_BY_SIDE, 10 ** 9):  # the default, then never side by side
+            monkeypatch.setattr(D, "_SIDE_BY_SIDE", side_by_side)
+            x = c.clone().requires_grad_(True)
+            y = denoise_frames(x, f, FEATURES, settings=DenoiseSettings(temporal_radius=1), samples_per_pixel=1)
+            grads.append(torch.autograd.grad(y.sum(), x)[0])
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads, monkeypatch):
     """The denoise command prepares each frame once and reuses it in every window that holds it, and filters

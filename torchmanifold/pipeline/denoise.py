@@ -672,7 +672,10 @@ def denoise_frames(color: Tensor, features: Tensor | None = None, feature_names:
         raise ValueError(f"pilot must be a tensor shaped like color {tuple(color.shape)}")
     settings = adapt_to_features(settings, names)[0]
     threads = caller_threads()
-    if len(qt) < _SIDE_BY_SIDE * threads:
+    grad = torch.is_grad_enabled() and any(x is not None and x.requires_grad
+                                            for x in (color, features, emission, pilot))
+    # with a gradient, one graph: the per-query graphs would sum a frame's gradient in another order
+    if grad or len(qt) < _SIDE_BY_SIDE * threads:
         state = prepare_frames(color, features, names, emission, settings, sigma_s, range_scale, pilot,
                                firefly_k, samples_per_pixel)
         out = denoise_prepared(state, settings, ft, qt, sigma_s, range_scale)
