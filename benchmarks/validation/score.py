@@ -46,10 +46,15 @@ def read_frame(path: Path) -> dict:
     one, single- or multi-part); Blender's camera-space denoising normal stands in for ``N`` and its planar
     depth for ``Z`` where the file has no other.
     """
-    from torchmanifold import features as feature_table
     from torchmanifold.io.frames import read_render_frame
 
-    fr = read_render_frame(path)
+    return frame_channels(read_render_frame(path))
+
+
+def frame_channels(fr) -> dict:
+    """:func:`read_frame` of a frame already read (a :class:`~torchmanifold.io.frames.RenderFrame`)."""
+    from torchmanifold import features as feature_table
+
     out = {c: fr.color[k] for k, c in enumerate("RGB")}
     stand_in = {"Ncam": "N", "Zplane": "Z"}
     for group in ("albedo", "N", "Z", "P", "Ncam", "Zplane"):
@@ -80,18 +85,18 @@ def load_scene(path: Path, spp: int, prefix: str | None = None) -> tuple[harness
     files = sorted(path.glob(f"{prefix}_*.exr"))
     if not files:
         raise FileNotFoundError(f"{path}: no {prefix}_XXXX.exr")
-    frames = [read_frame(p) for p in files]
+    from torchmanifold.io.frames import read_render_frame
+
+    first = read_render_frame(files[0])
+    frames = [frame_channels(first)] + [read_frame(p) for p in files[1:]]
     idx = [int(p.stem.split("_")[-1]) for p in files]
     feat_names = [n for n in ("Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Z", "P.X", "P.Y", "P.Z") if n in frames[0]]
     color = _stack(frames, "RGB")
     feats = _stack(frames, feat_names)
     ref = _stack([read_frame(path / f"reference_{i:04d}.exr") for i in idx], "RGB")
-    from torchmanifold.io.frames import read_render_frame
-
     # the sample count as the denoise command reads it: the renderer's header, else what the features show
-    count = read_render_frame(files[0]).samples_per_pixel
     ds = harness.Dataset(path.name, color, feats, feat_names, ref, torch.tensor(idx, dtype=torch.float32),
-                         {spp: (color, None)}, samples_per_pixel=count)
+                         {spp: (color, None)}, samples_per_pixel=first.samples_per_pixel)
     extra = {}
     masks = [path / f"mask_{i:04d}.exr" for i in idx]
     if all(m.exists() for m in masks):

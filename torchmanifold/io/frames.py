@@ -23,6 +23,7 @@ reader changed (background depth read as 0, no feature passes at all) is listed 
 """
 from __future__ import annotations
 
+import functools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,9 +93,8 @@ class RenderFrame:
         emission: ``(3, H, W)`` float32 radiance emitted at the first hit (our tracer's
             ``emission.R/G/B``, Blender's ``Emission`` pass), or ``None``.
         notes: what the reader changed or found missing, one sentence each.
-        samples_per_pixel: the sample count the header records (see
-            :func:`~torchmanifold.io.exr.header_samples_per_pixel`); where it records none, the count the
-            features show (:func:`samples_per_pixel_shown`, said in ``notes``), else ``None``.
+        header_samples_per_pixel: the sample count the header records (see
+            :func:`~torchmanifold.io.exr.header_samples_per_pixel`), or ``None``.
     """
 
     path: Path
@@ -106,7 +106,19 @@ class RenderFrame:
     alpha: np.ndarray | None = None
     emission: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
-    samples_per_pixel: int | None = None
+    header_samples_per_pixel: int | None = None
+
+    @functools.cached_property
+    def samples_per_pixel(self) -> int | None:
+        """The sample count the header records; where it records none, the count the features show
+        (:func:`samples_per_pixel_shown`, said in ``notes``), else ``None``. Worked out when first asked for:
+        a clip's count is its first frame's, and the later frames need not show theirs."""
+        if self.header_samples_per_pixel is not None:
+            return self.header_samples_per_pixel
+        count, how = _count_shown(self.features)
+        if how is not None:
+            self.notes.append(how)
+        return count
 
     @property
     def feature_names(self) -> list[str]:
@@ -307,7 +319,7 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
     headers: list = []
     chans = read_exr(path, headers=headers)
     frame = RenderFrame(path, np.zeros((3, 0, 0), np.float32), {}, "flat",
-                        samples_per_pixel=header_samples_per_pixel(headers))
+                        header_samples_per_pixel=header_samples_per_pixel(headers))
     layers = _blender_layers(list(chans))
     if layers:
         _read_blender(path, chans, layers, layer, frame, color_channels)
@@ -345,10 +357,6 @@ def read_render_frame(path: str | os.PathLike, color_channels: Sequence[str] | N
         frame.notes.append(f"channels not read, names the feature table does not know (name them as "
                            f"torchmanifold.features does, or register them there): {', '.join(unread)}")
     _check_feature_values(path, frame)
-    if frame.samples_per_pixel is None:
-        frame.samples_per_pixel, how = _count_shown(frame.features)
-        if how is not None:
-            frame.notes.append(how)
     return frame
 
 
