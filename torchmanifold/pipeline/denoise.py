@@ -10,10 +10,10 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    before filtering and added back unfiltered, so lights do not bleed into walls.
 3. **Irradiance**: colour is divided by the first-hit albedo, filtered, and multiplied back by the
    same albedo, so texture stays sharp. Where the albedo is about 0 (delta BSDFs, black surfaces) the
-   radiance itself is averaged, among those pixels only and each frame alone: their features do not
-   show what a mirror or glass shows (:func:`_flat_average`). Where the samples' world positions scatter
-   across a surface (a lens's circle of confusion), each sample's albedo is another point of a texture the
-   reference shows averaged, and the albedo is averaged first
+   radiance itself is averaged, among those pixels only and guided by their colour: their features do
+   not show what a mirror or glass shows (:func:`_flat_average`, :func:`_flat_filters`). Where the
+   samples' world positions scatter across a surface (a lens's circle of confusion), each sample's albedo
+   is another point of a texture the reference shows averaged, and the albedo is averaged first
    (:func:`~torchmanifold.pipeline.footprint._scattered_albedo`).
 4. **Fireflies**: a pilot estimate is filtered in the range-compressed ``log1p`` domain (where a
    firefly is just one more sample), samples brighter than ``firefly_k`` times the pilot are clamped
@@ -590,15 +590,63 @@ def _flat_average(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
     ``sigma`` pixels, each frame alone (``e`` itself where no weight lies under it).
 
     Flat pixels beside demodulated ones are delta surfaces and black ones (:func:`_demodulation_albedo`).
-    Their guide is the surface's own features, which do not show what a mirror or glass shows, nor how
-    that moves between frames, so they are not guided or joined in time: the result blends this average at
-    a few widths about the narrowest bandwidth, chosen per pixel by cross-validation
-    (:func:`~torchmanifold.pipeline.selection._select_flat_width`); the firefly pilot takes it at its own
-    width. On the validation set that did better than the guided, selected space-time filter of the other
-    pixels, and the op no longer carries a second class's channels (``benchmarks/validation/findings.md``).
-    It tends to the samples as ``sigma`` shrinks.
+    Their features do not show what a mirror or glass shows, nor how that moves between frames, so the
+    other pixels' guide does not steer them: where a frame holds enough of them, their result blends
+    filters at a few widths about the narrowest bandwidth, chosen per pixel by cross-validation
+    (:func:`~torchmanifold.pipeline.selection._select_flat_width`), guided by their own colour and joined in
+    time (:func:`_flat_filters`); elsewhere, and in the firefly pilot, this average at its own width. On
+    the validation set that did better than the guided, selected space-time filter of the other pixels,
+    and the op no longer carries a second class's channels (``benchmarks/validation/findings.md``). It
+    tends to the samples as ``sigma`` shrinks.
     """
     return _normalised_blur(e, weight, sigma)
+
+
+#: the tree height of flat pixels' colour-guided filter: its guide has three channels (the glass probes and
+#: `mi_glass_mirror`, from 1 / 4 spp: height 3 within 0.02 dB of 2)
+_FLAT_TREE_HEIGHT = 2
+#: flat pixels' widths from which the op filters (narrower ones are Gaussians of the query's frame alone):
+#: a Gaussian under 0.6 px keeps about half its weight on the pixel itself, and the op's grid is finest
+#: there (the glass probes and `mi_glass_mirror`, from 1 / 4 spp, against the op at every width: +0.00 /
+#: +0.02 dB; from 1 px: +0.00 / -0.02)
+_FLAT_OP_WIDTH = 0.6
+
+
+def _flat_guide(e: Tensor, mask: Tensor, settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
+    """The guide of flat pixels ``(T, 3, H, W)`` and its range sigmas ``(T, 3)``: the chromaticity and the
+    log radiance of the values ``e`` ``(T, 3, H, W)`` (3x3 Kuwahara, frame means over the samples' ``mask``),
+    the chromaticity at its sigma from samples where no albedo guides (:func:`_guide`), the log radiance
+    at the pilot's, ``radiance_sigma`` (the three glass scenes of ``findings.md``, from 1 / 4 spp, summed
+    against 0.5: 0.25 -0.24 / -0.07 dB, 0.35 -0.09 / -0.02, 1 +0.02 / -0.17: once frames join, what moved
+    is told apart by the narrower channel)."""
+    parts, sig = [_kuwahara3(_chromaticity(e, mask))], [_SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA] * 2
+    rs = _radiance_sigma(settings)
+    if rs > 0:
+        parts.append(_log_radiance(e, mask))
+        sig.append(rs)
+    return torch.cat(parts, 1), torch.tensor(sig, dtype=torch.float64).expand(e.shape[0], -1)
+
+
+def _flat_filters(e: Tensor, mask: Tensor, settings: DenoiseSettings, frame_times: list[float],
+                  query_times: list[float], range_scale: float):
+    """The filter of flat pixels at each width for
+    :func:`~torchmanifold.pipeline.selection._select_flat_width`: ``guided(stack, widths)`` -> one
+    ``(Q, C, H, W)`` per width, the op on the channel stack ``(T, C, H, W)`` at ``query_times`` (frame
+    times), guided by the samples' colour (:func:`_flat_guide`) and joined in space-time over the time
+    window; widths under :data:`_FLAT_OP_WIDTH` are Gaussians of the query's frame alone. Features of glass
+    or a mirror say nothing of what it shows; its colour does, and a sample whose colour differs (what glass
+    showed elsewhere a frame before) lands on no manifold near the query's."""
+    guide, sigmas = _flat_guide(e, mask, settings)
+    st = replace(settings, mode="spacetime")
+    at = [frame_at(frame_times, q) for q in query_times]
+
+    def guided(stack: Tensor, widths: list[float]) -> list[Tensor]:
+        filters = [_Filter(guide, sigmas, st, frame_times, query_times, w, range_scale, _FLAT_TREE_HEIGHT)
+                   for w in widths if w >= _FLAT_OP_WIDTH]
+        wide = iter(_Filter.apply_each(filters, stack) if filters else [])
+        ones = stack.new_ones(len(at), 1, *stack.shape[-2:])
+        return [next(wide) if w >= _FLAT_OP_WIDTH else _normalised_blur(stack[at], ones, w) for w in widths]
+    return guided
 
 
 @serial
@@ -988,8 +1036,9 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             ids = [k for k in (sorted(set(at)) if None not in at else range(len(ft)))
                    if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
             if ids:
-                out[ids] = _select_flat_width(e[ids], weight[ids], sigma, int(s.cv_cell.max()),
-                                              settings.selection_blur, settings.selection_softness)
+                guided = _flat_filters(e, s.mask, settings, ft, [ft[k] for k in ids], range_scale)
+                out[ids] = _select_flat_width(e, weight, sigma, int(s.cv_cell.max()), settings.selection_blur,
+                                              settings.selection_softness, guided, ids)
             return out
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
                                  flat_widths)

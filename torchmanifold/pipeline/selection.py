@@ -9,7 +9,7 @@ import math
 import threading
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -478,7 +478,7 @@ def _blend(fulls: list, z2: Tensor, softness: float) -> Tensor:
     return (torch.stack(fulls) * w).sum(0)
 
 
-#: the Gaussian widths flat pixels choose among, as multiples of the flat average's width (factor-2 steps):
+#: the widths flat pixels choose among, as multiples of the flat average's width (factor-2 steps):
 #: 0.25 reaches the samples themselves (0.5 px from 1 spp), 2 a smooth reflection's width. Set on the
 #: ``mi_glass_room`` probe (256x256: ``mi_ceiling_light``'s room with a glass ball, a glass pane and a
 #: mirror), from 1 / 4 spp against the plain flat average: (0.5, 1, 2) +0.30 / +0.39 dB, (0.25, 0.5, 1)
@@ -486,21 +486,34 @@ def _blend(fulls: list, z2: Tensor, softness: float) -> Tensor:
 _FLAT_WIDTHS = (0.25, 0.5, 1.0, 2.0)
 
 
-def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur: float,
-                       softness: float) -> Tensor:
-    """Flat pixels' average, ``(T, 3, H, W)``: Gaussians of :data:`_FLAT_WIDTHS` times ``sigma`` pixels over
-    the samples ``e`` ``(T, 3, H, W)`` of nonzero ``weight`` ``(T, 1, H, W)``, blended per pixel as
-    :func:`_select_bandwidth` blends its bandwidths: each checkerboard half (squares of ``cell`` pixels) is
-    predicted from the other's samples at each width, the residuals relative to the average at ``sigma``
-    are pooled over ``blur`` pixels and a width weighs ``exp(-z^2 / (2 softness^2))`` (``softness`` 0: the
-    least error alone). What glass or a mirror shows is sharp detail in one place (a refracted checkerboard,
-    1 px wanted) and smooth light in another (a reflected wall, 4 px): one width for all loses either.
-    ``e`` itself where no weight lies under the kernel."""
-    m = (weight > 0).to(e.dtype)
-    stack, ones = _halves_stack(e, weight, cell), torch.ones_like(weight)
+def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur: float, softness: float,
+                       guided: Callable[[Tensor, list[float]], list[Tensor]] | None = None,
+                       at: Sequence[int] | None = None) -> Tensor:
+    """Flat pixels' average at the frames ``at`` (default all), ``(len(at), 3, H, W)``: filters of
+    :data:`_FLAT_WIDTHS` times ``sigma`` pixels over the samples ``e`` ``(T, 3, H, W)`` of nonzero ``weight``
+    ``(T, 1, H, W)``, blended per pixel as :func:`_select_bandwidth` blends its bandwidths: each checkerboard
+    half (squares of ``cell`` pixels) is predicted from the other's samples at each width, the residuals
+    relative to the average at ``sigma`` are pooled over ``blur`` pixels and a width weighs
+    ``exp(-z^2 / (2 softness^2))`` (``softness`` 0: the least error alone). What glass or a mirror shows is
+    sharp detail in one place (a refracted checkerboard, 1 px wanted) and smooth light in another (a
+    reflected wall, 4 px): one width for all loses either.
+
+    The filters are Gaussians of each frame alone, or ``guided(stack, widths)``: the filter of the halves'
+    stack (:func:`~torchmanifold.pipeline.filter._halves_stack` of all ``T`` frames) at each width, a
+    ``(len(at), 8, H, W)`` tensor each (the denoiser's: guided by the samples' colour and joined in time,
+    :func:`~torchmanifold.pipeline.denoise._flat_filters`). ``e`` itself where no weight lies under the
+    kernel."""
+    at = list(range(e.shape[0])) if at is None else list(at)
+    widths = [sigma * f for f in _FLAT_WIDTHS]
+    if guided is None:  # a Gaussian of both halves' sums: each half's prediction of the other, and both
+        stack, ones = _halves_stack(e[at], weight[at], cell), torch.ones_like(weight[at])
+        filtered = [_normalised_blur(stack, ones, w) for w in widths]
+    else:
+        filtered = guided(_halves_stack(e, weight, cell), widths)
+    e, m = e[at], (weight[at] > 0).to(e.dtype)
     preds, fulls = [], []
-    for f in _FLAT_WIDTHS:  # a Gaussian of both halves' sums: each half's prediction of the other, and both
-        pred, num, den = _split_halves(_normalised_blur(stack, ones, sigma * f), cell)
+    for y in filtered:
+        pred, num, den = _split_halves(y, cell)
         preds.append(pred)
         fulls.append(torch.where(den > 1e-8, num / den.clamp_min(1e-8), e))
     rel, unit = _relative_weight(fulls[_FLAT_WIDTHS.index(1.0)], m)
