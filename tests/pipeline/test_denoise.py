@@ -1727,6 +1727,19 @@ def test_gradient_through_the_denoiser_is_finite():
     assert y.isfinite().all() and grad.isfinite().all() and grad.abs().sum() > 0
 
 
+def test_gradient_through_what_glass_shows_is_finite():
+    """Flat pixels (glass: albedo 0) blend their widths too: a width's prediction with no support there passes
+    no NaN into the gradient through the frame's unit, and what the glass shows has a gradient."""
+    T, H, W = 3, 48, 64
+    f, names, disc, yy, xx = _glass_disc(T, H, W)
+    truth = torch.full((T, 3, H, W), 0.3)
+    truth[:, :, disc & (xx >= 32)] = 1.5
+    c = _noisy(truth, 6).requires_grad_(True)
+    y = denoise_frames(c, f, names, settings=DenoiseSettings(temporal_radius=1, mode="spacetime"))
+    (grad,) = torch.autograd.grad(y[:, :, disc].sum(), c)
+    assert y.isfinite().all() and grad.isfinite().all() and grad[:, :, disc].abs().sum() > 0
+
+
 #: the channels of the sampled test scenes: albedo, normal, depth
 _SCENE_NAMES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "Z"]
 

@@ -517,6 +517,7 @@ def _select_flat_width(e: Tensor, weight: Tensor, sigma: float, cell: int, blur:
         preds.append(pred)
         fulls.append(torch.where(den > 1e-8, num / den.clamp_min(1e-8), e))
     rel, unit = _relative_weight(fulls[_FLAT_WIDTHS.index(1.0)], m)
+    unit = unit.detach()  # a unit: no gradient passes it (nor a prediction's NaN where it has no support)
     e, preds = e / unit, [p / unit for p in preds]  # in frame units: z^2 squares squares
     if softness > 0 and blur > 0 and _fast.enabled(e, rel, m, *preds, *fulls):
         return _fast.cv_blend(preds, fulls, e, rel, m, blur, softness, _SELECTION_ERROR_CUT)
