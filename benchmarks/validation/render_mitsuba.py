@@ -293,6 +293,19 @@ def clip_chrome(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_glass_open(f: int, n: int) -> tuple[dict, dict]:
+    """mi_env_thin's open scene (a pan, a rolling ball) with a glass ball and a thick glass block on the ground:
+    flat pixels (albedo 0) that show the sky and the ground's texture, refracted, while the view moves."""
+    scene, info = clip_env_thin(f, n)
+    scene["glass_ball"] = {"type": "sphere", "center": [-0.35, -0.62, 0.1], "radius": 0.38,
+                           "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    scene["glass_block"] = {"type": "cube", "to_world": T().translate([0.45, -0.7, -0.2]).rotate(
+        [0, 1, 0], 30).scale([0.22, 0.3, 0.12]), "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    info["description"] += (" A glass ball (radius 0.38) stands on the ground left of centre and a glass block "
+                            "right of it.")
+    return scene, info
+
+
 def clip_glass_room(f: int, n: int) -> tuple[dict, dict]:
     """The room of ``clip_ceiling_light`` with a glass ball, a thick glass pane in front of the sliding box and
     a silver mirror: flat pixels (albedo 0) that show sharp detail (the floor's checkerboard refracted by the
@@ -604,6 +617,10 @@ CLIPS = {
     # a probe at 256x256, the size of the clips scored outside the set, where glass cost the most against OIDN
     "mi_glass_room": (clip_glass_room, 21, ["glass", "mirror", "flat_pixels_with_detail", "moving_object",
                                             "area_light_in_ceiling_no_emission_aov"], ["mover"], 512, None),
+    # Glass in the open scene, rendered on demand as a probe, not committed: flat pixels that show the sky and
+    # the ground refracted while the view pans (held out: added after the flat pixels' colour guide was set).
+    "mi_glass_open": (clip_glass_open, 23, ["glass", "flat_pixels_with_detail", "environment_lit_open_scene",
+                                            "moving_object", "camera_pan"], ["ball"], 512, None),
     # Bump maps (normals that vary within a pixel), rendered on demand as a probe, not committed.
     "mi_bump": (clip_bump, 22, ["bump_mapping", "rough_metal", "moving_object", "contact_shadow",
                                 "area_light_in_ceiling_no_emission_aov"], ["mover"], 512, None),
