@@ -675,6 +675,45 @@ def clip_still(scene, n: int, pan: bool = False):
     return animate, desc, ["box", "ball"]
 
 
+def clip_window(scene, n: int):
+    """A room lit by the sun through a window in its left wall and by the sky and bounce light: a sharp sun
+    patch on a wood floor, walls lit by bounce light alone, a table, a checkered box, a glossy plastic ball and a
+    brushed-metal can; the camera pans and moves in (a scene of the kind people render, not built for a hazard)."""
+    floor = _wood_floor()
+    wall, ceil = diffuse("wall", (0.75, 0.72, 0.65)), diffuse("ceil", (0.8, 0.8, 0.8))
+    add("plane", floor, (0, 0, 0), size=2)
+    add("plane", ceil, (0, 0, 2), (180, 0, 0), size=2)
+    add("plane", wall, (0, 1, 1), (90, 0, 0), size=2)
+    add("plane", wall, (1, 0, 1), (0, -90, 0), size=2)
+    # the left wall around a window 0.8 wide and 0.7 high, its sill 0.7 above the floor
+    for loc, scl in (((-1.0, 0.0, 0.35), (0.02, 1.0, 0.35)), ((-1.0, 0.0, 1.7), (0.02, 1.0, 0.3)),
+                     ((-1.0, -0.7, 1.05), (0.02, 0.3, 0.35)), ((-1.0, 0.7, 1.05), (0.02, 0.3, 0.35))):
+        add("cube", wall, loc, scale=scl)
+    add("cube", diffuse("table", (0.45, 0.3, 0.18)), (0.25, 0.3, 0.35), scale=(0.45, 0.3, 0.35))
+    box = add("cube", diffuse("box", (0.7, 0.7, 0.7), ("checker", (0.85, 0.8, 0.7), (0.15, 0.2, 0.4), 6.0)),
+              (0.1, 0.25, 0.85), (0, 0, 20), scale=(0.12, 0.12, 0.12))
+    add("uv_sphere", _principled("plastic_red", (0.7, 0.08, 0.05), Roughness=0.2)[0], (0.5, 0.2, 0.85),
+        radius=0.13, segments=48, ring_count=24, smooth=True)
+    add("cylinder", metal("can", (0.8, 0.8, 0.82), 0.3), (-0.35, 0.5, 0.25), radius=0.12, depth=0.5,
+        vertices=48)
+    light("SUN", (0, 0, 3), 6.0, rotation=(55, 0, -65), angle=math.radians(1.0))
+    sky_world((0.25, 0.45, 0.9), (0.8, 0.85, 0.9), 1.0)
+
+    def animate(f):
+        t = f / max(1, n - 1)
+        origin = lerp([0.35, -2.9, 1.1], [0.1, -2.4, 1.0], t)
+        target = lerp([0.2, 0.3, 0.7], [-0.1, 0.3, 0.7], t)
+        box.rotation_euler = (0, 0, math.radians(20 + 25 * t))
+        camera(scene, origin, target, 45)
+        return {"box": {"rotation_z": 20 + 25 * t}, "camera": {"origin": origin, "target": target}}
+
+    desc = ("Room lit by a sun (1 degree) through a 0.8 x 0.7 window in the left wall and by a blue sky gradient: "
+            "a sun patch on a procedural wood floor, a table with a turning checkered box, a glossy red plastic "
+            "ball (roughness 0.2) and a brushed-metal can (roughness 0.3) on the floor. The camera pans and moves "
+            "in.")
+    return animate, desc, ["box"]
+
+
 CLIPS = {
     # name: (builder, clip id for seeds, hazards, reference spp, frame of the second reference). 256 spp at 128x128
     # keeps a clip near 3 min of rendering on the 2 shared cores here (glass clip: 21 s per 128-spp frame under load).
@@ -712,6 +751,10 @@ CLIPS = {
     # with the same seeds differ in a few pixels (Cycles' threads move its bumped normals by up to 1e-3).
     "bl_bump": (clip_bump, 20, ["bump_mapping", "sun", "hard_shadows", "moving_object", "camera_pan"], 512,
                 None),
+    # A room lit through a window, rendered on demand as a probe, not committed: a scene of the ordinary kind,
+    # held out from every setting (added after them).
+    "bl_window": (clip_window, 22, ["sun_through_window", "indirect_light", "textures", "plastic", "rough_metal",
+                                    "moving_object", "camera_pan"], 512, None),
     # A probe of hair (curves thinner than a pixel, by the thousand): rendered on demand, not committed.
     "bl_hair": (clip_hair, 21, ["hair", "thin_geometry", "moving_object", "contact_shadow", "camera_pan",
                                 "area_light_in_ceiling"], 512, None),
