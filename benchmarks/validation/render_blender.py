@@ -676,9 +676,10 @@ def clip_still(scene, n: int, pan: bool = False):
 
 
 def clip_window(scene, n: int):
-    """A room lit by the sun through a window in its left wall and by the sky and bounce light: a sharp sun
-    patch on a wood floor, walls lit by bounce light alone, a table, a checkered box, a glossy plastic ball and a
-    brushed-metal can; the camera pans and moves in (a scene of the kind people render, not built for a hazard)."""
+    """A room lit by the sun through a window in its left wall and by the sky and bounce light: a sharp
+    sun patch on a wood floor, walls lit by bounce light alone, a table, a checkered box, a glossy plastic
+    ball and a brushed-metal can; the camera pans and moves in (a scene of the kind people render, not built
+    for a hazard)."""
     floor = _wood_floor()
     wall, ceil = diffuse("wall", (0.75, 0.72, 0.65)), diffuse("ceil", (0.8, 0.8, 0.8))
     add("plane", floor, (0, 0, 0), size=2)
@@ -707,10 +708,10 @@ def clip_window(scene, n: int):
         camera(scene, origin, target, 45)
         return {"box": {"rotation_z": 20 + 25 * t}, "camera": {"origin": origin, "target": target}}
 
-    desc = ("Room lit by a sun (1 degree) through a 0.8 x 0.7 window in the left wall and by a blue sky gradient: "
-            "a sun patch on a procedural wood floor, a table with a turning checkered box, a glossy red plastic "
-            "ball (roughness 0.2) and a brushed-metal can (roughness 0.3) on the floor. The camera pans and moves "
-            "in.")
+    desc = ("Room lit by a sun (1 degree) through a 0.8 x 0.7 window in the left wall and by a blue sky "
+            "gradient: a sun patch on a procedural wood floor, a table with a turning checkered box, a "
+            "glossy red plastic ball (roughness 0.2) and a brushed-metal can (roughness 0.3) on the floor. "
+            "The camera pans and moves in.")
     return animate, desc, ["box"]
 
 
@@ -753,8 +754,8 @@ CLIPS = {
                 None),
     # A room lit through a window, rendered on demand as a probe, not committed: a scene of the ordinary kind,
     # held out from every setting (added after them).
-    "bl_window": (clip_window, 22, ["sun_through_window", "indirect_light", "textures", "plastic", "rough_metal",
-                                    "moving_object", "camera_pan"], 512, None),
+    "bl_window": (clip_window, 22, ["sun_through_window", "indirect_light", "textures", "plastic",
+                                    "rough_metal", "moving_object", "camera_pan"], 512, None),
     # A probe of hair (curves thinner than a pixel, by the thousand): rendered on demand, not committed.
     "bl_hair": (clip_hair, 21, ["hair", "thin_geometry", "moving_object", "contact_shadow", "camera_pan",
                                 "area_light_in_ceiling"], 512, None),

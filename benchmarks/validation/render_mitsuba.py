@@ -294,22 +294,24 @@ def clip_chrome(f: int, n: int) -> tuple[dict, dict]:
 
 
 def clip_glass_open(f: int, n: int) -> tuple[dict, dict]:
-    """mi_env_thin's open scene (a pan, a rolling ball) with a glass ball and a thick glass block on the ground:
-    flat pixels (albedo 0) that show the sky and the ground's texture, refracted, while the view moves."""
+    """mi_env_thin's open scene (a pan, a rolling ball) with a glass ball and a thick glass block on the
+    ground: flat pixels (albedo 0) that show the sky and the ground's texture, refracted, while the view
+    moves."""
     scene, info = clip_env_thin(f, n)
     scene["glass_ball"] = {"type": "sphere", "center": [-0.35, -0.62, 0.1], "radius": 0.38,
                            "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
     scene["glass_block"] = {"type": "cube", "to_world": T().translate([0.45, -0.7, -0.2]).rotate(
-        [0, 1, 0], 30).scale([0.22, 0.3, 0.12]), "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
-    info["description"] += (" A glass ball (radius 0.38) stands on the ground left of centre and a glass block "
-                            "right of it.")
+        [0, 1, 0], 30).scale([0.22, 0.3, 0.12]),
+        "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}}
+    info["description"] += (" A glass ball (radius 0.38) stands on the ground left of centre and a glass "
+                            "block right of it.")
     return scene, info
 
 
 def clip_window(f: int, n: int) -> tuple[dict, dict]:
-    """A room lit by the sky and sun through a window in its left wall: a sharp sun patch on a wood floor, walls
-    lit by bounce light, a table, a turning checkered box, a plastic ball and a rough aluminium can; the camera
-    pans and moves in (a scene of the ordinary kind, not built for one hazard)."""
+    """A room lit by the sky and sun through a window in its left wall: a sharp sun patch on a wood floor,
+    walls lit by bounce light, a table, a turning checkered box, a plastic ball and a rough aluminium can;
+    the camera pans and moves in (a scene of the ordinary kind, not built for one hazard)."""
     rng = np.random.default_rng(24)
     wood = C.value_noise(128, 128, 5, rng)
     floor = np.stack([0.35 + 0.3 * wood, 0.22 + 0.2 * wood, 0.1 + 0.1 * wood], -1)
@@ -319,28 +321,33 @@ def clip_window(f: int, n: int) -> tuple[dict, dict]:
     del walls["left"]
     scene = {"type": "scene", **walls,
              "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky(sun_elev=45.0, sun_azim=270.0))}}
-    # the left wall (x = -1) around a window 0.8 deep (z) and 0.7 high, its sill 0.4 above the floor
-    for i, (cy, cz, sy, sz) in enumerate(((-0.7, 0.0, 0.3, 1.0), (0.65, 0.0, 0.35, 1.0), (-0.05, -0.7, 0.35, 0.3),
-                                          (-0.05, 0.7, 0.35, 0.3))):
-        scene[f"wall{i}"] = {"type": "rectangle", "to_world": T().translate([-1, cy, cz]).rotate([0, 1, 0], 90)
-                             .scale([sz, sy, 1]), "bsdf": diffuse([0.72, 0.7, 0.62])}
+    # the left wall (x = -1) around a window 0.8 deep (z) and 0.7 high, its sill 0.6 above the floor
+    pieces = ((-0.7, 0.0, 0.3, 1.0), (0.65, 0.0, 0.35, 1.0), (-0.05, -0.7, 0.35, 0.3),
+              (-0.05, 0.7, 0.35, 0.3))
+    for i, (cy, cz, sy, sz) in enumerate(pieces):
+        scene[f"wall{i}"] = {"type": "rectangle", "bsdf": diffuse([0.72, 0.7, 0.62]),
+                             "to_world": T().translate([-1, cy, cz]).rotate([0, 1, 0], 90).scale([sz, sy, 1])}
     scene["table"] = {"type": "cube", "to_world": T().translate([0.3, -0.7, -0.3]).scale([0.45, 0.3, 0.3]),
                       "bsdf": diffuse([0.45, 0.3, 0.18])}
-    scene["box"] = {"type": "cube", "to_world": T().translate([0.15, -0.28, -0.3]).rotate([0, 1, 0], 20 + 25 * t)
-                    .scale(0.12), "bsdf": checker_bsdf([0.85, 0.8, 0.7], [0.15, 0.2, 0.4], 3)}
+    scene["box"] = {"type": "cube", "bsdf": checker_bsdf([0.85, 0.8, 0.7], [0.15, 0.2, 0.4], 3),
+                    "to_world": T().translate([0.15, -0.28, -0.3]).rotate([0, 1, 0], 20 + 25 * t).scale(0.12)}
+    red = {"type": "rgb", "value": [0.7, 0.08, 0.05]}
     scene["ball"] = {"type": "sphere", "center": [0.55, -0.27, -0.2], "radius": 0.13,
-                     "bsdf": {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.7, 0.08, 0.05]}}}
+                     "bsdf": {"type": "plastic", "diffuse_reflectance": red}}
     scene["can"] = {"type": "cylinder", "p0": [-0.4, -1.0, -0.5], "p1": [-0.4, -0.5, -0.5], "radius": 0.12,
                     "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.3}}
     scene["can_top"] = {"type": "disk", "to_world": T().translate([-0.4, -0.5, -0.5]).rotate([1, 0, 0], -90)
                         .scale(0.12), "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.3}}
-    origin, target = lerp([0.35, -0.1, 3.4], [0.1, -0.2, 2.9], t), lerp([0.2, -0.4, -0.3], [-0.1, -0.4, -0.3], t)
+    origin = lerp([0.35, -0.1, 3.4], [0.1, -0.2, 2.9], t)
+    target = lerp([0.2, -0.4, -0.3], [-0.1, -0.4, -0.3], t)
     scene["sensor"] = sensor(origin, target, 45)
-    info = {"description": ("Box room lit by the numpy sky (a 2.5-degree sun of radiance 600, 45 degrees high) through "
-                            "a 0.8 x 0.7 window in the left wall: a sun patch on a value-noise wood floor, walls lit "
-                            "by bounce light, a table with a turning checkered box, a red plastic ball, a rough "
-                            "aluminium can (alpha 0.3). The camera pans and moves in."),
-            "moving": {"box": {"rotation_y": 20 + 25 * t}}, "camera": {"origin": origin, "target": target, "fov": 45}}
+    info = {"description": ("Box room lit by the numpy sky (a 2.5-degree sun of radiance 600, 45 degrees "
+                            "high) through a 0.8 x 0.7 window in the left wall: a sun patch on a value-noise "
+                            "wood floor, walls lit by bounce light, a table with a turning checkered box, a "
+                            "red plastic ball, a rough aluminium can (alpha 0.3). The camera pans and moves "
+                            "in."),
+            "moving": {"box": {"rotation_y": 20 + 25 * t}},
+            "camera": {"origin": origin, "target": target, "fov": 45}}
     return scene, info
 
 
@@ -661,8 +668,8 @@ CLIPS = {
                                             "moving_object", "camera_pan"], ["ball"], 512, None),
     # A room lit through a window, rendered on demand as a probe, not committed: a scene of the ordinary kind,
     # held out from every setting (added after them).
-    "mi_window": (clip_window, 24, ["sun_through_window", "indirect_light", "textures", "plastic", "rough_metal",
-                                    "moving_object", "camera_pan"], ["box"], 1024, None),
+    "mi_window": (clip_window, 24, ["sun_through_window", "indirect_light", "textures", "plastic",
+                                    "rough_metal", "moving_object", "camera_pan"], ["box"], 1024, None),
     # Bump maps (normals that vary within a pixel), rendered on demand as a probe, not committed.
     "mi_bump": (clip_bump, 22, ["bump_mapping", "rough_metal", "moving_object", "contact_shadow",
                                 "area_light_in_ceiling_no_emission_aov"], ["mover"], 512, None),
