@@ -614,17 +614,13 @@ _FLAT_OP_WIDTH = 0.6
 
 def _flat_guide(e: Tensor, mask: Tensor, settings: DenoiseSettings) -> tuple[Tensor, Tensor]:
     """The guide of flat pixels ``(T, 3, H, W)`` and its range sigmas ``(T, 3)``: the chromaticity and the
-    log radiance of the values ``e`` ``(T, 3, H, W)`` (3x3 Kuwahara, frame means over the samples' ``mask``),
-    the chromaticity at its sigma from samples where no albedo guides (:func:`_guide`), the log radiance
-    at the pilot's, ``radiance_sigma`` (the three glass scenes of ``findings.md``, from 1 / 4 spp, summed
-    against 0.5: 0.25 -0.24 / -0.07 dB, 0.35 -0.09 / -0.02, 1 +0.02 / -0.17: once frames join, what moved
-    is told apart by the narrower channel)."""
-    parts, sig = [_kuwahara3(_chromaticity(e, mask))], [_SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA] * 2
-    rs = _radiance_sigma(settings)
-    if rs > 0:
-        parts.append(_log_radiance(e, mask))
-        sig.append(rs)
-    return torch.cat(parts, 1), torch.tensor(sig, dtype=torch.float64).expand(e.shape[0], -1)
+    log radiance of the values ``e`` ``(T, 3, H, W)`` (:func:`_colour_channels`), the chromaticity at its
+    sigma from samples as where no albedo guides (:func:`_guide`), the log radiance at the pilot's sigma,
+    ``radiance_sigma``, not widened for samples (the three glass scenes of ``findings.md``, from 1 / 4 spp,
+    summed against 0.5: 0.25 -0.24 / -0.07 dB, 0.35 -0.09 / -0.02, 1 +0.02 / -0.17: once frames join, what
+    moved is told apart by the narrower channel)."""
+    parts, sig = _colour_channels(e, mask, True, _radiance_sigma(settings))
+    return torch.cat(parts, 1), torch.cat(sig, 1)
 
 
 def _flat_filters(e: Tensor, mask: Tensor, settings: DenoiseSettings, frame_times: list[float],
@@ -1467,16 +1463,30 @@ def _guide(f: Tensor, names: Sequence[str], e: Tensor, mask: Tensor, settings: D
         parts.append(guide)
         sig.append(s)
     # from single samples: noisier than the pilot's that replaces them, so wider
-    if not _albedo_guides(gnames):  # without albedo, its hue tells apart what luminance and geometry do not
-        parts.append(_kuwahara3(_chromaticity(e, mask)))
-        sig.append(torch.full((T, 2), _SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA, dtype=torch.float64))
-    rs = _radiance_sigma(settings)
-    if rs > 0:
-        parts.append(_log_radiance(e, mask))
-        sig.append(torch.full((T, 1), _SAMPLE_RADIANCE_WIDENING * rs, dtype=torch.float64))
+    # without albedo, the samples' hue tells apart what luminance and geometry do not
+    colour, colour_sig = _colour_channels(e, mask, not _albedo_guides(gnames),
+                                          _SAMPLE_RADIANCE_WIDENING * _radiance_sigma(settings))
+    parts += colour
+    sig += colour_sig
     if not parts:
         return e.new_zeros(T, 1, H, W), torch.ones(T, 1, dtype=torch.float64), gnames
     return torch.cat(parts, 1), torch.cat(sig, 1), gnames
+
+
+def _colour_channels(e: Tensor, mask: Tensor, chroma: bool, radiance_sigma: float) -> tuple[list, list]:
+    """Guide channels of the samples' colour ``e`` ``(T, 3, H, W)`` and their range sigmas ``(T, k)``
+    float64, as lists: the chromaticity (3x3 Kuwahara, :func:`_chromaticity`) at
+    :data:`_SAMPLE_RADIANCE_WIDENING` times :data:`_CHROMA_SIGMA` where ``chroma``, then the log radiance
+    (:func:`_log_radiance`) at ``radiance_sigma`` where it is positive (frame means over ``mask``)."""
+    T = e.shape[0]
+    parts, sig = [], []
+    if chroma:
+        parts.append(_kuwahara3(_chromaticity(e, mask)))
+        sig.append(torch.full((T, 2), _SAMPLE_RADIANCE_WIDENING * _CHROMA_SIGMA, dtype=torch.float64))
+    if radiance_sigma > 0:
+        parts.append(_log_radiance(e, mask))
+        sig.append(torch.full((T, 1), radiance_sigma, dtype=torch.float64))
+    return parts, sig
 
 
 def _radiance_sigma(settings: DenoiseSettings) -> float:
