@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from torchmanifold.pipeline import _fast
-from torchmanifold.pipeline.filter import _Filter, _frames, _halves_stack, _split_halves, tree_height_at
+from torchmanifold.pipeline.filter import _Filter, _frames, _halves, _halves_stack, _split_halves, tree_height_at
 from torchmanifold.pipeline.footprint import _normalised_blur
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _gaussian_taps, footprint_blur,
                                           luminance)
@@ -438,7 +438,10 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     brightness = _frame_mean(luminance(e.detach()).clamp_min(0.0), mask)[:, 0, 0, 0]
     top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
     scale = torch.where(top > 0, top, torch.ones_like(top))
-    e, mask = _frames(e, idx), _frames(mask, idx)
+    ranges = (sigmas[idx] * range_scale).to(guide.dtype)
+    e = _own_half_reference(_frames(e, idx), _frames(mask, idx), _frames(guide, idx), ranges, cell,
+                            _REFERENCE_WIDTH * sigma_s)
+    mask = _frames(mask, idx)
     weight, unit = _relative_weight(level, mask)
     e, preds = e / scale, [p / scale for p in preds]
     # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
@@ -452,6 +455,52 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
         return _Candidates(fulls, preds, e, weight, mask, blurs, units=units)
     z2 = _z2_by_width(preds, e, weight, mask, blurs)
     return _Candidates(fulls, z2=torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2]))
+
+
+#: the spatial sigma of :func:`_own_half_reference`, as a share of the bandwidths' unit ``sigma_s`` (1 px from 1
+#: spp, where the unit is 4 px; it shrinks with the unit as the samples grow, and the progressive loop's late
+#: iterations measure against their samples alone). Against each sample alone, from 1 / 4 spp: the set (twelve
+#: clips, all frames) +0.011 / +0.015 dB, its six Mitsuba clips at 256x256 +0.013 / +0.018, four Cycles clips at
+#: 256x256 +0.018 / +0.016, the fifteen 128x128 probes +0.028 / +0.022, the two sunlit rooms +0.12 / +0.04, no
+#: clip below -0.01; 0.2 / 0.375 gave the rooms +0.09 / +0.14 and +0.04 / +0.01, the set +0.013 / +0.018 and
+#: +0.003 / +0.014 (``benchmarks/validation/findings.md``)
+_REFERENCE_WIDTH = 0.25
+
+
+def _own_half_reference(e: Tensor, mask: Tensor, guide: Tensor, ranges: Tensor, cell: int,
+                        sigma: float) -> Tensor:
+    """What each sample's cross-validation residuals are measured against, ``(T, 3, H, W)``: the sample
+    ``e`` ``(T, 3, H, W)`` averaged with those of its 3x3 neighbours in its own checkerboard half (squares of
+    ``cell`` pixels; the four diagonal ones for single pixels), weighted by ``mask`` ``(T, 1, H, W)``, a
+    Gaussian of ``sigma`` pixels and the range kernel of ``guide`` ``(T, D, H, W)`` in ``ranges`` ``(T, D)``.
+
+    A prediction from the other half is independent of the whole own half, so the residuals keep their
+    expectation but for the average's bias, which a 3x3 kernel of a surface's own samples keeps small; their
+    noise, a single sample's at 1 spp, shrinks by up to half, and with it the noise of every candidate's
+    pooled error. ``e`` itself where no weight lies under the kernel."""
+    if sigma <= 0:
+        return e
+    T, _, H, W = e.shape
+    g = guide / ranges.clamp_min(1e-30)[:, :, None, None]
+    half = _halves(e.shape, e.device, cell)
+
+    def padded(x: Tensor) -> Tensor:
+        return torch.nn.functional.pad(x, (1, 1, 1, 1))
+    ep, mp, gp = padded(e * mask), padded(mask), padded(g)
+    hp = torch.nn.functional.pad(half.to(torch.int8), (1, 1, 1, 1), value=-1)
+    num, den = e * mask, mask
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == 0 and dx == 0:
+                continue
+
+            def at(x: Tensor) -> Tensor:
+                return x[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+            same = (at(hp) == half.to(torch.int8)).to(e.dtype)
+            w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same * at(mp) \
+                * torch.exp(-0.5 * ((at(gp) - g) ** 2).sum(1, keepdim=True))
+            num, den = num + w * at(ep), den + w
+    return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), e)
 
 
 def _relative_weight(level: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
