@@ -2188,11 +2188,11 @@ def test_the_albedo_window_reaches_beyond_the_filters():
     assert DenoiseSettings(temporal_radius=1).joined_radius == 3
     assert DenoiseSettings(temporal_radius=4).joined_radius == 4 and DenoiseSettings().joined_radius == 0
     # and the frames a query's output depends on: its neighbours' lending evidence join as much again
-    assert DenoiseSettings(temporal_radius=1).window_radius == 4 and DenoiseSettings().window_radius == 0
+    assert DenoiseSettings(temporal_radius=1).window_radius == 5 and DenoiseSettings().window_radius == 0
     assert DenoiseSettings(temporal_radius=1, evidence_radius=0).window_radius == 3
     # one bandwidth has no choice to make: no neighbour lends it evidence
     assert DenoiseSettings(temporal_radius=1, bandwidths=(1.0,)).window_radius == 3
-    assert DenoiseSettings(temporal_radius=1).query_radius == 2 and DenoiseSettings().query_radius == 0
+    assert DenoiseSettings(temporal_radius=1).query_radius == 3 and DenoiseSettings().query_radius == 0
     with pytest.raises(ValueError, match="albedo_radius"):
         DenoiseSettings(albedo_radius=-1).check()
 

@@ -308,14 +308,18 @@ class DenoiseSettings:
             +0.25 / +0.23, no clip below 0), the six Mitsuba clips at 256x256 with 12 frames +0.10 / +0.07
             (Blender's, without positions, the same), 4 the same as 3; the ``denoise`` command on the shared
             clip 7% slower on one thread, 2% on two (``benchmarks/validation/findings.md``).
-        evidence_radius: with a time window, the frames on each side whose queries lend their
-            cross-validated residuals to a query's bandwidth selection, where their guides agree with its
-            own (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
+        evidence_radius: with a time window, the frames on each side whose queries lend their cross-validated
+            residuals to a query's bandwidth selection, where their guides agree with its own
+            (:func:`~torchmanifold.pipeline.selection._pooled_selection`): a candidate's bias at a place
             persists from frame to frame, the noise of its error estimate does not. 1 against 0, all frames
             from 1 / 4 spp: the validation set +0.08 / +0.07 dB, no clip below -0.01; its clips at 256x256
             with 12 frames +0.07 / +0.07 (six Mitsuba) and +0.08 / +0.07 (four Cycles); the progressive loop's
-            caustic 0.83 -> 0.87 (``benchmarks/validation/findings.md``). Frames of another window kind
-            (:func:`_noisy_window`) lend none; with one bandwidth there is nothing to lend.
+            caustic 0.83 -> 0.87 (``benchmarks/validation/findings.md``). 2 against 1, with each residual
+            measured against its own half's average
+            (:func:`~torchmanifold.pipeline.selection._own_half_reference`): the set +0.019 / +0.013, the
+            256x256 clips +0.011 / +0.005 and +0.019 / +0.010, the fifteen probes +0.027 / +0.015, no clip
+            below -0.03, at the same time a frame (a 12-frame 256x256 clip, one thread). Frames of another
+            window kind (:func:`_noisy_window`) lend none; with one bandwidth there is nothing to lend.
         frame_alone_bandwidths: with a time window, bandwidths (multiples of ``sigma_s``) at which each
             query's frame is also filtered alone; the bandwidth selection blends them with the window's
             candidates by their cross-validated error, so that where the window's frames disagree (a moving
@@ -356,7 +360,7 @@ class DenoiseSettings:
     keep_sky: bool = True
     temporal_radius: int = 0
     albedo_radius: int = 3
-    evidence_radius: int = 1
+    evidence_radius: int = 2
     frame_alone_bandwidths: Sequence[float] | None = None
     sigma_t: float = 2.0
     mode: str = "spacetime"
