@@ -15,7 +15,8 @@ import torch
 from torch import Tensor
 
 from torchmanifold.pipeline import _fast
-from torchmanifold.pipeline.filter import _Filter, _frames, _halves, _halves_stack, _split_halves, tree_height_at
+from torchmanifold.pipeline.filter import (_Filter, _frames, _halves, _halves_stack, _split_halves,
+                                           tree_height_at)
 from torchmanifold.pipeline.footprint import _normalised_blur
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _gaussian_taps, footprint_blur,
                                           luminance)
@@ -460,8 +461,8 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
 #: the spatial sigma of :func:`_own_half_reference`, as a share of the bandwidths' unit ``sigma_s`` (1 px from 1
 #: spp, where the unit is 4 px; it shrinks with the unit as the samples grow, and the progressive loop's late
 #: iterations measure against their samples alone). Against each sample alone, from 1 / 4 spp: the set (twelve
-#: clips, all frames) +0.011 / +0.015 dB, its six Mitsuba clips at 256x256 +0.013 / +0.018, four Cycles clips at
-#: 256x256 +0.018 / +0.016, the fifteen 128x128 probes +0.028 / +0.022, the two sunlit rooms +0.12 / +0.04, no
+#: clips, all frames) +0.011 / +0.015 dB, its six Mitsuba clips at 256x256 +0.013 / +0.013, four Cycles clips at
+#: 256x256 +0.019 / +0.016, the fifteen 128x128 probes +0.028 / +0.022, the two sunlit rooms +0.12 / +0.04, no
 #: clip below -0.01; 0.2 / 0.375 gave the rooms +0.09 / +0.14 and +0.04 / +0.01, the set +0.013 / +0.018 and
 #: +0.003 / +0.014 (``benchmarks/validation/findings.md``)
 _REFERENCE_WIDTH = 0.25
@@ -480,13 +481,13 @@ def _own_half_reference(e: Tensor, mask: Tensor, guide: Tensor, ranges: Tensor, 
     pooled error. ``e`` itself where no weight lies under the kernel."""
     if sigma <= 0:
         return e
-    T, _, H, W = e.shape
-    g = guide / ranges.clamp_min(1e-30)[:, :, None, None]
+    H, W = e.shape[-2:]
+    r = ranges.clamp_min(1e-30)[:, :, None, None]
     half = _halves(e.shape, e.device, cell)
 
     def padded(x: Tensor) -> Tensor:
         return torch.nn.functional.pad(x, (1, 1, 1, 1))
-    ep, mp, gp = padded(e * mask), padded(mask), padded(g)
+    ep, mp, gp = padded(e * mask), padded(mask), padded(guide)
     hp = torch.nn.functional.pad(half.to(torch.int8), (1, 1, 1, 1), value=-1)
     num, den = e * mask, mask
     for dy in (-1, 0, 1):
@@ -498,7 +499,7 @@ def _own_half_reference(e: Tensor, mask: Tensor, guide: Tensor, ranges: Tensor, 
                 return x[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
             same = (at(hp) == half.to(torch.int8)).to(e.dtype)
             w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same * at(mp) \
-                * torch.exp(-0.5 * ((at(gp) - g) ** 2).sum(1, keepdim=True))
+                * torch.exp(-0.5 * (((at(gp) - guide) / r) ** 2).sum(1, keepdim=True))
             num, den = num + w * at(ep), den + w
     return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), e)
 
