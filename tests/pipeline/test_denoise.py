@@ -354,7 +354,7 @@ def test_bandwidth_selection_halves_add_up(radius, queries):
 def test_own_half_reference_holds_no_sample_of_the_other_half(cell):
     """The residuals' reference averages a sample with its own checkerboard half alone: the other half's
     prediction stays independent of it. Changing every other-half sample leaves the own half's reference
-    bit for bit, while changing an own-half neighbour moves it."""
+    bit for bit; the own half's samples are averaged (the reference is not the samples themselves)."""
     torch.manual_seed(5)
     e, m = torch.rand(2, 3, 12, 10), (torch.rand(2, 1, 12, 10) > 0.1).double()
     e = e.double()

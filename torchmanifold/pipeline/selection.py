@@ -490,17 +490,12 @@ def _own_half_reference(e: Tensor, mask: Tensor, guide: Tensor, ranges: Tensor, 
     ep, mp, gp = padded(e * mask), padded(mask), padded(guide)
     hp = torch.nn.functional.pad(half.to(torch.int8), (1, 1, 1, 1), value=-1)
     num, den = e * mask, mask
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy == 0 and dx == 0:
-                continue
-
-            def at(x: Tensor) -> Tensor:
-                return x[..., 1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
-            same = (at(hp) == half.to(torch.int8)).to(e.dtype)
-            w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same * at(mp) \
-                * torch.exp(-0.5 * (((at(gp) - guide) / r) ** 2).sum(1, keepdim=True))
-            num, den = num + w * at(ep), den + w
+    for dy, dx in [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]:
+        at = (..., slice(1 + dy, 1 + dy + H), slice(1 + dx, 1 + dx + W))  # the neighbour at (dy, dx)
+        same = (hp[at] == half.to(torch.int8)).to(e.dtype)
+        w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same * mp[at] \
+            * torch.exp(-0.5 * (((gp[at] - guide) / r) ** 2).sum(1, keepdim=True))
+        num, den = num + w * ep[at], den + w
     return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), e)
 
 
