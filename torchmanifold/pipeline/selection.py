@@ -458,13 +458,13 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     return _Candidates(fulls, z2=torch.stack([_Filter.at_frames_to_queries(x, ft, qt) for x in z2]))
 
 
-#: the spatial sigma of :func:`_own_half_reference`, as a share of the bandwidths' unit ``sigma_s`` (1 px from
-#: 1 spp, where the unit is 4 px; it shrinks with the unit as the samples grow, and the progressive loop's late
-#: iterations measure against their samples alone). Against each sample alone, from 1 / 4 spp: the set (twelve
-#: clips, all frames) +0.011 / +0.015 dB, its six Mitsuba clips at 256x256 +0.013 / +0.013, four Cycles clips
-#: at 256x256 +0.019 / +0.016, the fifteen 128x128 probes +0.028 / +0.022, the two sunlit rooms +0.12 / +0.04,
-#: no clip below -0.01; 0.2 / 0.375 gave the rooms +0.09 / +0.14 and +0.04 / +0.01, the set +0.013 / +0.018 and
-#: +0.003 / +0.014 (``benchmarks/validation/findings.md``)
+#: the spatial sigma of :func:`_own_half_reference`, as a share of the bandwidths' unit ``sigma_s`` (1 px
+#: from 1 spp, where the unit is 4 px; it shrinks with the unit as the samples grow, and the progressive
+#: loop's late iterations measure against their samples alone). Against each sample alone, from 1 / 4 spp:
+#: the set (twelve clips, all frames) +0.011 / +0.015 dB, its six Mitsuba clips at 256x256 +0.013 / +0.013,
+#: four Cycles clips at 256x256 +0.019 / +0.016, the fifteen 128x128 probes +0.028 / +0.022, the two sunlit
+#: rooms +0.12 / +0.04, no clip below -0.01; 0.2 / 0.375 gave the rooms +0.09 / +0.14 and +0.04 / +0.01, the
+#: set +0.013 / +0.018 and +0.003 / +0.014 (``benchmarks/validation/findings.md``)
 _REFERENCE_WIDTH = 0.25
 
 
