@@ -439,10 +439,9 @@ def _bandwidth_candidates(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor
     brightness = _frame_mean(luminance(e.detach()).clamp_min(0.0), mask)[:, 0, 0, 0]
     top = torch.stack([brightness[window(ft, t, st.temporal_radius)].amax() for t in cv_times]).view(-1, 1, 1, 1)
     scale = torch.where(top > 0, top, torch.ones_like(top))
-    ranges = (sigmas[idx] * range_scale).to(guide.dtype)
-    e = _own_half_reference(_frames(e, idx), _frames(mask, idx), _frames(guide, idx), ranges, cell,
+    e, mask = _frames(e, idx), _frames(mask, idx)
+    e = _own_half_reference(e, mask, _frames(guide, idx), (sigmas[idx] * range_scale).to(guide.dtype), cell,
                             _REFERENCE_WIDTH * sigma_s)
-    mask = _frames(mask, idx)
     weight, unit = _relative_weight(level, mask)
     e, preds = e / scale, [p / scale for p in preds]
     # each frame pools over its own width, widened at most to the widest candidate's (a candidate's bias
@@ -488,12 +487,15 @@ def _own_half_reference(e: Tensor, mask: Tensor, guide: Tensor, ranges: Tensor, 
     def padded(x: Tensor) -> Tensor:
         return torch.nn.functional.pad(x, (1, 1, 1, 1))
     ep, mp, gp = padded(e * mask), padded(mask), padded(guide)
-    hp = torch.nn.functional.pad(half.to(torch.int8), (1, 1, 1, 1), value=-1)
+    own = half.to(torch.int8)
+    hp = torch.nn.functional.pad(own, (1, 1, 1, 1), value=-1)
     num, den = e * mask, mask
     for dy, dx in [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]:
         at = (..., slice(1 + dy, 1 + dy + H), slice(1 + dx, 1 + dx + W))  # the neighbour at (dy, dx)
-        same = (hp[at] == half.to(torch.int8)).to(e.dtype)
-        w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same * mp[at] \
+        same = hp[at] == own
+        if not bool(same.any()):  # the other half everywhere (a single pixel's four adjacent ones)
+            continue
+        w = math.exp(-(dy * dy + dx * dx) / (2 * sigma * sigma)) * same.to(e.dtype) * mp[at] \
             * torch.exp(-0.5 * (((gp[at] - guide) / r) ** 2).sum(1, keepdim=True))
         num, den = num + w * ep[at], den + w
     return torch.where(den > 0, num / torch.where(den > 0, den, 1.0), e)
