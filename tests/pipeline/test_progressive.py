@@ -329,13 +329,13 @@ def test_every_spatial_bandwidth_shrinks_with_the_schedule(small_tracer, monkeyp
     assert pr.iteration_settings(5).selection_blur < pr.iteration_settings(1).selection_blur
 
     seen = []
-    real = progressive.denoise_prepared
+    real = progressive.denoise_window_states
 
-    def spy(state, settings, *args, **kw):
+    def spy(states, settings, *args, **kw):
         seen.append(settings)
-        return real(state, settings, *args, **kw)
+        return real(states, settings, *args, **kw)
 
-    monkeypatch.setattr(progressive, "denoise_prepared", spy)
+    monkeypatch.setattr(progressive, "denoise_window_states", spy)
     pr.run(2)
     assert seen and all(s == pr.iteration_settings(2) for s in seen[-2:])
     assert all(s == pr.iteration_settings(1) for s in seen[:2])

@@ -61,6 +61,7 @@ sharded or all at once.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
@@ -745,7 +746,7 @@ _SIDE_BY_SIDE = 3
 def _side_by_side(threads: int, color: Tensor, features: Tensor, names: list[str], emission: Tensor | None,
                   settings: DenoiseSettings, sigma_s: float | None, range_scale: float, ft: list[float],
                   qt: list[float], pilot: Tensor | None, firefly_k: float | None,
-                  samples_per_pixel: float | None) -> tuple[Tensor, "FrameState"]:
+                  samples_per_pixel: float | None) -> tuple[Tensor, FrameState]:
     """:func:`denoise_frames`'s frame step as the command and the render loop run it on several threads:
     each frame prepared alone, then each query filtered over its window's frames, side by side on workers
     that share ``threads`` torch threads, one each (the Python around a frame's ops does not scale inside
@@ -762,8 +763,8 @@ def _side_by_side(threads: int, color: Tensor, features: Tensor, names: list[str
 
     def filter_query(q: float) -> Tensor:
         ids = window(ft, q, settings.window_radius)
-        state = FrameState.cat([states[k].result() for k in ids])
-        return denoise_prepared(state, settings, [ft[k] for k in ids], [q], sigma_s, range_scale, candidates)
+        return denoise_window_states([states[k] for k in ids], settings, [ft[k] for k in ids], q, sigma_s,
+                                     range_scale, candidates)[0]
 
     with InOrder(threads, max(len(ft), len(qt))) as pool:  # a query waits on frames started before it
         states = [pool.ahead(prepare, k) for k in range(len(ft))]
@@ -979,6 +980,18 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
         state.level = _trusted_level(pe, mask, _pilot_trust(noise / _PILOT_NOISE_SCALE))
         state.pooling = _selection_pooling(noise / _PILOT_NOISE_SCALE)
     return state
+
+
+def denoise_window_states(states: Sequence[FrameState | Future], settings: DenoiseSettings,
+                          frame_times: Sequence[float], query: float, sigma_s: float | None = None,
+                          range_scale: float = 1.0,
+                          cache: CandidateCache | None = None) -> tuple[Tensor, FrameState]:
+    """One query's output from its time window's frames, each prepared alone (:func:`prepare_frames`; states
+    or futures of them, waited on here): ``(1, 3, H, W)`` in ``settings.dtype`` and the window's joined state.
+    Every front end (a whole clip side by side, the streamed files, the progressive loop) filters a window
+    through here, on any thread, with its clip's ``cache`` (see :func:`denoise_prepared`)."""
+    state = FrameState.cat([s.result() if isinstance(s, Future) else s for s in states])
+    return denoise_prepared(state, settings, frame_times, [query], sigma_s, range_scale, cache), state
 
 
 @serial

@@ -16,8 +16,8 @@ from torchmanifold._checks import check_int
 from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
-from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features, denoise_prepared,
-                                            prepare_frames, radiance_sigma_at, spatial_sigma)
+from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features,
+                                            denoise_window_states, prepare_frames, radiance_sigma_at, spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.sliding import SlidingFrames
@@ -201,10 +201,9 @@ def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list
                   t: int, candidates: CandidateCache | None = None) -> tuple[np.ndarray, dict]:
     """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
     float32, and the frame's stats; ``candidates``: the clip's, which its neighbouring windows share."""
-    states = [s.result() for s in states]
-    y = denoise_prepared(FrameState.cat(states), settings, ids, [t], cache=candidates)
+    y = denoise_window_states(states, settings, ids, t, cache=candidates)[0]
     y = y.to(torch.float32)[0].numpy()
-    stats = states[ids.index(t)].stats()
+    stats = states[ids.index(t)].result().stats()
     return y, {k: stats[k] for k in FRAME_STATS}
 
 

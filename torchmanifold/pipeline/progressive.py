@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from torchmanifold._threads import InOrder, caller_threads, serial
-from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_prepared, prepare_frames
+from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_window_states, prepare_frames
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
 from torchmanifold.pipeline.selection import CandidateCache
@@ -364,8 +364,8 @@ class ProgressiveRenderer:
         candidates = CandidateCache()  # each query's, filtered once for its blend and its neighbours'
 
         def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
-            state = FrameState.cat([s.result() for s in states])
-            y = denoise_prepared(state, settings, ft, [q], sig_s, rscale, candidates).float()
+            y, state = denoise_window_states(states, settings, ft, q, sig_s, rscale, candidates)
+            y = y.float()
             x = interpolate(samples, ft, q)
             gauss = gaussian_baseline(x[None], self.gaussian_sigma * shrink)[0]
             row = torch.empty((3, *x.shape), dtype=torch.float64)
