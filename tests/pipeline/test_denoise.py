@@ -634,24 +634,28 @@ def test_exposure_from_1e_minus_20_to_1e30_scales_the_result(path):
     """The denoiser sets its levels relative to each frame's mean, so any exposure gives the same image
     scaled. The bandwidth selection's error statistics square squared residuals: in radiance units they
     overflowed float32 from values about 1e10 (NaN everywhere); in units of the clip's largest frame mean
-    they do not."""
+    they do not. The log-radiance channel's Kuwahara took its variances of values near log(exposure) and lost
+    the bits that choose its window: at 1e-10 a seventh of seed 7's pixels moved by up to 25% of the mean (a
+    pure-noise guide, where the manifolds' splits follow any change); it works relative to the frame's mean."""
     from torchmanifold.pipeline import _fast
 
-    g = torch.Generator().manual_seed(8)
-    H = W = 32
-    alb = torch.rand(2, 3, H, W, generator=g) * 0.8 + 0.1
-    nrm = torch.zeros(2, 3, H, W)
-    nrm[:, 2] = 1
-    feats = torch.cat([alb, nrm], 1)
-    color = alb * torch.rand(2, 1, H, W, generator=g) * 2
-    ctx = _fast.reference() if path == "torch" else contextlib.nullcontext()
-    with ctx:
-        st = DenoiseSettings(temporal_radius=1)
-        one = denoise_frames(color, feats, FEATURES[:6], settings=st)
-        for scale in (1e-20, 1e-10, 1e10, 1e30):
-            out = denoise_frames(color * scale, feats, FEATURES[:6], settings=st)
-            assert bool(torch.isfinite(out).all()), scale
-            torch.testing.assert_close(out / scale, one, rtol=1e-3, atol=1e-3 * float(one.mean()))
+    for seed in (7, 8):
+        g = torch.Generator().manual_seed(seed)
+        H = W = 32
+        alb = torch.rand(2, 3, H, W, generator=g) * 0.8 + 0.1
+        nrm = torch.zeros(2, 3, H, W)
+        nrm[:, 2] = 1
+        feats = torch.cat([alb, nrm], 1)
+        color = alb * torch.rand(2, 1, H, W, generator=g) * 2
+        ctx = _fast.reference() if path == "torch" else contextlib.nullcontext()
+        with ctx:
+            st = DenoiseSettings(temporal_radius=1)
+            one = denoise_frames(color, feats, FEATURES[:6], settings=st)
+            for scale in (1e-20, 1e-10, 1e10, 1e30):
+                out = denoise_frames(color * scale, feats, FEATURES[:6], settings=st)
+                assert bool(torch.isfinite(out).all()), (seed, scale)
+                torch.testing.assert_close(out / scale, one, rtol=1e-3, atol=1e-3 * float(one.mean()),
+                                           msg=f"seed {seed}, exposure {scale}")
 
 
 def test_pilot_noise_is_the_spread_of_the_held_out_difference():

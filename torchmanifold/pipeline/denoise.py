@@ -1426,8 +1426,10 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
     in a corner (a Kuwahara filter), so a pixel on the edge of a light still reads as the light.
     """
     L = luminance(e).clamp_min(0.0)
-    mean = _frame_mean(L, mask)
-    return _kuwahara3(torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30)))
+    mean = _frame_mean(L, mask).clamp_min(1e-30)
+    # relative to the frame's mean until its log is added back: the Kuwahara's variances, computed on values
+    # near log(exposure), would lose the bits that choose its window (and the choice would follow exposure)
+    return _kuwahara3(torch.log(L / mean + _LOG_RADIANCE_OFFSET)) + torch.log(mean)
 
 
 def _kuwahara3(x: Tensor) -> Tensor:
@@ -1551,7 +1553,8 @@ def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask:
 
 def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:
     """The log-radiance guide channel of luminance ``L`` ``(T, 1, H, W)`` whose frame means are ``mean``."""
-    return torch.log(L + _LOG_RADIANCE_OFFSET * mean.clamp_min(1e-30))
+    m = mean.clamp_min(1e-30)
+    return torch.log(L / m + _LOG_RADIANCE_OFFSET) + torch.log(m)
 
 
 #: the widening of the log-radiance channel's sigma where the pilot is noisy; its largest value leaves
