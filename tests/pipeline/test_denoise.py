@@ -1998,6 +1998,31 @@ def test_along_edges_against_brute_force():
         torch.testing.assert_close(got, _along_edges_brute(x, sigma), rtol=1e-9, atol=1e-12)
 
 
+def test_pilot_along_edges_straightens_a_sun_border_and_keeps_its_step():
+    """A sun patch's border on a plain wall, which no feature shows: the pilot's ramp across it (a 4 px blur)
+    with a low-frequency noise that bends its contour. Averaged along its own edges the contour's error
+    near the border falls by a quarter or more, the noise away from it is left about as it was (no one
+    direction there), and the step across the border keeps its two levels."""
+    H, W = 64, 64
+    yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                            indexing="ij")
+    d = (xx + 0.35 * yy - 40) / math.hypot(1.0, 0.35)  # signed distance to the border
+    clean = FP.footprint_blur(torch.where(d > 0, 2.0, 0.2).expand(1, 3, H, W), 4.0)
+    near, far = d.abs() < 6, d.abs() > 14
+    for seed in range(3):
+        g = torch.Generator().manual_seed(seed)
+        bend = FP.footprint_blur(torch.randn(1, 1, H, W, generator=g, dtype=torch.float64), 2.0)
+        pilot = clean * torch.exp(0.15 * bend / bend.std())
+        out = D._pilot_along_edges(pilot, 4.0)
+
+        def error(x, where):
+            return float(((x.log() - clean.log()) ** 2)[..., where].mean())
+        assert error(out, near) < 0.75 * error(pilot, near), seed
+        assert error(out, far) < 1.05 * error(pilot, far), seed
+        for side in (d < -14, d > 14):
+            torch.testing.assert_close(out[..., side].mean(), pilot[..., side].mean(), rtol=0.02, atol=0)
+
+
 def _plane_positions(H, W, shift=(0.0, 0.0), seed=0, lift=0.0):
     """World positions of 1-spp samples on the plane z = lift seen straight on, one world unit per 10
     pixels: each pixel's sample at its own uniform jitter, the view moved by ``shift`` pixels."""

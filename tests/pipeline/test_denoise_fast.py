@@ -162,9 +162,10 @@ def test_along_edges_equals_reference(frame):
     out = FP._along_edges([frame["e"]], [torch.full_like(d[:, :1], 2.0)], d)[0]
     assert bool(torch.isfinite(out).all())
     x = frame["e"].double()
-    d = FP._edge_directions(x)
-    with _fast.reference():
-        torch.testing.assert_close(d, FP._edge_directions(x), rtol=1e-9, atol=1e-12)
+    for tensor_sigma in (FP._EDGE_TENSOR_SIGMA, 2.7):  # the outputs' and a pilot's (_pilot_along_edges)
+        d = FP._edge_directions(x, tensor_sigma)
+        with _fast.reference():
+            torch.testing.assert_close(d, FP._edge_directions(x, tensor_sigma), rtol=1e-9, atol=1e-10)
     out, ref = _both(FP._along_edges, [x], [torch.full_like(x[:, :1], 1.3)], d)
     torch.testing.assert_close(out[0], ref[0], rtol=1e-9, atol=1e-12)
 

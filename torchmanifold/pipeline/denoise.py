@@ -25,8 +25,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
 5. **Guide**: each feature group gets its own range sigma (albedo, normals, world position or depth
    relative to each frame's extent, directions; see :func:`default_guide_sigmas`), and a log-radiance
    channel of the colour itself (:func:`_log_radiance`) separates what the features cannot: lights
-   set in a surface, shadows, what glass shows. Where the pilot below is too noisy to trust, that
-   channel and the albedo stop steering (:func:`_noise_widening`). Without albedo the chromaticity guides
+   set in a surface, shadows, what glass shows; it is taken from the pilot below, averaged along its own
+   edges (:func:`_pilot_along_edges`). Where the pilot is too noisy to trust, that channel and the albedo
+   stop steering (:func:`_noise_widening`). Without albedo the chromaticity guides
    too, the pilot's from the samples' (:func:`_chromaticity_from_pilot`).
 6. **Bandwidth from the data**: the filter runs at several spatial bandwidths and every pixel blends them by
    their error, estimated by cross-validation between two interleaved halves of the samples (see
@@ -74,10 +75,11 @@ from torchmanifold._checks import (check_choice, check_int, check_nonnegative, c
                                    check_tree_height)
 from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline import _fast
-from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _any_within, _footprint_albedo, _known_count,
-                                              _mixed_footprint, _mixed_pixels, _normalised_blur, _position,
-                                              _remodulate, _scattered_albedo,
-                                              _smooth_surface, _window_albedo, footprint_width)
+from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _along_edges, _any_within, _edge_directions,
+                                              _footprint_albedo, _known_count, _mixed_footprint,
+                                              _mixed_pixels, _normalised_blur, _position, _remodulate,
+                                              _scattered_albedo, _smooth_surface, _window_albedo,
+                                              footprint_width)
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
@@ -969,7 +971,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     state.lone = _lone_fireflies(state.clamped, luminance(e * alb) * mask)
     if pilot is None:  # a caller's pilot is a past result: guiding by it would lock its errors in
         noise = _pilot_noise(pe, level * torch.expm1(held["x"]), (mask > 0) & demodulated)
-        state.guide, state.sigmas = _radiance_from_pilot(guide, sig, pe, mask, settings, noise)
+        state.guide, state.sigmas = _radiance_from_pilot(guide, sig, _pilot_along_edges(pe, base), mask,
+                                                         settings, noise)
         if not _albedo_guides(gnames):
             # beside geometry a noisy pilot's hue steers by noise, as its albedo would; colour alone has no
             # other guide to fall back on
@@ -1528,6 +1531,25 @@ def _radiance_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask: Ten
     sigmas = sigmas.clone()
     sigmas[:, -1] = rs if noise is None else rs * _noise_widening(noise.to(sigmas.dtype) / rs)
     return guide, sigmas
+
+
+#: the pilot's average along its own edges, for the log-radiance channel: its width and the structure
+#: tensor's smoothing that finds the edges, in units of the pilot's spatial sigma. All frames from 1 / 4 spp,
+#: against the pilot as it is: the two held-out sunlit rooms +0.09 / +0.01 dB, the set's eleven clips +0.003 /
+#: +0.007, six Mitsuba and five Cycles clips at 256x256 +0.009 / +0.011 and +0.005 / +0.003, fifteen probes
+#: +0.004 / +0.017, no clip below -0.03; 3 and 1 instead: the rooms +0.12 / +0.04, the set 0.000 / +0.004, the
+#: 256x256 clips +0.009 / +0.009 and +0.003 / +0.001 (``benchmarks/validation/findings.md``)
+_PILOT_ALONG_EDGES, _PILOT_EDGE_TENSOR = 1.5, 0.5
+
+
+def _pilot_along_edges(pilot: Tensor, sigma: float) -> Tensor:
+    """The pilot ``(T, 3, H, W)`` averaged along its own edges
+    (:func:`~torchmanifold.pipeline.footprint._along_edges`), ``sigma`` its spatial sigma. Where no feature
+    parts a shadow's or a sun patch's border, the pilot alone draws it, and the pilot's noise bends the
+    contour its channel steers by, which the filter then draws at every bandwidth; along the border the
+    light is the same, so the average straightens the contour and keeps the step across it."""
+    directions = _edge_directions(pilot, _PILOT_EDGE_TENSOR * sigma)
+    return _along_edges([pilot], [torch.full_like(pilot[:, :1], _PILOT_ALONG_EDGES * sigma)], directions)[0]
 
 
 def _chromaticity(x: Tensor, mask: Tensor) -> Tensor:

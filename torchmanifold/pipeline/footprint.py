@@ -210,19 +210,19 @@ _EDGE_FOOTPRINT_KEPT = 0.5
 _EDGE_RAW_POWER = 3.0
 
 
-def _edge_directions(x: Tensor) -> Tensor:
+def _edge_directions(x: Tensor, tensor_sigma: float = _EDGE_TENSOR_SIGMA) -> Tensor:
     """Each pixel's edge direction in ``(T, 3, H, W)`` radiance and how surely it lies on one edge:
     ``(T, 3, H, W)`` of ``(surety, tx, ty)``. The direction is the minor eigenvector of the structure tensor
-    of the tone-mapped luminance (smoothed over :data:`_EDGE_TENSOR_SIGMA` px), the surety the tensor's
-    coherence to :data:`_EDGE_COHERENCE_POWER`: a corner or texture of many directions has a low one."""
+    of the tone-mapped luminance (smoothed over ``tensor_sigma`` px), the surety the tensor's coherence to
+    :data:`_EDGE_COHERENCE_POWER`: a corner or texture of many directions has a low one."""
     k = _knee(x)
     if _fast.enabled(x, k):
-        return _fast.edge_directions(x, k, _EDGE_TENSOR_SIGMA, _EDGE_COHERENCE_POWER)
+        return _fast.edge_directions(x, k, tensor_sigma, _EDGE_COHERENCE_POWER)
     ly = luminance(_tone_mapped(x, k))
     gx, gy = torch.zeros_like(ly), torch.zeros_like(ly)
     gx[..., 1:-1] = (ly[..., 2:] - ly[..., :-2]) / 2
     gy[..., 1:-1, :] = (ly[..., 2:, :] - ly[..., :-2, :]) / 2
-    jxx, jxy, jyy = footprint_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), _EDGE_TENSOR_SIGMA).unbind(1)
+    jxx, jxy, jyy = footprint_blur(torch.cat([gx * gx, gx * gy, gy * gy], 1), tensor_sigma).unbind(1)
     spread = torch.sqrt((jxx - jyy) ** 2 + 4 * jxy * jxy)
     coherence = (spread / (jxx + jyy).clamp_min(1e-30)).clamp(0.0, 1.0) ** _EDGE_COHERENCE_POWER
     across = 0.5 * torch.atan2(2 * jxy, jxx - jyy)  # the gradient's direction
