@@ -1429,10 +1429,7 @@ def _log_radiance(e: Tensor, mask: Tensor) -> Tensor:
     in a corner (a Kuwahara filter), so a pixel on the edge of a light still reads as the light.
     """
     L = luminance(e).clamp_min(0.0)
-    mean = _frame_mean(L, mask).clamp_min(1e-30)
-    # relative to the frame's mean until its log is added back: the Kuwahara's variances, computed on values
-    # near log(exposure), would lose the bits that choose its window (and the choice would follow exposure)
-    return _kuwahara3(torch.log(L / mean + _LOG_RADIANCE_OFFSET)) + torch.log(mean)
+    return _log_radiance_of(L, _frame_mean(L, mask), kuwahara=True)
 
 
 def _kuwahara3(x: Tensor) -> Tensor:
@@ -1573,10 +1570,14 @@ def _chromaticity_from_pilot(guide: Tensor, sigmas: Tensor, pilot: Tensor, mask:
     return torch.cat([guide[:, :at], chroma, guide[:, at + 2:]], 1), sigmas
 
 
-def _log_radiance_of(L: Tensor, mean: Tensor) -> Tensor:
-    """The log-radiance guide channel of luminance ``L`` ``(T, 1, H, W)`` whose frame means are ``mean``."""
+def _log_radiance_of(L: Tensor, mean: Tensor, kuwahara: bool = False) -> Tensor:
+    """The log-radiance guide channel of luminance ``L`` ``(T, 1, H, W)`` whose frame means are ``mean``,
+    through :func:`_kuwahara3` where ``kuwahara``."""
     m = mean.clamp_min(1e-30)
-    return torch.log(L / m + _LOG_RADIANCE_OFFSET) + torch.log(m)
+    # relative to the frame's mean until its log is added back: the Kuwahara's variances, computed on values
+    # near log(exposure), would lose the bits that choose its window (and the choice would follow exposure)
+    x = torch.log(L / m + _LOG_RADIANCE_OFFSET)
+    return (_kuwahara3(x) if kuwahara else x) + torch.log(m)
 
 
 #: the widening of the log-radiance channel's sigma where the pilot is noisy; its largest value leaves

@@ -17,7 +17,8 @@ from torchmanifold._threads import InOrder
 from torchmanifold.io.files import prepare_out, staged_dir
 from torchmanifold.io.frames import RenderFrame, read_render_frame, write_color
 from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features,
-                                            denoise_window_states, prepare_frames, radiance_sigma_at, spatial_sigma)
+                                            denoise_window_states, prepare_frames, radiance_sigma_at,
+                                            spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.selection import CandidateCache
 from torchmanifold.pipeline.sliding import SlidingFrames
