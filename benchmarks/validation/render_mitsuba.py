@@ -351,6 +351,50 @@ def clip_window(f: int, n: int) -> tuple[dict, dict]:
     return scene, info
 
 
+def clip_yard(f: int, n: int) -> tuple[dict, dict]:
+    """A sunlit courtyard: the sun casts the hard shadows of a side wall and of a pergola's slats across a
+    back wall and a bench (borders no feature shows, in stripes), a ball rolls over tiled ground, the camera
+    pans (a scene of the ordinary kind, held out from every setting)."""
+    rng = np.random.default_rng(31)
+    g = C.value_noise(256, 256, 5, rng)
+    tiles = ((np.arange(256)[:, None] // 32 + np.arange(256)[None, :] // 32) % 2).astype(np.float32)
+    stone = np.stack([0.42 + 0.12 * tiles + 0.15 * g, 0.38 + 0.1 * tiles + 0.13 * g,
+                      0.33 + 0.08 * tiles + 0.1 * g], -1)
+    t = f / max(1, n - 1)
+    plaster = diffuse([0.75, 0.68, 0.58])
+    scene = {"type": "scene",
+             "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky(sun_elev=40.0, sun_azim=210.0))},
+             "ground": {"type": "rectangle", "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90)
+                        .scale([6, 6, 1]), "bsdf": bitmap_bsdf(stone, 4.0)},
+             "back_wall": {"type": "cube", "to_world": T().translate([0.0, 0.0, -1.6]).scale([2.4, 1.0, 0.1]),
+                           "bsdf": plaster},
+             "side_wall": {"type": "cube", "bsdf": plaster,
+                           "to_world": T().translate([-1.8, -0.2, -0.4]).scale([0.1, 0.8, 1.3])},
+             "bench": {"type": "cube", "to_world": T().translate([0.8, -0.8, -0.9]).scale([0.5, 0.2, 0.18]),
+                       "bsdf": diffuse([0.35, 0.22, 0.12])}}
+    for i in range(7):  # the pergola's slats, 0.06 wide and 0.3 apart, 0.9 above the ground
+        scene[f"slat{i}"] = {"type": "cube", "bsdf": diffuse([0.5, 0.36, 0.22]),
+                             "to_world": T().translate([-0.9 + 0.3 * i, -0.1, -0.5]).scale([0.03, 0.03, 0.9])}
+    for i, x in enumerate((-1.0, 0.9)):  # its posts
+        scene[f"post{i}"] = {"type": "cylinder", "p0": [x, -1.0, 0.35], "p1": [x, -0.1, 0.35], "radius": 0.04,
+                             "bsdf": diffuse([0.5, 0.36, 0.22])}
+    ball_x = -0.8 + 1.4 * t
+    blue = {"type": "rgb", "value": [0.15, 0.35, 0.7]}
+    scene["ball"] = {"type": "sphere", "center": [ball_x, -0.82, 0.0], "radius": 0.18,
+                     "bsdf": {"type": "plastic", "diffuse_reflectance": blue}}
+    origin = lerp([-0.6, 0.5, 3.6], [0.6, 0.4, 3.4], t)
+    target = [0.0, -0.5, -0.4]
+    scene["sensor"] = sensor(origin, target, 45)
+    info = {"description": ("A courtyard under the numpy sky (a 2.5-degree sun of radiance 600, 40 "
+                            "degrees high, behind the camera's right): a tiled, value-noise stone ground, a "
+                            "back wall and a side wall of plaster, a pergola of seven slats on two posts "
+                            "whose shadows stripe the back wall and the bench, the side wall's shadow on the "
+                            "back wall, a blue plastic ball rolling through the light. The camera pans."),
+            "moving": {"ball": {"x": ball_x}},
+            "camera": {"origin": origin, "target": target, "fov": 45}}
+    return scene, info
+
+
 def clip_glass_room(f: int, n: int) -> tuple[dict, dict]:
     """The room of ``clip_ceiling_light`` with a glass ball, a thick glass pane in front of the sliding box and
     a silver mirror: flat pixels (albedo 0) that show sharp detail (the floor's checkerboard refracted by the
@@ -670,6 +714,10 @@ CLIPS = {
     # held out from every setting (added after them).
     "mi_window": (clip_window, 24, ["sun_through_window", "indirect_light", "textures", "plastic",
                                     "rough_metal", "moving_object", "camera_pan"], ["box"], 1024, None),
+    # A sunlit courtyard, rendered on demand as a probe, not committed: hard shadows no feature shows, held
+    # out from every setting (added after them).
+    "mi_yard": (clip_yard, 25, ["sun", "hard_shadows", "textures", "environment_lit_open_scene",
+                                "moving_object", "camera_pan"], ["ball"], 1024, None),
     # Bump maps (normals that vary within a pixel), rendered on demand as a probe, not committed.
     "mi_bump": (clip_bump, 22, ["bump_mapping", "rough_metal", "moving_object", "contact_shadow",
                                 "area_light_in_ceiling_no_emission_aov"], ["mover"], 512, None),
