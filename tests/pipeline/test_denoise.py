@@ -636,7 +636,8 @@ def test_exposure_from_1e_minus_20_to_1e30_scales_the_result(path):
     overflowed float32 from values about 1e10 (NaN everywhere); in units of the clip's largest frame mean
     they do not. The log-radiance channel's Kuwahara took its variances of values near log(exposure) and lost
     the bits that choose its window: at 1e-10 a seventh of seed 7's pixels moved by up to 25% of the mean (a
-    pure-noise guide, where the manifolds' splits follow any change); it works relative to the frame's mean."""
+    pure-noise guide, where the manifolds' splits follow any change); it works relative to the frame's
+    mean."""
     from torchmanifold.pipeline import _fast
 
     for seed in (7, 8):

@@ -985,15 +985,14 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     return state
 
 
-def denoise_window_states(states: Sequence[FrameState | Future], settings: DenoiseSettings,
-                          frame_times: Sequence[float], query: float, sigma_s: float | None = None,
-                          range_scale: float = 1.0,
+def denoise_window_states(states: Sequence[Future], settings: DenoiseSettings, frame_times: Sequence[float],
+                          query: float, sigma_s: float | None = None, range_scale: float = 1.0,
                           cache: CandidateCache | None = None) -> tuple[Tensor, FrameState]:
-    """One query's output from its time window's frames, each prepared alone (:func:`prepare_frames`; states
-    or futures of them, waited on here): ``(1, 3, H, W)`` in ``settings.dtype`` and the window's joined state.
+    """One query's output from its time window's frames, each prepared alone (:func:`prepare_frames`; futures
+    of their states, waited on here): ``(1, 3, H, W)`` in ``settings.dtype`` and the window's joined state.
     Every front end (a whole clip side by side, the streamed files, the progressive loop) filters a window
     through here, on any thread, with its clip's ``cache`` (see :func:`denoise_prepared`)."""
-    state = FrameState.cat([s.result() if isinstance(s, Future) else s for s in states])
+    state = FrameState.cat([s.result() for s in states])
     return denoise_prepared(state, settings, frame_times, [query], sigma_s, range_scale, cache), state
 
 
