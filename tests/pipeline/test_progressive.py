@@ -174,7 +174,7 @@ class _SunlitWall:
     NAMES = ["T", "Z", "Mr", "Mg", "Mb", "Nx", "Ny", "Nz", "Dx", "Dy", "Dz", "Sx", "Sy", "Sz"]
 
     def __init__(self):
-        y, x = torch.meshgrid(torch.arange(self.H, dtype=torch.float32), torch.arange(self.W, dtype=torch.float32),
+        y, x = torch.meshgrid(*(torch.arange(n, dtype=torch.float32) for n in (self.H, self.W)),
                               indexing="ij")
         across = (x - self.W / 2) + 0.3 * (y - self.H / 2)
         self.image = torch.where(across < 0, 0.5, 0.075)
