@@ -242,7 +242,7 @@ class _PipelineStream:
     def __call__(self, clip: Clip, query: int, sigma_s: float, sigma_r: float, **settings) -> torch.Tensor:
         from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_to_features,
                                                     denoise_prepared, prepare_frames)
-        from torchmanifold.pipeline.selection import CandidateCache
+        from torchmanifold.pipeline.selection import ClipCache
         from torchmanifold.pipeline.sliding import SlidingFrames
         from torchmanifold.timewindow import index_window
 
@@ -259,7 +259,7 @@ class _PipelineStream:
                                       samples_per_pixel=clip.samples_per_pixel)
 
             self._clip, self._settings, self._frames = clip, st, SlidingFrames(lambda k: k, prepare)
-            self._candidates = CandidateCache()
+            self._candidates = ClipCache()
         self._last = query
         r = st.window_radius
         ids = list(index_window(clip.values.shape[0], query, r))

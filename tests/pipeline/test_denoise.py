@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from _pipeline_data import FEATURES, load_clip
+from _pipeline_data import FEATURES, load_clip, validation_clip as _validation_clip
 from torchmanifold import metrics as M
 from torchmanifold.pipeline import DenoiseSettings, Denoiser, denoise_frames
 from torchmanifold.features import feature
@@ -62,22 +62,6 @@ def test_preprocessing_each_step_helps(clip):
     no_demod = M.psnr(denoise_frames(c, f, FEATURES, settings=DenoiseSettings(demodulate=False)), ref)
     assert full > no_ff + 0.2, (full, no_ff)
     assert full > no_demod + 0.2, (full, no_demod)
-
-
-def _validation_clip(name: str, frames, prefix: str = "frame"):
-    """Frames, features and references of a clip of the committed validation set (benchmarks/validation);
-    ``prefix`` ``"frame4spp"``: its 4-spp frames."""
-    from pathlib import Path
-
-    from torchmanifold.io.frames import read_render_frame
-
-    root = Path(__file__).resolve().parents[2] / "benchmarks" / "validation" / "data" / name
-    fr = [read_render_frame(root / f"{prefix}_{k:04d}.exr") for k in frames]
-    names = fr[0].feature_names
-    c = torch.from_numpy(np.stack([f.color for f in fr]))
-    f = torch.from_numpy(np.stack([f.stack(names) for f in fr]))
-    ref = torch.from_numpy(np.stack([read_render_frame(root / f"reference_{k:04d}.exr").color for k in frames]))
-    return c, f, names, ref
 
 
 def test_a_room_lit_by_bounce_light_keeps_its_light():
@@ -1591,7 +1575,7 @@ def test_candidate_cache_computes_each_entry_once_across_threads():
     import threading
     import time
 
-    cache, computed, started = SEL.CandidateCache(), [], threading.Event()
+    cache, computed, started = SEL.ClipCache(), [], threading.Event()
 
     def compute(keys):
         computed.extend(keys)

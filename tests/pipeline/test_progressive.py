@@ -81,18 +81,18 @@ def test_candidates_kept_for_evidence_are_bounded_by_the_window(monkeypatch):
     queries the windows have moved past are let go, so a long clip holds those of no more queries than a
     window has frames."""
     import torchmanifold.pipeline.progressive as P
-    from torchmanifold.pipeline.selection import CandidateCache
+    from torchmanifold.pipeline.selection import ClipCache
     from torchmanifold.render import PathTracer, default_scene
 
     held = []
 
-    class Recording(CandidateCache):
+    class Recording(ClipCache):
         def get(self, keys, compute):
             out = super().get(keys, compute)
             held.append(len({k[0] for k in self._entries}))  # an entry's key starts with its query's time
             return out
 
-    monkeypatch.setattr(P, "CandidateCache", Recording)
+    monkeypatch.setattr(P, "ClipCache", Recording)
     pr = ProgressiveRenderer(PathTracer(default_scene(), 16, 12), list(range(9)),
                              settings=DenoiseSettings(temporal_radius=1, sigma_s=2.0))
     pr.step()

@@ -22,7 +22,7 @@ from torchmanifold._threads import call_parallel, parallel
 __all__ = ["enabled", "reference", "normalise_guard", "normalise_guard_bounds", "window_bounds",
            "footprint_average", "kuwahara3", "cv_blend", "cv_residuals", "quantiles", "cv_halves", "cv_split",
            "sanitize", "normalised_blur", "box_mean", "same_pixel", "footprint_samples", "edge_directions",
-           "along_edges"]
+           "along_edges", "least_offset_cost", "median_offset_costs"]
 
 _FLOATS = (torch.float32, torch.float64)
 _state = threading.local()
@@ -208,6 +208,24 @@ def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor, 
     return torch.ops.torchmanifold._footprint_samples(p, others, albedo, valid, search, int(radius))
 
 
+@parallel
+def least_offset_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor, offsets: list[tuple[int, int]],
+                      radius: int) -> tuple[Tensor, Tensor, Tensor]:
+    """``align._least_cost``: positions to, source ``(3, H, W)``, offsets dy, dx int64 ``(H, W)`` ->
+    the offset dy, dx and pooled cost ``(H, W)`` of least cost among ``(dy, dx) + offsets``."""
+    flat = [int(v) for o in offsets for v in o]
+    return torch.ops.torchmanifold._least_offset_cost(to, source, dy, dx, flat, int(radius))
+
+
+@parallel
+def median_offset_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
+                        offsets: list[tuple[int, int]]) -> Tensor:
+    """``align._least_median_cost``'s medians: positions to, source ``(3, H, W)``, grid pixels ys, xs int64
+    ``(N,)`` -> ``(O,)``."""
+    flat = [int(v) for o in offsets for v in o]
+    return torch.ops.torchmanifold._median_offset_costs(to, source, ys, xs, flat)
+
+
 def _register_fakes() -> None:
     """Shapes and dtypes of the private ops for fake tensors (``torch.compile``, ``opcheck``); each matches
     its CPU kernel's outputs."""
@@ -284,6 +302,14 @@ def _register_fakes() -> None:
     @torch.library.register_fake(lib + "_same_pixel")
     def _(p, others, same, still, radius):
         return others.new_empty((others.shape[0], 1, *others.shape[2:]), dtype=torch.bool)
+
+    @torch.library.register_fake(lib + "_least_offset_cost")
+    def _(to, source, dy, dx, offsets, radius):
+        return torch.empty_like(dy), torch.empty_like(dx), to.new_empty(to.shape[1:])
+
+    @torch.library.register_fake(lib + "_median_offset_costs")
+    def _(to, source, ys, xs, offsets):
+        return to.new_empty((len(offsets) // 2,))
 
     @torch.library.register_fake(lib + "_footprint_samples")
     def _(p, others, albedo, valid, search, radius):

@@ -40,6 +40,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; each frame
    is also filtered alone at the narrow bandwidths, and the bandwidth selection keeps it where the window's
    frames disagree (a pan's edges; with colour alone nothing else tells a moving view's frames apart).
+   Where the renderer gives world positions and the view moves, the window's frames are first brought to
+   the query frame's pixels by a flow found from those positions (:mod:`~torchmanifold.pipeline.align`), and
+   so is the evidence its neighbours lend its bandwidth selection.
 8. **Pixel footprint** (:mod:`torchmanifold.pipeline.footprint`): a 1-spp pixel shows one point of its
    area, so thin geometry comes out dotted and texture speckled; the result is averaged over a pixel-sized
    footprint, in a tone-mapped domain and only among pixels of similar brightness, so a light's edge does
@@ -75,6 +78,7 @@ from torchmanifold._checks import (check_choice, check_int, check_nonnegative, c
                                    check_tree_height)
 from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline import _fast
+from torchmanifold.pipeline.align import WindowAlignment
 from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _along_edges, _any_within, _edge_directions,
                                               _footprint_albedo, _known_count, _mixed_footprint,
                                               _mixed_pixels, _normalised_blur, _position, _remodulate,
@@ -83,7 +87,7 @@ from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _along_edges, _any
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
-from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, CandidateCache, _cv_cell, _pooled_selection,
+from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, ClipCache, _cv_cell, _pooled_selection,
                                              _select_bandwidth, _select_flat_width)
 from torchmanifold.timewindow import frame_at, index_window, window
 
@@ -302,6 +306,16 @@ class DenoiseSettings:
             also reads depth 0 and its colour is in-scattered light); ``False`` filters them always.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where a
             frame's pilot is too noisy to trust, every frame of ``joined_radius`` (:func:`_noisy_window`).
+        align_frames: with a time window and world positions from the renderer, each query frame's window is
+            brought to its pixels where the view moves (:mod:`~torchmanifold.pipeline.align`): the other
+            frames' samples, guides and albedo, and its neighbours' lent evidence, gathered by a flow found
+            from the positions. All frames from 1 / 4 spp, against leaving the windows as they are: the two
+            panning clips of the validation set +0.39 / +0.59 dB (`mi_dark_glossy`, 3-4 px a frame) and
+            +0.39 / +0.58 (`mi_glass_mirror`, 6 px), at 256x256 +0.42 / +0.65 and +0.32 / +0.50; two sunlit
+            probes with parallax +0.42 / +0.61 (`mi_yard`) and +0.27 / +0.33 (`mi_window`); `mi_env_thin`
+            (thin rods against the sky) -0.02 / -0.03 and -0.06 / -0.04; every clip with a still view or
+            without positions keeps its bits (``benchmarks/validation/findings.md``). The frame step of a
+            panning 256x256 clip takes 1.3-1.4 times as long (two threads), of a still one 1.1-1.15.
         albedo_radius: with a time window (``temporal_radius`` > 0) and world positions from the
             renderer, the frames on each side whose samples of each pixel's albedo join it
             (:func:`~torchmanifold.pipeline.footprint._window_albedo`); it may reach beyond the filter's
@@ -362,6 +376,7 @@ class DenoiseSettings:
     demodulate: bool = True
     keep_sky: bool = True
     temporal_radius: int = 0
+    align_frames: bool = True
     albedo_radius: int = 3
     evidence_radius: int = 2
     frame_alone_bandwidths: Sequence[float] | None = None
@@ -761,7 +776,7 @@ def _side_by_side(threads: int, color: Tensor, features: Tensor, names: list[str
         return prepare_frames(color[k:k + 1], features[k:k + 1], names, one(emission, k), settings, sigma_s,
                               range_scale, one(pilot, k), firefly_k, samples_per_pixel)
 
-    candidates = CandidateCache()  # each query's, filtered once for its blend and its neighbours'
+    candidates = ClipCache()  # each query's, filtered once for its blend and its neighbours'
 
     def filter_query(q: float) -> Tensor:
         ids = window(ft, q, settings.window_radius)
@@ -987,7 +1002,7 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
 
 def denoise_window_states(states: Sequence[Future], settings: DenoiseSettings, frame_times: Sequence[float],
                           query: float, sigma_s: float | None = None, range_scale: float = 1.0,
-                          cache: CandidateCache | None = None) -> tuple[Tensor, FrameState]:
+                          cache: ClipCache | None = None) -> tuple[Tensor, FrameState]:
     """One query's output from its time window's frames, each prepared alone (:func:`prepare_frames`; futures
     of their states, waited on here): ``(1, 3, H, W)`` in ``settings.dtype`` and the window's joined state.
     Every front end (a whole clip side by side, the streamed files, the progressive loop) filters a window
@@ -999,7 +1014,7 @@ def denoise_window_states(states: Sequence[Future], settings: DenoiseSettings, f
 @serial
 def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: Sequence[float],
                      query_times: Sequence[float], sigma_s: float | None = None,
-                     range_scale: float = 1.0, cache: CandidateCache | None = None) -> Tensor:
+                     range_scale: float = 1.0, cache: ClipCache | None = None) -> Tensor:
     """Filter prepared frames at the query times: ``(Q, 3, H, W)`` in ``settings.dtype`` (arguments as
     :func:`denoise_frames`). At a query whose frame's pilot is too noisy to trust, the time window joins
     every frame the albedo's window holds (:func:`_noisy_window`) and, in large frames, wider candidates join
@@ -1010,8 +1025,13 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
     between = sum(frame_at(ft, q) is None for q in qt)  # a query at a frame borrows evidence, one between not
-    if len(qt) > 1 and (0 < sum(wide) < len(qt) or (settings.lending_radius > 0 and 0 < between < len(qt))):
+    align = _alignment(state, settings, ft, cache)
+    moving = [align is not None and frame_at(ft, q) is not None and align.moves(frame_at(ft, q)) for q in qt]
+    if len(qt) > 1 and (0 < sum(wide) < len(qt) or (settings.lending_radius > 0 and 0 < between < len(qt))
+                        or any(moving)):
         # each query with its own window and evidence: a frame's bytes do not depend on the other queries
+        if any(moving) and cache is None:  # the flows between frames, found once
+            cache = ClipCache()
         return torch.cat([denoise_prepared(state, settings, ft, [q], sigma_s, range_scale, cache)
                           for q in qt])
     if any(wide):
@@ -1021,27 +1041,39 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                            bandwidths=_noisy_bandwidths(settings, base, min(state.values.shape[-2:])))
     pooled = settings.selection_blur * _frame_pooling(*state.values.shape[-2:], settings.selection_side)
     settings = replace(settings, selection_blur=pooled)
-    s = state
+    # s: each frame at its own pixels, for what a query takes from its own frame; w: the window brought to
+    # the query's pixels where the view moves, for what joins the frames (the filters, the albedo's window)
+    s, query = state, frame_at(ft, qt[0])
+    w = _aligned_state(state, align, query) if moving[0] else state
 
     def at_queries(x: Tensor) -> Tensor:
         return _Filter.at_frames_to_queries(x, ft, qt)
+
+    def joined(x: Tensor, weights: bool = False) -> Tensor:  # a tensor of s's frames as w's
+        return align.frames(x, query, weights) if moving[0] else x
 
     if s.pilot_only:
         out = at_queries(s.level)
     else:
         if settings.candidates == 1:
             b = float(settings.bandwidths[0])
-            filt = _Filter(s.guide, s.sigmas, settings, ft, qt, base * b, range_scale,
-                           tree_height_at(settings, b))
+            op = _Filter(w.guide, w.sigmas, settings, ft, qt, base * b, range_scale,
+                         tree_height_at(settings, b))
+
+            def filt(values, mask):
+                return op(joined(values), joined(mask, True))
         else:
             neighbours = _lenders(kinds, settings, ft, qt)
 
             def filt(values, mask):
-                args = (values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale, s.level,
-                        s.pooling, int(s.cv_cell.max()))
                 if neighbours is None:
-                    return _select_bandwidth(*args)
-                return _pooled_selection(*args, neighbours, cache)
+                    return _select_bandwidth(joined(values), joined(mask, True), w.guide, w.sigmas, settings,
+                                             ft, qt, base, range_scale, w.level, w.pooling,
+                                             int(w.cv_cell.max()))
+                # each query's window and its neighbours' brought to their own pixels there
+                return _pooled_selection(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
+                                         s.level, s.pooling, int(s.cv_cell.max()), neighbours, cache,
+                                         align if any(moving) else None)
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
             # blended at the frames the queries take it from (all where a query lies between frames) that
@@ -1051,7 +1083,8 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
             ids = [k for k in (sorted(set(at)) if None not in at else range(len(ft)))
                    if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
             if ids:
-                guided = _flat_filters(e, s.mask, settings, ft, [ft[k] for k in ids], range_scale)
+                e, weight = joined(e), joined(weight, True)
+                guided = _flat_filters(e, w.mask, settings, ft, [ft[k] for k in ids], range_scale)
                 out[ids] = _select_flat_width(e, weight, sigma, int(s.cv_cell.max()), settings.selection_blur,
                                               settings.selection_softness, guided, ids)
             return out
@@ -1062,7 +1095,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
         out = torch.where(kept, at_queries(s.values), out)
     albedo, counts = at_queries(s.albedo), None
     if s.position is not None and settings.temporal_radius > 0:
-        albedo, counts = _window_albedo(albedo, s, ft, qt, settings.albedo_radius)
+        albedo, counts = _window_albedo(albedo, w, ft, qt, settings.albedo_radius)
     out = _remodulate(out, albedo, at_queries(s.flat.to(out.dtype)) > 0.5,
                       None if s.smooth is None else at_queries(s.smooth), s.footprint, counts,
                       1 + 2 * settings.albedo_radius, _UNSEEN_BORDER if s.point_samples else 0.0)
@@ -1073,13 +1106,38 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     def window_mean(x: Tensor) -> Tensor:  # what the clamp took, held still from frame to frame
         return torch.stack([x[window(ft, q, settings.temporal_radius)].mean(0) for q in qt])
     if bool(noisy.any()):
-        out = _give_back(out, window_mean(s.clamped), noisy, _GIVE_BACK_REACH * widest, kept)
+        out = _give_back(out, window_mean(w.clamped), noisy, _GIVE_BACK_REACH * widest, kept)
     if not bool(noisy.all()) and bool((s.lone > 0).any()):
         reach = _FIREFLY_BACK_REACH * widest
-        out = _give_back(out, window_mean(s.lone), ~noisy, reach, kept, _FIREFLY_BACK_COUNT)
+        out = _give_back(out, window_mean(w.lone), ~noisy, reach, kept, _FIREFLY_BACK_COUNT)
     if s.emission is not None:  # the renderer's emission is added back exactly as rendered
         out = out + at_queries(s.emission)
     return out
+
+
+def _alignment(state: FrameState, settings: DenoiseSettings, ft: list[float],
+               cache: ClipCache | None) -> WindowAlignment | None:
+    """The flows that bring a window's frames to a query frame's pixels (:mod:`~torchmanifold.pipeline.align`;
+    a query between frames has no frame's pixels and keeps the window as it is): where
+    ``settings.align_frames`` asks and there is a time window and world positions. ``cache`` keeps the flows
+    for the clip."""
+    if not settings.align_frames or state.position is None or settings.temporal_radius == 0:
+        return None
+    return WindowAlignment(state.position, ft, settings.joined_radius, cache)
+
+
+#: the per-pixel fields of a :class:`FrameState` that a query joins from the window's other frames (the
+#: filters' guide and error level, the albedo's window, what the firefly clamp took)
+_JOINED_FIELDS = ("mask", "flat", "albedo", "position", "guide", "level", "clamped", "lone")
+
+
+def _aligned_state(state: FrameState, align: WindowAlignment, k: int) -> FrameState:
+    """``state`` with the frames within ``align``'s radius of frame ``k`` brought to its pixels in the fields
+    a query joins from them (:data:`_JOINED_FIELDS`), the sample weights 0 where a source lies outside its
+    frame; frame ``k`` is as it was."""
+    moved = {name: align.frames(getattr(state, name), k, name == "mask") for name in _JOINED_FIELDS
+             if getattr(state, name) is not None}
+    return replace(state, **moved)
 
 
 def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: list[float]) -> list | None:

@@ -20,7 +20,7 @@ from torchmanifold.pipeline.denoise import (DenoiseSettings, FrameState, adapt_t
                                             denoise_window_states, prepare_frames, radiance_sigma_at,
                                             spatial_sigma)
 from torchmanifold.pipeline.footprint import footprint_width
-from torchmanifold.pipeline.selection import CandidateCache
+from torchmanifold.pipeline.selection import ClipCache
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import index_window
 
@@ -116,7 +116,7 @@ class ClipWindow:
         self.notes = list(first.notes)
         self._window = SlidingFrames(self._read, self._prepare, {0: first})
         self._settings: DenoiseSettings | None = None
-        self.candidates = CandidateCache()  # each query's bandwidth candidates, lent to its neighbours
+        self.candidates = ClipCache()  # each query's bandwidth candidates, lent to its neighbours
         self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
         self._ahead: tuple[int, Future] | None = None
         self._pool = pool or InOrder(1, 1)  # one worker: each frame prepared at once, here
@@ -170,7 +170,7 @@ class ClipWindow:
         each prepared once for ``settings``: futures of their states (done ones without a pool)."""
         if settings != self._settings:
             self._window.forget_prepared()
-            self._settings, self.candidates = settings, CandidateCache()
+            self._settings, self.candidates = settings, ClipCache()
         # a query's window starts past the earlier queries that lent it evidence
         self.candidates.release_before(ids[0])
         return self._window.prepared(ids)
@@ -199,7 +199,7 @@ def prepared_window(clip: ClipWindow, t: int, settings: DenoiseSettings) -> tupl
 
 
 def filter_window(states: Sequence[Future], settings: DenoiseSettings, ids: list[int],
-                  t: int, candidates: CandidateCache | None = None) -> tuple[np.ndarray, dict]:
+                  t: int, candidates: ClipCache | None = None) -> tuple[np.ndarray, dict]:
     """:func:`denoise_window`'s second part, on any thread: the window's filter at frame ``t``, ``(3, H, W)``
     float32, and the frame's stats; ``candidates``: the clip's, which its neighbouring windows share."""
     y = denoise_window_states(states, settings, ids, t, cache=candidates)[0]

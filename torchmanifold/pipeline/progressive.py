@@ -38,7 +38,7 @@ from torchmanifold._threads import InOrder, caller_threads, serial
 from torchmanifold.pipeline.denoise import DenoiseSettings, FrameState, denoise_window_states, prepare_frames
 from torchmanifold.pipeline.footprint import footprint_width
 from torchmanifold.pipeline.schedule import DEFAULT_ALPHA, BandwidthSchedule
-from torchmanifold.pipeline.selection import CandidateCache
+from torchmanifold.pipeline.selection import ClipCache
 from torchmanifold.pipeline.sliding import SlidingFrames
 from torchmanifold.timewindow import frame_at, interpolate, window
 
@@ -361,7 +361,7 @@ class ProgressiveRenderer:
             return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot,
                                   k_ff, own_pixels=True)
 
-        candidates = CandidateCache()  # each query's, filtered once for its blend and its neighbours'
+        candidates = ClipCache()  # each query's, filtered once for its blend and its neighbours'
 
         def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
             y, state = denoise_window_states(states, settings, ft, q, sig_s, rscale, candidates)

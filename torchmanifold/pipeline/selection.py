@@ -23,6 +23,7 @@ from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _ga
 from torchmanifold.timewindow import frame_at, window
 
 if TYPE_CHECKING:
+    from torchmanifold.pipeline.align import WindowAlignment
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
 
@@ -287,12 +288,13 @@ def _z2_by_width(preds: list, e: Tensor, weight: Tensor, mask: Tensor, blurs: li
 _UNITS_APART = 1e-6
 
 
-class CandidateCache:
-    """The bandwidth candidates of each query a clip's calls have filtered, so that a query's candidates serve
-    its own blend and its neighbours' evidence (:func:`_pooled_selection`) and are filtered once. An entry
-    comes from its query's window alone, so it holds the same bytes whichever call made it; the caller keeps
-    one cache per clip and settings. Calls on several threads share it: an entry another
-    thread is filtering is waited for."""
+class ClipCache:
+    """What a clip's calls share: the bandwidth candidates of each query they have filtered, so that a query's
+    candidates serve its own blend and its neighbours' evidence (:func:`_pooled_selection`) and are filtered
+    once, and the flows between its frames (:class:`~torchmanifold.pipeline.align.WindowAlignment`). An entry
+    comes from its query's window (or its two frames) alone, so it holds the same bytes whichever call made
+    it; the caller keeps one cache per clip and settings. Calls on several threads share it: an entry another
+    thread is making is waited for."""
 
     def __init__(self):
         self._lock = threading.Lock()
@@ -331,24 +333,37 @@ class CandidateCache:
 def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
                       ft: list[float], qt: list[float], sigma_s: float, range_scale: float,
                       level: Tensor | None, pooling: Tensor | None, cell: int, neighbours: list[list[int]],
-                      cache: CandidateCache | None) -> Tensor:
+                      cache: ClipCache | None, align: WindowAlignment | None = None) -> Tensor:
     """:func:`_select_bandwidth` at queries that are frames, each blending with its neighbouring frames'
     cross-validated residuals as evidence (``neighbours``: per query, the frame indices whose queries lend
     theirs). A neighbour's residuals weigh ``exp(-d^2 / 2)`` at a pixel, ``d`` the distance of its guide there
     from the query's in range sigmas: where the same surface under the same light shows, a candidate's bias
-    is the same and the noise independent."""
+    is the same and the noise independent. With ``align``, each query filters its window brought to its own
+    pixels, and a neighbour's residuals and guide are brought to the query's pixels."""
     idx = [frame_at(ft, q) for q in qt]
     need = sorted(set(idx) | {n for ns in neighbours for n in ns})
     # an entry's key: the frames its window holds in this call's state (a call whose state cuts a neighbour's
     # window short makes its own entry) and what another call's state may set otherwise (a noisy pilot's
-    # window drops each frame's own candidates)
-    key = (settings.temporal_radius, settings.frame_alone, float(sigma_s), float(range_scale), cell)
+    # window drops each frame's own candidates; a query between frames leaves the windows as they are)
+    key = (settings.temporal_radius, settings.frame_alone, float(sigma_s), float(range_scale), cell,
+           align is not None)
+
+    def lent(c: _Candidates) -> list:
+        planes = c.residuals()
+        return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(planes.shape[1])]
 
     def compute(times: list) -> list:
-        c = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s, range_scale, level,
-                                  pooling, cell)
-        planes = c.residuals()
-        return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(len(times))]
+        if align is None or not any(align.moves(frame_at(ft, t)) for t in times):
+            return lent(_bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s,
+                                              range_scale, level, pooling, cell))
+        out = []
+        for t in times:  # each query's window at its own pixels
+            k = frame_at(ft, t)
+            out += lent(_bandwidth_candidates(align.frames(e, k), align.frames(mask, k, True),
+                                              align.frames(guide, k), sigmas, settings, ft, [t], sigma_s,
+                                              range_scale, None if level is None else align.frames(level, k),
+                                              pooling, cell))
+        return out
 
     keys = [(ft[k], tuple(ft[j] for j in window(ft, ft[k], settings.temporal_radius)), *key) for k in need]
     got = dict(zip(need, (cache.get(keys, lambda ks: compute([k[0] for k in ks])) if cache is not None
@@ -376,14 +391,18 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
             factor = float((cands.units[i] / got[n].units) ** 2)
             if not _UNITS_APART < factor < 1.0 / _UNITS_APART:
                 continue
-            others[j, :-1, i] = got[n].residuals[:-1, 0] * factor
-            others[j, -1, i] = got[n].residuals[-1, 0]
-            weights[j, i, 0] = torch.exp(-0.5 * (((guide[n] - guide[k]) / ranges) ** 2).sum(0))
+            theirs = got[n].residuals if align is None else align.frame(got[n].residuals, k, n)
+            others[j, :-1, i] = theirs[:-1, 0] * factor
+            others[j, -1, i] = theirs[-1, 0]
+            their_guide = guide[n] if align is None else align.frame(guide[n], k, n)
+            weights[j, i, 0] = torch.exp(-0.5 * (((their_guide - guide[k]) / ranges) ** 2).sum(0))
+            if align is not None and align.flow(k, n) is not None:  # no evidence from outside their frame
+                weights[j, i, 0] *= align.flow(k, n).inside
     return cands.blend(settings.selection_softness, others, weights)
 
 
 class _Lent:
-    """A query's entry in a :class:`CandidateCache`: its bandwidth candidates until its own blend is done,
+    """A query's entry in a :class:`ClipCache`: its bandwidth candidates until its own blend is done,
     and what it lends its neighbours' blends, its residual planes ``(K + 1, 1, 1, H, W)`` and their units."""
 
     __slots__ = ("candidates", "residuals", "units")

@@ -1779,6 +1779,165 @@ std::tuple<at::Tensor, at::Tensor> footprint_samples_cpu(const at::Tensor& p_, c
   return {sums, counts};
 }
 
+// ------------------------------------------------------------------------------ position flow
+// align: the offsets (a, b) of a list as pairs, checked.
+std::vector<std::pair<int64_t, int64_t>> offset_pairs(at::IntArrayRef offsets, const char* op) {
+  TORCH_CHECK_VALUE(!offsets.empty() && offsets.size() % 2 == 0, op,
+                    ": offsets must be a non-empty list of (dy, dx) pairs, got ", offsets.size(), " numbers");
+  std::vector<std::pair<int64_t, int64_t>> out;
+  for (size_t i = 0; i < offsets.size(); i += 2) out.emplace_back(offsets[i], offsets[i + 1]);
+  return out;
+}
+
+void check_positions(const at::Tensor& to, const at::Tensor& source, const char* op) {
+  check_float(to, "to", op);
+  TORCH_CHECK_VALUE(to.dim() == 3 && to.size(0) == 3, op, ": to must be (3, H, W), got ", to.sizes());
+  TORCH_CHECK_VALUE(source.sizes() == to.sizes() && source.scalar_type() == to.scalar_type(), op,
+                    ": source must be shaped and typed like to ", to.sizes(), ", got ", source.sizes(), " ",
+                    source.scalar_type());
+}
+
+// align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 position difference)
+// averaged over the (2 radius + 1)^2 box (along x, then along y; the pixels whose source lies in the frame, a
+// mean of the costs over a mean of those pixels) is least, the first on a tie; 1e30 where the pixel's own
+// source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
+// the same for any thread count.
+template <typename T>
+void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
+  std::fill(dst, dst + W, T(0));
+  for (int64_t k = -r; k <= r; ++k) {  // whole rows at a time, each pixel's terms in order
+    const int64_t lo = std::max<int64_t>(0, -k), hi = std::min(W, W - k);
+    for (int64_t x = lo; x < hi; ++x) dst[x] += src[x + k];
+  }
+  for (int64_t x = 0; x < W; ++x) dst[x] /= T(std::min(W - 1, x + r) - std::max<int64_t>(0, x - r) + 1);
+}
+
+template <typename T>
+void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64_t* bx,
+                       const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t H, int64_t W, int64_t r,
+                       int64_t* oy, int64_t* ox, T* oc) {
+  const int64_t HW = H * W;
+  const T outside = T(1e30);
+  at::parallel_for(0, H, std::max<int64_t>(2 * r + 1, row_grain(W)), [&](int64_t y0, int64_t y1) {
+    const int64_t h0 = std::max<int64_t>(0, y0 - r), h1 = std::min(H, y1 + r);
+    std::vector<T> cost(W), count(W), mean((h1 - h0) * W), share((h1 - h0) * W), column(W), in(W);
+    for (size_t i = 0; i < offs.size(); ++i) {
+      const int64_t a = offs[i].first, b = offs[i].second;
+      for (int64_t y = h0; y < h1; ++y) {
+        for (int64_t x = 0; x < W; ++x) {
+          const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
+          if (sy < 0 || sy >= H || sx < 0 || sx >= W) {
+            cost[x] = count[x] = T(0);
+            continue;
+          }
+          const int64_t q = sy * W + sx;
+          cost[x] = std::abs(to[p] - src[q]) + std::abs(to[HW + p] - src[HW + q]) +
+                    std::abs(to[2 * HW + p] - src[2 * HW + q]);
+          count[x] = T(1);
+        }
+        box_row_mean(cost.data(), W, r, mean.data() + (y - h0) * W);
+        box_row_mean(count.data(), W, r, share.data() + (y - h0) * W);
+      }
+      for (int64_t y = y0; y < y1; ++y) {
+        const int64_t lo = std::max<int64_t>(0, y - r), hi = std::min(H - 1, y + r);
+        const T n = T(hi - lo + 1);
+        std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
+        std::copy(share.data() + (lo - h0) * W, share.data() + (lo - h0 + 1) * W, in.data());
+        for (int64_t k = lo + 1; k <= hi; ++k) {
+          const T* row = mean.data() + (k - h0) * W;
+          const T* row_in = share.data() + (k - h0) * W;
+          for (int64_t x = 0; x < W; ++x) column[x] += row[x];
+          for (int64_t x = 0; x < W; ++x) in[x] += row_in[x];
+        }
+        for (int64_t x = 0; x < W; ++x) {
+          const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
+          const bool inside = sy >= 0 && sy < H && sx >= 0 && sx < W;
+          const T v = inside ? (column[x] / n) / (in[x] / n) : outside;
+          if (i == 0 || v < oc[p]) {
+            oc[p] = v;
+            oy[p] = by[p] + a;
+            ox[p] = bx[p] + b;
+          }
+        }
+      }
+    }
+  });
+}
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor> least_offset_cost_cpu(
+    const at::Tensor& to_, const at::Tensor& source_, const at::Tensor& dy_, const at::Tensor& dx_,
+    at::IntArrayRef offsets, int64_t radius) {
+  const char* op = "_least_offset_cost";
+  check_positions(to_, source_, op);
+  const int64_t H = to_.size(1), W = to_.size(2);
+  for (auto* t : {&dy_, &dx_})
+    TORCH_CHECK_VALUE(t->sizes() == at::IntArrayRef({H, W}) && t->scalar_type() == at::kLong, op,
+                      ": dy and dx must be int64 (H, W) = ", at::IntArrayRef({H, W}), ", got ", t->sizes(),
+                      " ", t->scalar_type());
+  TORCH_CHECK_VALUE(radius >= 0, op, ": radius must be >= 0, got ", radius);
+  const auto offs = offset_pairs(offsets, op);
+  const at::Tensor to = to_.contiguous(), source = source_.contiguous();
+  const at::Tensor dy = dy_.contiguous(), dx = dx_.contiguous();
+  at::Tensor oy = at::empty({H, W}, dy.options()), ox = at::empty({H, W}, dy.options());
+  at::Tensor oc = at::empty({H, W}, to.options());
+  if (H * W == 0) return {oy, ox, oc};
+  AT_DISPATCH_FLOATING_TYPES(to.scalar_type(), "least_offset_cost_cpu", [&] {
+    least_offset_cost(to.data_ptr<scalar_t>(), source.data_ptr<scalar_t>(), dy.data_ptr<int64_t>(),
+                      dx.data_ptr<int64_t>(), offs, H, W, radius, oy.data_ptr<int64_t>(),
+                      ox.data_ptr<int64_t>(), oc.data_ptr<scalar_t>());
+  });
+  return {oy, ox, oc};
+}
+
+// align._least_median_cost: for each offset, the lower median of the L1 position differences between to at
+// the grid pixels (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none
+// do).
+at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& source_, const at::Tensor& ys_,
+                                   const at::Tensor& xs_, at::IntArrayRef offsets) {
+  const char* op = "_median_offset_costs";
+  check_positions(to_, source_, op);
+  TORCH_CHECK_VALUE(ys_.dim() == 1 && ys_.sizes() == xs_.sizes() && ys_.scalar_type() == at::kLong &&
+                        xs_.scalar_type() == at::kLong,
+                    op, ": ys and xs must be int64 (N,) alike, got ", ys_.sizes(), " and ", xs_.sizes());
+  const int64_t H = to_.size(1), W = to_.size(2), HW = H * W, N = ys_.size(0);
+  const auto offs = offset_pairs(offsets, op);
+  const at::Tensor to = to_.contiguous(), source = source_.contiguous();
+  const at::Tensor ys = ys_.contiguous(), xs = xs_.contiguous();
+  const int64_t* py = ys.data_ptr<int64_t>();
+  const int64_t* px = xs.data_ptr<int64_t>();
+  for (int64_t g = 0; g < N; ++g)
+    TORCH_CHECK_VALUE(py[g] >= 0 && py[g] < H && px[g] >= 0 && px[g] < W, op, ": grid pixel ", g, " (", py[g],
+                      ", ", px[g], ") lies outside the (", H, ", ", W, ") frame");
+  at::Tensor out = at::empty({static_cast<int64_t>(offs.size())}, to.options());
+  AT_DISPATCH_FLOATING_TYPES(to.scalar_type(), "median_offset_costs_cpu", [&] {
+    using T = scalar_t;
+    const T *pt = to.data_ptr<T>(), *ps = source.data_ptr<T>();
+    T* po = out.data_ptr<T>();
+    at::parallel_for(0, static_cast<int64_t>(offs.size()), 1, [&](int64_t i0, int64_t i1) {
+      std::vector<T> v;
+      v.reserve(N);
+      for (int64_t i = i0; i < i1; ++i) {
+        v.clear();
+        for (int64_t g = 0; g < N; ++g) {
+          const int64_t sy = py[g] + offs[i].first, sx = px[g] + offs[i].second;
+          if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
+          const int64_t p = py[g] * W + px[g], q = sy * W + sx;
+          v.push_back(std::abs(pt[p] - ps[q]) + std::abs(pt[HW + p] - ps[HW + q]) +
+                      std::abs(pt[2 * HW + p] - ps[2 * HW + q]));
+        }
+        if (v.empty()) {
+          po[i] = std::numeric_limits<T>::infinity();
+          continue;
+        }
+        const auto mid = v.begin() + (v.size() - 1) / 2;
+        std::nth_element(v.begin(), mid, v.end());
+        po[i] = *mid;
+      }
+    });
+  });
+  return out;
+}
+
 }  // namespace
 
 TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
@@ -1800,6 +1959,8 @@ TORCH_LIBRARY_IMPL(torchmanifold, CPU, m) {
   m.impl("_footprint_samples", &footprint_samples_cpu);
   m.impl("_edge_directions", &edge_directions_cpu);
   m.impl("_along_edges", &along_edges_cpu);
+  m.impl("_least_offset_cost", &least_offset_cost_cpu);
+  m.impl("_median_offset_costs", &median_offset_costs_cpu);
 }
 
 }  // namespace cpu
