@@ -43,7 +43,7 @@ _BOX = 3
 #: :data:`_FAR_MARGIN` times the near one's. A near floor moves against the wall behind it (`mi_yard`,
 #: `mi_window`: -8 px against +2), beyond the near search; but a free search finds wrong matches in repeated
 #: structure (a pergola's slats). The far margin on those two probes, all frames from 1 / 4 spp, against the
-#: near search alone: 0.5 -0.05 / -0.10 and +0.12 / +0.10 dB, 0.25 -0.01 / -0.02 and +0.10 / +0.10, 0.1
+#: near search alone: 0.5 -0.05 / -0.10 and +0.12 / +0.10 dB, 0.25 -0.01 / -0.02 and +0.11 / +0.11, 0.1
 #: +0.01 / +0.01 and +0.07 / +0.07 (``benchmarks/validation/findings.md``)
 _REFINE = 2
 _POOL = 7
