@@ -76,14 +76,14 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // (M, T), the per-pixel widths sigma (M, T, 1, H, W), the directions (T, 3, H, W) of _edge_directions ->
   // (M, T, 3, H, W).
   m.def("_along_edges(Tensor x, Tensor k, Tensor sigma, Tensor directions, float range_sigma) -> Tensor");
-  // align._least_cost: world positions to and source (3, H, W), per-pixel offsets dy, dx (int64 (H, W)) and
-  // offsets (a flat list of (dy, dx) pairs) -> per pixel the offset dy + a, dx + b whose L1 position
+  // align._least_cost: matched fields to and source (C, H, W), per-pixel offsets dy, dx (int64 (H, W)) and
+  // offsets (a flat list of (dy, dx) pairs) -> per pixel the offset dy + a, dx + b whose L1
   // difference averaged over the (2 radius + 1)^2 box (the pixels whose source lies in the frame; 1e30 where
   // the pixel's own does not) is least (the first on a tie): dy, dx, cost.
   m.def("_least_offset_cost(Tensor to, Tensor source, Tensor dy, Tensor dx, int[] offsets, int radius) "
         "-> (Tensor, Tensor, Tensor)");
-  // align._least_median_cost's costs: to and source (3, H, W), grid pixels ys, xs (int64 (N,)), offsets (a
-  // flat list of (dy, dx) pairs) -> (O,) the lower median over the grid of each offset's L1 position
+  // align._least_median_cost's costs: to and source (C, H, W), grid pixels ys, xs (int64 (N,)), offsets (a
+  // flat list of (dy, dx) pairs) -> (O,) the lower median over the grid of each offset's L1
   // differences (those inside the frame; inf where none is).
   m.def("_median_offset_costs(Tensor to, Tensor source, Tensor ys, Tensor xs, int[] offsets) -> Tensor");
 }

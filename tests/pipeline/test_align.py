@@ -31,7 +31,7 @@ def test_the_flow_finds_a_moved_view(shift):
     """A view moved by whole pixels: every pixel whose surface the other frame still shows finds it there."""
     H, W = 48, 64
     to, source = _room(H, W, seed=1), _room(H, W, shift, seed=2)
-    flow = A.position_flow(to, source)
+    flow = A.frame_flow(to, source)
     dy, dx = _offsets(flow, H, W)
     ys, xs = torch.arange(H)[:, None] - shift[0], torch.arange(W)[None, :] - shift[1]
     beyond = (ys < 0) | (ys >= H) | (xs < 0) | (xs >= W)  # what the other frame does not show
@@ -42,13 +42,13 @@ def test_the_flow_finds_a_moved_view(shift):
 
 def test_a_still_view_keeps_its_pixels():
     """Two frames of a still view (each sample jittered anew): no flow, so the window stays as it was."""
-    assert A.position_flow(_room(40, 40, seed=3), _room(40, 40, seed=4)) is None
+    assert A.frame_flow(_room(40, 40, seed=3), _room(40, 40, seed=4)) is None
 
 
 def test_two_frames_apart_the_search_reaches_twice_as_far():
     """A pan of 7 px a frame, seen two frames apart: 14 px, beyond one frame's reach."""
     H, W = 64, 64
-    flow = A.position_flow(_room(H, W, seed=5), _room(H, W, (0, 14), seed=6), distance=2)
+    flow = A.frame_flow(_room(H, W, seed=5), _room(H, W, (0, 14), seed=6), distance=2)
     dy, dx = _offsets(flow, H, W)
     assert float(((dy == 0) & (dx == -14))[:, 14:].float().mean()) > 0.97  # the other frame shows x >= 14
 
@@ -61,9 +61,31 @@ def test_surfaces_that_move_apart_each_find_their_own():
     to = _room(H, W, seed=7)
     floor = torch.arange(H)[:, None].expand(H, W) >= 40
     source = torch.where(floor, _room(H, W, (0, -3), seed=9), _room(H, W, (0, 2), seed=8))
-    dy, dx = _offsets(A.position_flow(to, source), H, W)
+    dy, dx = _offsets(A.frame_flow(to, source), H, W)
     assert float(((dy == 0) & (dx == -2))[4:36, 4:].float().mean()) > 0.97  # the wall
     assert float(((dy == 0) & (dx == 3))[56:, 4:-4].float().mean()) > 0.8  # the near floor
+
+
+def _checker_room(H: int, W: int, shift: tuple[int, int] = (0, 0)) -> torch.Tensor:
+    """Features without positions ``(7, H, W)``: a checkered albedo on a wall (24 px squares), its plain
+    normal and depth, the view moved by ``shift`` pixels."""
+    y = torch.arange(H)[:, None] + shift[0]
+    x = torch.arange(W)[None, :] + shift[1]
+    white = ((y // 24 + x // 24) % 2 == 0).float().expand(H, W)
+    albedo = torch.stack([0.2 + 0.6 * white, 0.3 + 0.4 * white, 0.5 - 0.2 * white])
+    normal = torch.stack([torch.zeros(H, W), torch.zeros(H, W), torch.ones(H, W)])
+    return torch.cat([albedo, normal, torch.full((1, H, W), 4.0)])
+
+
+def test_piecewise_constant_features_find_the_move_where_they_vary():
+    """Without world positions: on a checkered wall a 5 px move leaves most pixels inside their square, where
+    no move matches as well as the true one, so the median over every pixel keeps the view still; over the
+    pixels where the features vary (the squares' edges), the move is found."""
+    H, W = 48, 64
+    to, source = _checker_room(H, W), _checker_room(H, W, (0, 5))
+    assert A.frame_flow(to, source) is None
+    dy, dx = _offsets(A.frame_flow(to, source, varying_only=True), H, W)
+    assert float(((dy == 0) & (dx == -5))[:, 5:].float().mean()) > 0.97
 
 
 def test_the_fused_kernels_match_pytorch():
@@ -74,12 +96,14 @@ def test_the_fused_kernels_match_pytorch():
     dy, dx = torch.randint(-4, 5, (H, W), generator=g), torch.randint(-4, 5, (H, W), generator=g)
     offsets = A._square(2)
     ys, xs = torch.randint(0, H, (300,), generator=g), torch.randint(0, W, (300,), generator=g)
-    fused = A._least_cost(to, source, dy, dx, offsets), A._least_median_cost(to, source, ys, xs, offsets)
+    far = offsets + [(0, 60)]  # beyond the frame for every grid pixel: no median
+    fused = A._least_cost(to, source, dy, dx, offsets), A._median_costs(to, source, ys, xs, far)
     with _fast.reference():
-        plain = A._least_cost(to, source, dy, dx, offsets), A._least_median_cost(to, source, ys, xs, offsets)
+        plain = A._least_cost(to, source, dy, dx, offsets), A._median_costs(to, source, ys, xs, far)
     assert torch.equal(fused[0][0], plain[0][0]) and torch.equal(fused[0][1], plain[0][1])
     torch.testing.assert_close(fused[0][2], plain[0][2], rtol=1e-5, atol=1e-6)
-    assert fused[1][0] == plain[1][0] and fused[1][1] == pytest.approx(plain[1][1], rel=1e-6)
+    torch.testing.assert_close(fused[1], plain[1], rtol=1e-6, atol=0.0)
+    assert fused[1][-1] == float("inf")
 
 
 # ------------------------------------------------------------------------------------------ in the denoiser
@@ -106,15 +130,16 @@ def _sunlit_wall(frames: int, pan: int, seed: int = 0, H: int = 48, W: int = 64)
     return torch.stack(color), torch.stack(feats)
 
 
-@pytest.mark.parametrize("clip", ["mi_dark_glossy", "mi_glass_mirror"])
+@pytest.mark.parametrize("clip", ["mi_dark_glossy", "mi_glass_mirror", "bl_glass_caustic"])
 def test_a_panning_view_is_denoised_closer_to_its_reference(clip):
-    """Two Mitsuba clips of the validation set whose camera pans 3-6 px a frame (glossy highlights, what a
-    mirror shows: nothing in the features keeps another frame's sample of another point apart). Brought to
-    the query's pixels, the window's frames agree: +0.32 and +0.35 dB over frames 1-5 from 1 spp."""
+    """Clips of the validation set whose camera pans 3-6 px a frame (glossy highlights, what a mirror shows:
+    nothing in the features keeps another frame's sample of another point apart), two from Mitsuba with world
+    positions, one from Cycles without. Brought to the query's pixels, the window's frames agree: +0.32,
+    +0.35 and +0.23 dB over frames 1-5 from 1 spp."""
     c, f, names, ref = validation_clip(clip, [1, 2, 3, 4, 5])
     psnr = {aligned: M.psnr(denoise_frames(c, f, names, samples_per_pixel=1, settings=DenoiseSettings(
         temporal_radius=1, align_frames=aligned)), ref) for aligned in (False, True)}
-    assert psnr[True] > psnr[False] + 0.15, psnr
+    assert psnr[True] > psnr[False] + 0.1, psnr
 
 
 def test_a_still_view_is_filtered_as_without_alignment():

@@ -1,13 +1,14 @@
-"""A time window's frames brought to one frame's pixels by matching the samples' world positions.
+"""A time window's frames brought to one frame's pixels by matching the samples' features.
 
 Where the view moves, a neighbour frame's pixel holds another point of the scene than the query frame's pixel,
 and only the filter's range weights keep the two apart: where no feature differs (a sun patch's border, a
 shadow, what a mirror shows) they blend. Each other frame is gathered to the query frame's pixels by an
-integer flow found from world positions ``P`` (:func:`position_flow`): the pair's dominant offset, and each
-pixel's own near it where its surface moves otherwise. A pixel whose source lies outside the other frame gets
-no weight. A pair whose dominant offset is 0 (a still view) is left as it is, bit for bit: there the range
-weights keep a moving object's samples apart, and per-pixel offsets drew a still camera's defocused pixels to
-random neighbours (``benchmarks/validation/findings.md``).
+integer flow found from features that do not change with the view (:func:`frame_flow`): world positions
+``P``, or without them the albedo, normals and depth: the pair's dominant offset, and each pixel's own near it
+where its surface moves otherwise. A pixel whose source lies outside the other frame gets no weight. A pair
+whose dominant offset is 0 (a still view) is left as it is, bit for bit: there the range weights keep a moving
+object's samples apart, and per-pixel offsets drew a still camera's defocused pixels to random neighbours
+(``benchmarks/validation/findings.md``).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.footprint import _box_mean
 from torchmanifold.timewindow import window
 
-__all__ = ["Flow", "position_flow", "gather", "WindowAlignment"]
+__all__ = ["Flow", "frame_flow", "gather", "WindowAlignment"]
 
 #: the farthest the view moves in one frame, pixels: the validation set's clips pan up to 6 px a frame at
 #: 256x256 (`mi_glass_mirror`); a pan beyond it finds a poor dominant offset, whose matches the range weights
@@ -33,9 +34,15 @@ _REACH = 8
 #: every eighth lost `mi_yard` 0.02 / 0.08 dB from 1 / 4 spp: its parallax leaves the dominant offset a close
 #: call)
 _GRID_PIXELS = 4096
+#: the offsets whose median is taken over every grid pixel, the best over a quarter of them
+_FINALISTS = 9
 #: positions are averaged over this many pixels each way before matching: a 1-spp sample's jitter in its
 #: pixel averages out
 _BOX = 3
+#: without positions, the share of the surface's grid pixels whose median cost picks the dominant offset: those
+#: where the features vary most (the Cycles clips' pans match at 0.02-0.5 of no move's median cost there; a
+#: half or a tenth scored within 0.03 dB of a quarter on the four panning Cycles clips, from 1 / 4 spp)
+_VARYING_SHARE = 0.25
 #: Each pixel's offset: within :data:`_REFINE` px of the dominant one, the one of least cost averaged over
 #: :data:`_POOL` px each way, where that is under :data:`_MARGIN` times the dominant one's cost (without the
 #: margin a still camera's depth of field drew a third of `mi_indirect_dof`'s pixels to random neighbours);
@@ -77,8 +84,19 @@ def _nearest_first(offsets: list[tuple[int, int]], centre: tuple[int, int]) -> l
 
 def _least_median_cost(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
                        offsets: list[tuple[int, int]]) -> tuple[int, int]:
-    """The offset whose median L1 position difference over the grid pixels ``ys, xs`` is least (the first on
-    a tie)."""
+    """The offset whose median L1 difference over the grid pixels ``ys, xs`` is least (the first on a tie):
+    the :data:`_FINALISTS` best over every fourth grid pixel, then those over all."""
+    if len(offsets) > _FINALISTS and len(ys) >= 4 * _FINALISTS:
+        median = _median_costs(to, source, ys[::4], xs[::4], offsets)
+        best = sorted(range(len(offsets)), key=lambda i: (float(median[i]), i))[:_FINALISTS]
+        offsets = [offsets[i] for i in sorted(best)]
+    return offsets[int(_median_costs(to, source, ys, xs, offsets).argmin())]
+
+
+def _median_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
+                  offsets: list[tuple[int, int]]) -> Tensor:
+    """Each offset's median L1 difference over the grid pixels ``ys, xs`` that it keeps in the frame (inf
+    where none): ``(O,)``."""
     if _fast.enabled(to, source):
         median = _fast.median_offset_costs(to, source, ys, xs, offsets)
     else:
@@ -89,7 +107,23 @@ def _least_median_cost(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
         index = (ys[None] + pad + off[:, :1]) * (W + 2 * pad) + xs[None] + pad + off[:, 1:]
         cost = (to[:, ys, xs][:, None] - padded[:, index]).abs().sum(0)  # (offsets, grid pixels)
         median = torch.nan_to_num(cost.nanmedian(1).values, nan=math.inf)
-    return offsets[int(median.argmin())]
+    return median
+
+
+def _varying(x: Tensor, hit: Tensor) -> Tensor:
+    """The pixels of ``hit`` where ``x`` ``(C, H, W)`` varies most: of those where it varies at all, the top
+    :data:`_VARYING_SHARE` by the L1 length of its central differences (where features are piecewise constant,
+    a plain wall's albedo and normal, a floor's depth along a row, a move along them matches as well as
+    none)."""
+    change = torch.zeros(x.shape[-2:], dtype=x.dtype, device=x.device)
+    change[:, 1:-1] += (x[:, :, 2:] - x[:, :, :-2]).abs().sum(0)
+    change[1:-1, :] += (x[:, 2:, :] - x[:, :-2, :]).abs().sum(0)
+    varies = hit & (change > 0)
+    if not bool(varies.any()):
+        return hit
+    values = change[varies]
+    least = values.kthvalue(max(1, math.ceil((1.0 - _VARYING_SHARE) * values.numel()))).values
+    return varies & (change >= least)
 
 
 def _dominant_offset(to: Tensor, source: Tensor, hit: Tensor, distance: int) -> tuple[int, int]:
@@ -190,13 +224,17 @@ def _pixel_offsets(to: Tensor, source: Tensor, dominant: tuple[int, int],
     return torch.where(clear, far_y, near_y), torch.where(clear, far_x, near_x)
 
 
-def position_flow(to: Tensor, source: Tensor, distance: int = 1) -> Flow | None:
-    """Where each pixel of a frame finds its surface's samples in another, from their world positions.
+def frame_flow(to: Tensor, source: Tensor, distance: int = 1, varying_only: bool = False) -> Flow | None:
+    """Where each pixel of a frame finds its surface's samples in another, from features that do not change
+    with the view.
 
     Args:
-        to: ``(3, H, W)`` world positions of the frame whose pixels the flow serves (0 where no surface).
-        source: ``(3, H, W)`` world positions of the other frame.
+        to: ``(C, H, W)`` the features of the frame whose pixels the flow serves: world positions, or
+            channels in comparable units (0 where no surface).
+        source: ``(C, H, W)`` the other frame's.
         distance: frames between the two (the search reaches :data:`_REACH` pixels a frame).
+        varying_only: the dominant offset from the pixels where the features vary most
+            (:data:`_VARYING_SHARE`): piecewise constant ones match a move along them as well as none.
 
     Returns:
         the :class:`Flow` from ``to``'s pixels into ``source``'s, or ``None`` where the dominant offset is 0
@@ -205,16 +243,17 @@ def position_flow(to: Tensor, source: Tensor, distance: int = 1) -> Flow | None:
     Example:
         >>> y, x = torch.meshgrid(torch.arange(32.), torch.arange(32.), indexing="ij")
         >>> p = torch.stack([x, y, torch.ones_like(x)])
-        >>> flow = position_flow(p, p + torch.tensor([3.0, 0.0, 0.0])[:, None, None])
+        >>> flow = frame_flow(p, p + torch.tensor([3.0, 0.0, 0.0])[:, None, None])
         >>> flow.index.view(32, 32)[10, 10].item() == 10 * 32 + 7
         True
     """
+    to, source = to.detach(), source.detach()  # a flow picks pixels: no gradient passes it
     hit = to.abs().sum(0) > 0
     # about the surface's middle: float32 keeps the small differences of positions far from the origin
     centre = to[:, hit].mean(1)[:, None, None] if bool(hit.any()) else 0.0
     to, source = to - centre, source - centre
     to, source = _box_mean(to, _BOX // 2), _box_mean(source, _BOX // 2)
-    dominant = _dominant_offset(to, source, hit, max(1, int(distance)))
+    dominant = _dominant_offset(to, source, _varying(to, hit) if varying_only else hit, max(1, int(distance)))
     if dominant == (0, 0):
         return None
     return _moved(*_pixel_offsets(to, source, dominant, max(1, int(distance))))
@@ -230,18 +269,21 @@ def gather(x: Tensor, flow: Flow | None, weights: bool = False) -> Tensor:
 
 
 class WindowAlignment:
-    """The flows between the frames of a clip, each found once (:func:`position_flow`).
+    """The flows between the frames of a clip, each found once (:func:`frame_flow`).
 
     Args:
-        position: ``(T, 3, H, W)`` the frames' world positions.
+        field: ``(T, C, H, W)`` what the flows match (world positions, or features).
         frame_times: ``(T,)`` their times.
         radius: the frames on each side of a frame that are brought to its pixels (others stay as they are).
         memo: a store shared by a clip's calls (a :class:`~torchmanifold.pipeline.selection.ClipCache`), or
             ``None`` (this object's own).
+        varying_only: as :func:`frame_flow` (features without positions).
     """
 
-    def __init__(self, position: Tensor, frame_times: Sequence[float], radius: float, memo=None):
-        self.position, self.frame_times, self.radius, self.memo = position, list(frame_times), radius, memo
+    def __init__(self, field: Tensor, frame_times: Sequence[float], radius: float, memo=None,
+                 varying_only: bool = False):
+        self.field, self.frame_times, self.radius, self.memo = field, list(frame_times), radius, memo
+        self.varying_only = varying_only
         self._flows: dict = {}
 
     def flow(self, k: int, j: int) -> Flow | None:
@@ -253,7 +295,7 @@ class WindowAlignment:
             distance = max(1, round(abs(key[1] - key[0])))
 
             def find(keys):
-                return [position_flow(self.position[k], self.position[j], distance)]
+                return [frame_flow(self.field[k], self.field[j], distance, self.varying_only)]
             self._flows[key] = (self.memo.get([key], find) if self.memo is not None else find([key]))[0]
         return self._flows[key]
 

@@ -306,16 +306,18 @@ class DenoiseSettings:
             also reads depth 0 and its colour is in-scattered light); ``False`` filters them always.
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where a
             frame's pilot is too noisy to trust, every frame of ``joined_radius`` (:func:`_noisy_window`).
-        align_frames: with a time window and world positions from the renderer, each query frame's window is
-            brought to its pixels where the view moves (:mod:`~torchmanifold.pipeline.align`): the other
-            frames' samples, guides and albedo, and its neighbours' lent evidence, gathered by a flow found
-            from the positions. All frames from 1 / 4 spp, against leaving the windows as they are: the two
-            panning clips of the validation set +0.39 / +0.59 dB (`mi_dark_glossy`, 3-4 px a frame) and
-            +0.39 / +0.58 (`mi_glass_mirror`, 6 px), at 256x256 +0.42 / +0.65 and +0.32 / +0.50; two sunlit
-            probes with parallax +0.42 / +0.61 (`mi_yard`) and +0.27 / +0.33 (`mi_window`); `mi_env_thin`
-            (thin rods against the sky) -0.02 / -0.03 and -0.06 / -0.04; every clip with a still view or
-            without positions keeps its bits (``benchmarks/validation/findings.md``). The frame step of a
-            panning 256x256 clip takes 1.3-1.4 times as long (two threads), of a still one 1.1-1.15.
+        align_frames: with a time window, each query frame's window is brought to its pixels where the view
+            moves (:mod:`~torchmanifold.pipeline.align`): the other frames' samples, guides and albedo, and its
+            neighbours' lent evidence, gathered by a flow found from the renderer's world positions, or without
+            them from its albedo, normals and depth. All frames from 1 / 4 spp, against leaving the windows as
+            they are: the panning clips of the validation set `mi_dark_glossy` +0.39 / +0.59 dB,
+            `mi_glass_mirror` +0.39 / +0.58, `bl_glass_caustic` +0.17 / +0.49, `bl_motion_blur` +0.05 / +0.08,
+            the thin rods against the sky `mi_env_thin` -0.02 / -0.03 and `bl_env_thin` +0.04 / 0.00; at
+            256x256 +0.42 / +0.65, +0.32 / +0.50, +0.22 / +0.38, +0.04 / +0.11, -0.06 / -0.04, +0.03 / -0.02;
+            the sunlit probes `mi_yard` +0.42 / +0.61, `mi_window` +0.27 / +0.33, `bl_window` +0.28 / +0.31;
+            no clip below -0.06, every still view keeps its bits (``benchmarks/validation/findings.md``). The
+            frame step of a panning 256x256 clip takes 1.4-1.6 times as long (two threads), of a still one
+            1.05-1.1.
         albedo_radius: with a time window (``temporal_radius`` > 0) and world positions from the
             renderer, the frames on each side whose samples of each pixel's albedo join it
             (:func:`~torchmanifold.pipeline.footprint._window_albedo`); it may reach beyond the filter's
@@ -815,6 +817,9 @@ class FrameState:
         position: ``(T, 3, H, W)`` the samples' world positions (``P``), or ``None`` where the renderer
             gives none or no time window is used: they tell which samples of the window's other frames
             fall in a pixel (:func:`~torchmanifold.pipeline.footprint._window_albedo`).
+        flow_field: ``(T, C, H, W)`` what the flows between a window's frames match
+            (:mod:`~torchmanifold.pipeline.align`): ``position``, or where the renderer gives none, the guide's
+            feature channels (albedo, normals, depth) over their range sigmas; ``None`` without a time window.
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pooling: ``(T,)`` float64, the factor on ``selection_blur`` for each frame (1 but where the pilot is
             noisy, :func:`_selection_pooling`).
@@ -844,6 +849,7 @@ class FrameState:
     keep_samples: Tensor
     emission: Tensor | None
     position: Tensor | None
+    flow_field: Tensor | None
     guide: Tensor
     sigmas: Tensor
     pooling: Tensor
@@ -865,7 +871,8 @@ class FrameState:
             return None if xs[0] is None else torch.cat(xs)
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
-                   "position", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone", "mixed")
+                   "position", "flow_field", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone",
+                   "mixed")
         return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
@@ -939,6 +946,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
+    features = guide[:, :len(gnames)] / sig[:, :len(gnames), None, None].to(guide.dtype)
+    flow_field = None if settings.temporal_radius == 0 or not gnames else features if position is None \
+        else position
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
     # the demodulated pixels; every pixel of a frame that has no albedo to demodulate by
     demodulated = ~flat | _flat_frames(flat)
@@ -954,9 +964,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts["kept_flat_frames"] = int(kept_flat.flatten(1).any(1).sum())
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
-    state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, guide, sig, pooling,
-                       cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point, counts, fp,
-                       base)
+    state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, flow_field, guide, sig,
+                       pooling, cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point, counts,
+                       fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -1025,7 +1035,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     base = state.sigma_s if sigma_s is None else float(sigma_s)
     wide, kinds = _noisy_window(state, settings, ft, qt), _noisy_window(state, settings, ft, ft)
     between = sum(frame_at(ft, q) is None for q in qt)  # a query at a frame borrows evidence, one between not
-    align = _alignment(state, settings, ft, cache)
+    align = _alignment(state, settings, ft, cache, any(wide))
     moving = [align is not None and frame_at(ft, q) is not None and align.moves(frame_at(ft, q)) for q in qt]
     if len(qt) > 1 and (0 < sum(wide) < len(qt) or (settings.lending_radius > 0 and 0 < between < len(qt))
                         or any(moving)):
@@ -1115,15 +1125,18 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     return out
 
 
-def _alignment(state: FrameState, settings: DenoiseSettings, ft: list[float],
-               cache: ClipCache | None) -> WindowAlignment | None:
+def _alignment(state: FrameState, settings: DenoiseSettings, ft: list[float], cache: ClipCache | None,
+               wide: bool) -> WindowAlignment | None:
     """The flows that bring a window's frames to a query frame's pixels (:mod:`~torchmanifold.pipeline.align`;
     a query between frames has no frame's pixels and keeps the window as it is): where
-    ``settings.align_frames`` asks and there is a time window and world positions. ``cache`` keeps the flows
-    for the clip."""
-    if not settings.align_frames or state.position is None or settings.temporal_radius == 0:
+    ``settings.align_frames`` asks and there is a time window and features to match (``state.flow_field``).
+    The frames brought: those the albedo's window joins where there are world positions or the filter's window
+    widens (``wide``, :func:`_noisy_window`), else the filter's. ``cache`` keeps the flows for the clip."""
+    if not settings.align_frames or state.flow_field is None or settings.temporal_radius == 0:
         return None
-    return WindowAlignment(state.position, ft, settings.joined_radius, cache)
+    radius = settings.joined_radius if state.position is not None or wide else settings.temporal_radius
+    # without positions the features are piecewise constant: a move along a plain wall matches as well as none
+    return WindowAlignment(state.flow_field, ft, radius, cache, varying_only=state.position is None)
 
 
 #: the per-pixel fields of a :class:`FrameState` that a query joins from the window's other frames (the

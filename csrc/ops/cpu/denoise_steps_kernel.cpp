@@ -1791,16 +1791,16 @@ std::vector<std::pair<int64_t, int64_t>> offset_pairs(at::IntArrayRef offsets, c
 
 void check_positions(const at::Tensor& to, const at::Tensor& source, const char* op) {
   check_float(to, "to", op);
-  TORCH_CHECK_VALUE(to.dim() == 3 && to.size(0) == 3, op, ": to must be (3, H, W), got ", to.sizes());
+  TORCH_CHECK_VALUE(to.dim() == 3 && to.size(0) >= 1, op, ": to must be (C, H, W), got ", to.sizes());
   TORCH_CHECK_VALUE(source.sizes() == to.sizes() && source.scalar_type() == to.scalar_type(), op,
                     ": source must be shaped and typed like to ", to.sizes(), ", got ", source.sizes(), " ",
                     source.scalar_type());
 }
 
-// align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 position difference)
-// averaged over the (2 radius + 1)^2 box (along x, then along y; the pixels whose source lies in the frame, a
-// mean of the costs over a mean of those pixels) is least, the first on a tie; 1e30 where the pixel's own
-// source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
+// align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 difference of the C
+// channels) averaged over the (2 radius + 1)^2 box (along x, then along y; the pixels whose source lies in the
+// frame, a mean of the costs over a mean of those pixels) is least, the first on a tie; 1e30 where the pixel's
+// own source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
 // the same for any thread count.
 template <typename T>
 void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
@@ -1814,50 +1814,104 @@ void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
 
 template <typename T>
 void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64_t* bx,
-                       const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t H, int64_t W, int64_t r,
-                       int64_t* oy, int64_t* ox, T* oc) {
+                       const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H, int64_t W,
+                       int64_t r, int64_t* oy, int64_t* ox, T* oc) {
   const int64_t HW = H * W;
   const T outside = T(1e30);
   at::parallel_for(0, H, std::max<int64_t>(2 * r + 1, row_grain(W)), [&](int64_t y0, int64_t y1) {
     const int64_t h0 = std::max<int64_t>(0, y0 - r), h1 = std::min(H, y1 + r);
     std::vector<T> cost(W), count(W), mean((h1 - h0) * W), share((h1 - h0) * W), column(W), in(W);
+    std::vector<int64_t> from(W);
+    std::vector<char> full(h1 - h0);  // rows whose every source lies in the frame
+    std::vector<char> uniform(h1 - h0);  // rows whose pixels all move alike: contiguous sources
+    std::vector<char> inside((h1 - h0) * W);  // each pixel's own source lies in the frame
+    for (int64_t y = h0; y < h1; ++y) {
+      bool same = true;
+      for (int64_t x = 1; x < W; ++x) same = same && by[y * W + x] == by[y * W] && bx[y * W + x] == bx[y * W];
+      uniform[y - h0] = same;
+    }
     for (size_t i = 0; i < offs.size(); ++i) {
       const int64_t a = offs[i].first, b = offs[i].second;
       for (int64_t y = h0; y < h1; ++y) {
-        for (int64_t x = 0; x < W; ++x) {
-          const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
-          if (sy < 0 || sy >= H || sx < 0 || sx >= W) {
-            cost[x] = count[x] = T(0);
-            continue;
+        bool all_inside = true;
+        if (uniform[y - h0]) {
+          const int64_t sy = y + by[y * W] + a, shift = bx[y * W] + b;
+          const int64_t x0 = sy < 0 || sy >= H ? W : std::clamp<int64_t>(-shift, 0, W);
+          const int64_t x1 = sy < 0 || sy >= H ? W : std::clamp<int64_t>(W - shift, x0, W);
+          all_inside = x0 == 0 && x1 == W;
+          std::fill(cost.begin(), cost.begin() + x0, T(0));
+          std::fill(cost.begin() + x1, cost.end(), T(0));
+          std::fill(count.begin(), count.end(), T(0));
+          std::fill(count.begin() + x0, count.begin() + x1, T(1));
+          for (int64_t c = 0; c < C && x0 < x1; ++c) {  // each pixel's terms in channel order
+            const T* t = to + c * HW + y * W;
+            const T* sc = src + c * HW + sy * W + shift;
+            if (c == 0)
+              for (int64_t x = x0; x < x1; ++x) cost[x] = std::abs(t[x] - sc[x]);
+            else
+              for (int64_t x = x0; x < x1; ++x) cost[x] += std::abs(t[x] - sc[x]);
           }
-          const int64_t q = sy * W + sx;
-          cost[x] = std::abs(to[p] - src[q]) + std::abs(to[HW + p] - src[HW + q]) +
-                    std::abs(to[2 * HW + p] - src[2 * HW + q]);
-          count[x] = T(1);
+        } else {
+          for (int64_t x = 0; x < W; ++x) {
+            const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
+            const bool inside = sy >= 0 && sy < H && sx >= 0 && sx < W;
+            from[x] = inside ? sy * W + sx : y * W + x;  // (outside: any pixel, its cost is not counted)
+            count[x] = inside ? T(1) : T(0);
+          }
+          for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
+            const T* t = to + c * HW + y * W;
+            const T* sc = src + c * HW;
+            if (c == 0)
+              for (int64_t x = 0; x < W; ++x) cost[x] = std::abs(t[x] - sc[from[x]]);
+            else
+              for (int64_t x = 0; x < W; ++x) cost[x] += std::abs(t[x] - sc[from[x]]);
+          }
+          for (int64_t x = 0; x < W; ++x) {
+            all_inside = all_inside && count[x] > T(0);
+            cost[x] = count[x] > T(0) ? cost[x] : T(0);
+          }
         }
+        for (int64_t x = 0; x < W; ++x) inside[(y - h0) * W + x] = count[x] > T(0);
         box_row_mean(cost.data(), W, r, mean.data() + (y - h0) * W);
-        box_row_mean(count.data(), W, r, share.data() + (y - h0) * W);
+        full[y - h0] = all_inside;
+        if (!all_inside) box_row_mean(count.data(), W, r, share.data() + (y - h0) * W);
       }
       for (int64_t y = y0; y < y1; ++y) {
         const int64_t lo = std::max<int64_t>(0, y - r), hi = std::min(H - 1, y + r);
         const T n = T(hi - lo + 1);
+        bool every = true;
+        for (int64_t k = lo; k <= hi; ++k) every = every && full[k - h0];
         std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
-        std::copy(share.data() + (lo - h0) * W, share.data() + (lo - h0 + 1) * W, in.data());
         for (int64_t k = lo + 1; k <= hi; ++k) {
           const T* row = mean.data() + (k - h0) * W;
-          const T* row_in = share.data() + (k - h0) * W;
           for (int64_t x = 0; x < W; ++x) column[x] += row[x];
-          for (int64_t x = 0; x < W; ++x) in[x] += row_in[x];
         }
-        for (int64_t x = 0; x < W; ++x) {
-          const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
-          const bool inside = sy >= 0 && sy < H && sx >= 0 && sx < W;
-          const T v = inside ? (column[x] / n) / (in[x] / n) : outside;
-          if (i == 0 || v < oc[p]) {
-            oc[p] = v;
-            oy[p] = by[p] + a;
-            ox[p] = bx[p] + b;
+        if (every) {  // the mean of ones, exactly
+          std::fill(in.begin(), in.end(), n);
+        } else {
+          for (int64_t k = lo; k <= hi; ++k) {
+            const T* row_in = share.data() + (k - h0) * W;
+            if (full[k - h0])
+              for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? T(1) : in[x] + T(1);
+            else
+              for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? row_in[x] : in[x] + row_in[x];
           }
+        }
+        const char* own = inside.data() + (y - h0) * W;
+        if (every)  // the count's mean is 1, exactly
+          for (int64_t x = 0; x < W; ++x) column[x] = own[x] ? column[x] / n : outside;
+        else
+          for (int64_t x = 0; x < W; ++x) column[x] = own[x] ? (column[x] / n) / (in[x] / n) : outside;
+        T* c = oc + y * W;
+        int64_t* py = oy + y * W;
+        int64_t* px = ox + y * W;
+        const int64_t* qy = by + y * W;
+        const int64_t* qx = bx + y * W;
+        for (int64_t x = 0; x < W; ++x) {
+          const bool better = i == 0 || column[x] < c[x];
+          c[x] = better ? column[x] : c[x];
+          py[x] = better ? qy[x] + a : py[x];
+          px[x] = better ? qx[x] + b : px[x];
         }
       }
     }
@@ -1883,13 +1937,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> least_offset_cost_cpu(
   if (H * W == 0) return {oy, ox, oc};
   AT_DISPATCH_FLOATING_TYPES(to.scalar_type(), "least_offset_cost_cpu", [&] {
     least_offset_cost(to.data_ptr<scalar_t>(), source.data_ptr<scalar_t>(), dy.data_ptr<int64_t>(),
-                      dx.data_ptr<int64_t>(), offs, H, W, radius, oy.data_ptr<int64_t>(),
+                      dx.data_ptr<int64_t>(), offs, to.size(0), H, W, radius, oy.data_ptr<int64_t>(),
                       ox.data_ptr<int64_t>(), oc.data_ptr<scalar_t>());
   });
   return {oy, ox, oc};
 }
 
-// align._least_median_cost: for each offset, the lower median of the L1 position differences between to at
+// align._least_median_cost: for each offset, the lower median of the L1 differences between to at
 // the grid pixels (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none
 // do).
 at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& source_, const at::Tensor& ys_,
@@ -1899,7 +1953,7 @@ at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& sour
   TORCH_CHECK_VALUE(ys_.dim() == 1 && ys_.sizes() == xs_.sizes() && ys_.scalar_type() == at::kLong &&
                         xs_.scalar_type() == at::kLong,
                     op, ": ys and xs must be int64 (N,) alike, got ", ys_.sizes(), " and ", xs_.sizes());
-  const int64_t H = to_.size(1), W = to_.size(2), HW = H * W, N = ys_.size(0);
+  const int64_t C = to_.size(0), H = to_.size(1), W = to_.size(2), HW = H * W, N = ys_.size(0);
   const auto offs = offset_pairs(offsets, op);
   const at::Tensor to = to_.contiguous(), source = source_.contiguous();
   const at::Tensor ys = ys_.contiguous(), xs = xs_.contiguous();
@@ -1914,23 +1968,30 @@ at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& sour
     const T *pt = to.data_ptr<T>(), *ps = source.data_ptr<T>();
     T* po = out.data_ptr<T>();
     at::parallel_for(0, static_cast<int64_t>(offs.size()), 1, [&](int64_t i0, int64_t i1) {
-      std::vector<T> v;
-      v.reserve(N);
+      std::vector<T> v(N);
+      std::vector<int64_t> at(N), from(N);
       for (int64_t i = i0; i < i1; ++i) {
-        v.clear();
+        int64_t n = 0;
         for (int64_t g = 0; g < N; ++g) {
           const int64_t sy = py[g] + offs[i].first, sx = px[g] + offs[i].second;
           if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
-          const int64_t p = py[g] * W + px[g], q = sy * W + sx;
-          v.push_back(std::abs(pt[p] - ps[q]) + std::abs(pt[HW + p] - ps[HW + q]) +
-                      std::abs(pt[2 * HW + p] - ps[2 * HW + q]));
+          at[n] = py[g] * W + px[g];
+          from[n++] = sy * W + sx;
         }
-        if (v.empty()) {
+        for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
+          const T* t = pt + c * HW;
+          const T* sc = ps + c * HW;
+          if (c == 0)
+            for (int64_t g = 0; g < n; ++g) v[g] = std::abs(t[at[g]] - sc[from[g]]);
+          else
+            for (int64_t g = 0; g < n; ++g) v[g] += std::abs(t[at[g]] - sc[from[g]]);
+        }
+        if (n == 0) {
           po[i] = std::numeric_limits<T>::infinity();
           continue;
         }
-        const auto mid = v.begin() + (v.size() - 1) / 2;
-        std::nth_element(v.begin(), mid, v.end());
+        const auto mid = v.begin() + (n - 1) / 2;
+        std::nth_element(v.begin(), mid, v.begin() + n);
         po[i] = *mid;
       }
     });
