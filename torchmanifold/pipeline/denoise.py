@@ -307,9 +307,9 @@ class DenoiseSettings:
         temporal_radius: neighbour frames on each side that join the filter (0 = per frame); where a
             frame's pilot is too noisy to trust, every frame of ``joined_radius`` (:func:`_noisy_window`).
         align_frames: with a time window, each query frame's window is brought to its pixels where the view
-            moves (:mod:`~torchmanifold.pipeline.align`): the other frames' samples, guides and albedo, and its
-            neighbours' lent evidence, gathered by a flow found from the renderer's world positions, or without
-            them from its albedo, normals and depth. All frames from 1 / 4 spp, against leaving the windows as
+            moves (:mod:`~torchmanifold.pipeline.align`): the other frames' samples, guides and albedo, and
+            its neighbours' lent evidence, gathered by a flow found from the renderer's world positions, or
+            without them from its albedo, normals and depth. All frames from 1 / 4 spp, against leaving the windows as
             they are: the panning clips of the validation set `mi_dark_glossy` +0.39 / +0.59 dB,
             `mi_glass_mirror` +0.39 / +0.58, `bl_glass_caustic` +0.17 / +0.49, `bl_motion_blur` +0.05 / +0.08,
             the thin rods against the sky `mi_env_thin` -0.02 / -0.03 and `bl_env_thin` +0.04 / 0.00; at
@@ -818,8 +818,9 @@ class FrameState:
             gives none or no time window is used: they tell which samples of the window's other frames
             fall in a pixel (:func:`~torchmanifold.pipeline.footprint._window_albedo`).
         flow_field: ``(T, C, H, W)`` what the flows between a window's frames match
-            (:mod:`~torchmanifold.pipeline.align`): ``position``, or where the renderer gives none, the guide's
-            feature channels (albedo, normals, depth) over their range sigmas; ``None`` without a time window.
+            (:mod:`~torchmanifold.pipeline.align`): ``position``, or where the renderer gives none, the
+            guide's feature channels (albedo, normals, depth) over their range sigmas; ``None`` without a time
+            window.
         guide: ``(T, G, H, W)`` the filter's guide; sigmas ``(T, G)`` float64 its range sigmas.
         pooling: ``(T,)`` float64, the factor on ``selection_blur`` for each frame (1 but where the pilot is
             noisy, :func:`_selection_pooling`).
@@ -965,8 +966,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, flow_field, guide, sig,
-                       pooling, cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point, counts,
-                       fp, base)
+                       pooling, cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point,
+                       counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
