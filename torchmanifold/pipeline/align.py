@@ -40,8 +40,9 @@ _FINALISTS = 9
 #: pixel averages out
 _BOX = 3
 #: without positions, the share of the surface's grid pixels whose median cost picks the dominant offset:
-#: those where the features vary most (the Cycles clips' pans match at 0.02-0.5 of no move's median cost there; a
-#: half or a tenth scored within 0.03 dB of a quarter on the four panning Cycles clips, from 1 / 4 spp)
+#: those where the features vary most (the Cycles clips' pans match at 0.02-0.5 of no move's median cost
+#: there; a half or a tenth scored within 0.03 dB of a quarter on the four panning Cycles clips, from 1 / 4
+#: spp)
 _VARYING_SHARE = 0.25
 #: Each pixel's offset: within :data:`_REFINE` px of the dominant one, the one of least cost averaged over
 #: :data:`_POOL` px each way, where that is under :data:`_MARGIN` times the dominant one's cost (without the

@@ -309,8 +309,8 @@ class DenoiseSettings:
         align_frames: with a time window, each query frame's window is brought to its pixels where the view
             moves (:mod:`~torchmanifold.pipeline.align`): the other frames' samples, guides and albedo, and
             its neighbours' lent evidence, gathered by a flow found from the renderer's world positions, or
-            without them from its albedo, normals and depth. All frames from 1 / 4 spp, against leaving the windows as
-            they are: the panning clips of the validation set `mi_dark_glossy` +0.39 / +0.59 dB,
+            without them from its albedo, normals and depth. All frames from 1 / 4 spp, against leaving the
+            windows as they are: the panning clips of the validation set `mi_dark_glossy` +0.39 / +0.59 dB,
             `mi_glass_mirror` +0.39 / +0.58, `bl_glass_caustic` +0.17 / +0.49, `bl_motion_blur` +0.05 / +0.08,
             the thin rods against the sky `mi_env_thin` -0.02 / -0.03 and `bl_env_thin` +0.04 / 0.00; at
             256x256 +0.42 / +0.65, +0.32 / +0.50, +0.22 / +0.38, +0.04 / +0.11, -0.06 / -0.04, +0.03 / -0.02;
