@@ -40,9 +40,9 @@ blobs, texture blurs, lights bleed). :func:`denoise_frames` wraps the filter op 
    time, in the op's ``"spacetime"`` mode (no ghosts where things move) or ``"window"`` mode; each frame
    is also filtered alone at the narrow bandwidths, and the bandwidth selection keeps it where the window's
    frames disagree (a pan's edges; with colour alone nothing else tells a moving view's frames apart).
-   Where the renderer gives world positions and the view moves, the window's frames are first brought to
-   the query frame's pixels by a flow found from those positions (:mod:`~torchmanifold.pipeline.align`), and
-   so is the evidence its neighbours lend its bandwidth selection.
+   Where the view moves, the window's frames are first brought to the query frame's pixels by a flow found
+   from the renderer's world positions, or without them from its albedo, normals and depth
+   (:mod:`~torchmanifold.pipeline.align`), and so is the evidence its neighbours lend its bandwidth selection.
 8. **Pixel footprint** (:mod:`torchmanifold.pipeline.footprint`): a 1-spp pixel shows one point of its
    area, so thin geometry comes out dotted and texture speckled; the result is averaged over a pixel-sized
    footprint, in a tone-mapped domain and only among pixels of similar brightness, so a light's edge does
@@ -947,9 +947,9 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     counts.update(firefly_clamped_samples=0, firefly_energy=0.0, energy=0.0)
     fp = footprint_width(settings, samples_per_pixel)
     position = _position(f, names) if settings.temporal_radius > 0 else None  # used by a window alone
-    features = guide[:, :len(gnames)] / sig[:, :len(gnames), None, None].to(guide.dtype)
-    flow_field = None if settings.temporal_radius == 0 or not gnames else features if position is None \
-        else position
+    flow_field = position  # what the flows between a window's frames match, where there is a window
+    if flow_field is None and settings.temporal_radius > 0 and gnames:
+        flow_field = guide[:, :len(gnames)] / sig[:, :len(gnames), None, None].to(guide.dtype)
     point = _known_count(samples_per_pixel) and float(samples_per_pixel) == 1
     # the demodulated pixels; every pixel of a frame that has no albedo to demodulate by
     demodulated = ~flat | _flat_frames(flat)
