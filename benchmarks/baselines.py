@@ -338,10 +338,12 @@ def benchmark_methods(sigma_s: float = 8.0, sigma_r: float = 0.3, sigma_t: float
                    {"sigma_s": sigma_s, "sigma_r": sigma_r, "sigma_t": sigma_t, "mode": m}, temporal=True)
             for m in ("window", "spacetime")]
     pipe_ok = _probe("torchmanifold.pipeline", "denoise_frames")
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER
     out += [_entry("ours-pipeline", "ours", _pipeline, pipe_ok, raw_input=True),
-            # the denoise command's default: +-1 frame, joint space-time, each frame prepared once
+            # the denoise command's default (COMMAND_FILTER: +-2 frames, joint space-time), each frame
+            # prepared once
             _entry("ours-pipeline-spacetime", "ours-spacetime", _PipelineStream(), pipe_ok,
-                   {"temporal_radius": 1, "mode": "spacetime"}, temporal=True, raw_input=True, streams=True)]
+                   {**COMMAND_FILTER, "mode": "spacetime"}, temporal=True, raw_input=True, streams=True)]
     return out
 
 

@@ -4,7 +4,7 @@
 
 Each clip is a ``--size`` crop of the shared Mitsuba clip's frames, repeated and brightened per frame (so
 no two frames are equal), written as EXR files; each ``denoise`` run is its own process, with the CLI's
-default settings (+-1 frame space-time window), and its peak resident memory is read from
+default settings (+-2 frames space-time window), and its peak resident memory is read from
 ``getrusage(RUSAGE_CHILDREN)`` of a fresh driver process. Writes ``results/memory.json``.
 """
 from __future__ import annotations

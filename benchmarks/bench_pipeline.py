@@ -20,6 +20,7 @@ import torch
 from torchmanifold import metrics as M
 from torchmanifold.io import read_exr
 from torchmanifold.pipeline import DenoiseSettings, denoise_frames
+from torchmanifold.pipeline.denoise_files import COMMAND_FILTER
 from torchmanifold.pipeline.job import spp_to_match, write_chart
 from torchmanifold.pipeline.progressive import ProgressiveRenderer, gaussian_baseline
 
@@ -46,14 +47,15 @@ def _save(name: str, data: dict) -> None:
 
 
 def test_denoise_mitsuba(benchmark, quick):
-    """`denoise` defaults (tree height 3, +-1 frame space-time) on the 1-spp frames; per-frame variant beside."""
+    """`denoise` defaults (``COMMAND_FILTER``: +-2 frames in space-time) on the 1-spp frames; per-frame variant
+    beside."""
     frames = [0, 1, 2] if quick else list(range(12))
     c, f = _load("frame", frames)
     ref, _ = _load("reference", frames)
     c4, _ = _load("frame4spp", frames)
     variants = {
         "per_frame_h3": DenoiseSettings(tree_height=3),
-        "spacetime_r1_h3 (CLI default)": DenoiseSettings(tree_height=3, temporal_radius=1, mode="spacetime"),
+        "spacetime (CLI default)": DenoiseSettings(**COMMAND_FILTER),
     }
     if quick:
         variants = {"per_frame_h2": DenoiseSettings(tree_height=2)}

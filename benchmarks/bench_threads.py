@@ -120,10 +120,10 @@ def _clip_step(kind: str):
     from torchmanifold._threads import InOrder
     from torchmanifold.io.frames import read_render_frame
     from torchmanifold.pipeline.denoise import DenoiseSettings
-    from torchmanifold.pipeline.denoise_files import ClipWindow, denoise_files, denoised_frames
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER, ClipWindow, denoise_files, denoised_frames
 
     paths = sorted(DATA.glob("frame_00*.exr"))
-    settings = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=3)  # the command's default
+    settings = DenoiseSettings(**COMMAND_FILTER)  # the command's default
     out = Path(tempfile.mkdtemp())
     first = read_render_frame(paths[0])
 

@@ -25,6 +25,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from torchmanifold.pipeline.denoise_files import COMMAND_FILTER  # noqa: E402
+
+#: the ``denoise`` command's time window, as the tables name it
+_WINDOW = f"+-{COMMAND_FILTER['temporal_radius']}"
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 COLOURS = {"raw": "#555555", "gaussian": "#1f77b4", "joint-bilateral": "#2ca02c", "opencv-am": "#ff7f0e",
@@ -251,12 +256,12 @@ def validation_section(rel: str) -> list:
              f"![validation PSNR]({rel}/validation/psnr.png)", "",
              f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
              f"{meta.get('cpu_count')} cores, torch threads {meta.get('torch_threads')}. PSNR (dB, clamped sRGB, mean "
-             "over all frames); ours: each frame alone; ours +-1: the `denoise` command's default (the frames within "
-             "+-1 joined in space-time); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
+             f"over all frames); ours: each frame alone; ours {_WINDOW}: the `denoise` command's default (the frames "
+             f"within {_WINDOW} joined in space-time); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
              "scene, an oracle choice) and OpenCV `amFilter`; ms: median per frame of ours and OIDN in the same "
              "process, from 1 spp." + score_earlier_runs(res), "",
-             "| scene | split | raw 1 spp | best classic | OIDN | ours | ours +-1 | ours - OIDN | raw 4 spp | "
-             "best classic | OIDN | ours | ours +-1 | ms ours / OIDN |", "|---" * 14 + "|"]
+             f"| scene | split | raw 1 spp | best classic | OIDN | ours | ours {_WINDOW} | ours - OIDN | raw 4 spp | "
+             f"best classic | OIDN | ours | ours {_WINDOW} | ms ours / OIDN |", "|---" * 14 + "|"]
     cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours", "st")} for spp in ("1", "4")}
     for name, sc in res["scenes"].items():
         cells = []
@@ -320,7 +325,7 @@ def temporal_section(res: dict, rel: str) -> list:
             "(`torchmanifold.metrics.temporal_psnr`: flicker costs, an error that stays put does not), from 1 / 4 "
             "spp; best classic: the best of the classic filters on this measure.", "",
             f"![validation temporal PSNR]({rel}/validation/tpsnr.png)", "",
-            "| scene | raw | best classic | OIDN | ours | ours +-1 |", "|---" * 6 + "|", *rows,
+            f"| scene | raw | best classic | OIDN | ours | ours {_WINDOW} |", "|---" * 6 + "|", *rows,
             f"| **mean** | {mean} |", ""]
 
 

@@ -164,7 +164,7 @@ def _reuse_freed_memory() -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from torchmanifold.pipeline.denoise_files import OUTPUT_LAYOUTS
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER, OUTPUT_LAYOUTS
     from torchmanifold.pipeline.render_job import RENDER_DEFAULTS
     from torchmanifold.pipeline.schedule import DEFAULT_ALPHA
     from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER, SCHEMES
@@ -225,7 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_threads_arg(d)
     # denoise filters each frame once and can afford one more level: against the brute-force filter
     # H=3 gives 33-37 dB where H=2 gives 29-37 (docs/adaptive-manifolds.md, "Accuracy")
-    _add_filter_args(d, temporal_radius=1, mode="spacetime", tree_height=3)
+    _add_filter_args(d, temporal_radius=COMMAND_FILTER["temporal_radius"], mode="spacetime", tree_height=3)
     _add_engine_args(d)
     return p
 

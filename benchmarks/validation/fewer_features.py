@@ -7,7 +7,7 @@ auxiliary images, no depth or positions).
 Per scene, from 1 and 4 spp, over all frames (PSNR on clamped sRGB, mean over frames, this run): the raw
 input; a Gaussian blur (the best of sigma 1/2/4/8 per scene, as ``score.py``'s); Intel OIDN (``pyoidn``,
 ``hdr=True``) from colour alone and from colour, albedo and normal; ours, the ``denoise`` command's default
-(``DenoiseSettings(temporal_radius=1)``) given no feature channel (``ours, colour``), the scene's normals,
+(``DenoiseSettings(**COMMAND_FILTER)``) given no feature channel (``ours, colour``), the scene's normals,
 depth and positions (``ours, no albedo``) and its albedo and normal (``ours, albedo + normal``).
 :func:`torchmanifold.pipeline.denoise.adapt_to_features` adds two narrower bandwidth candidates where no
 albedo guides, and filters each frame alone for colour alone, guided by the pilot's log radiance and
@@ -38,6 +38,7 @@ def scene_scores(path: Path, spp: int) -> dict:
     from torchmanifold import metrics
     from torchmanifold.features import canonical_name, group_of
     from torchmanifold.pipeline import DenoiseSettings, denoise_frames
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER
     from torchmanifold.pipeline.progressive import gaussian_baseline
 
     ds, _ = score.load_scene(path, spp)
@@ -63,7 +64,7 @@ def scene_scores(path: Path, spp: int) -> dict:
                         ("ours, albedo + normal", albedo + normal)):
         t0 = time.perf_counter()
         out = denoise_frames(x, ds.features[:, feats], [ds.names[k] for k in feats],
-                             settings=DenoiseSettings(temporal_radius=1),
+                             settings=DenoiseSettings(**COMMAND_FILTER),
                              frame_times=[float(t) for t in ds.times], samples_per_pixel=ds.samples_per_pixel)
         res[name] = psnr(out)
         res[f"{name} ms/frame"] = (time.perf_counter() - t0) * 1e3 / len(x)

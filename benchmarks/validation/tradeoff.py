@@ -33,7 +33,7 @@ import harness  # noqa: E402
 import score  # noqa: E402
 
 OUT = score.OUT
-#: the command's default (``torchmanifold denoise``: +-1 frame space-time, tree height 3 at ``sigma_s`` and one
+#: the command's default (``torchmanifold denoise``: +-2 frames space-time, tree height 3 at ``sigma_s`` and one
 #: level more per doubling of a wider candidate), variants of it that change one thing, and the two cheapest
 #: changes that lose least together
 VARIANTS = {
@@ -54,7 +54,9 @@ VARIANTS = {
 def settings_of(variant: dict):
     from torchmanifold.pipeline.denoise import DenoiseSettings
 
-    return DenoiseSettings(**{"temporal_radius": 1, "mode": "spacetime", "tree_height": 3, **variant}).check()
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER
+
+    return DenoiseSettings(**{**COMMAND_FILTER, "mode": "spacetime", "tree_height": 3, **variant}).check()
 
 
 def clip_files(path: Path, spp: int) -> list[Path]:

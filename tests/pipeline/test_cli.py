@@ -224,18 +224,17 @@ def test_tree_height_is_checked_and_its_default_shown(tmp_path, capsys):
 
 def test_each_command_filters_with_its_engine_defaults():
     """Every setting the CLI exposes defaults to what its engine uses: the progressive loop's
-    (PROGRESSIVE_FILTER) for render, DenoiseSettings' for denoise (the command's +-1 space-time aside)."""
-    from dataclasses import replace
-
+    (PROGRESSIVE_FILTER) for render, the command's own (COMMAND_FILTER) for denoise."""
     from torchmanifold.cli import _settings, build_parser
     from torchmanifold.pipeline import DenoiseSettings
+    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER
     from torchmanifold.pipeline.progressive import PROGRESSIVE_FILTER
 
     sub = build_parser()._subparsers._group_actions[0].choices
     render = _settings(sub["render"].parse_args(["--out", "o"]))
     denoise = _settings(sub["denoise"].parse_args(["x", "--out", "o"]))
     assert render == DenoiseSettings(**PROGRESSIVE_FILTER)
-    assert denoise == replace(DenoiseSettings(), temporal_radius=1)
+    assert denoise == DenoiseSettings(**COMMAND_FILTER)
     assert render.selection_softness != denoise.selection_softness
     args = sub["render"].parse_args(["--out", "o", "--selection-softness", "0.8"])
     assert _settings(args).selection_softness == 0.8

@@ -27,6 +27,12 @@ from torchmanifold.timewindow import index_window
 __all__ = ["denoise_files", "clip_summary", "denoised_frames", "denoise_window", "prepared_window",
            "filter_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
+#: the ``denoise`` command's filter, where it differs from :class:`DenoiseSettings`' defaults: the frames within
+#: +-2 join in space-time (brought to each query's pixels, ``align_frames``). All frames from 1 / 4 spp against
+#: +-1: the validation set +0.11 / +0.11 dB, its clips at 256x256 +0.12 / +0.12 (Mitsuba) and +0.10 / +0.11
+#: (Cycles), the probes +0.13 / +0.14, no clip below -0.01; +-3 the set +0.03 / +0.03 more. The frame step of a
+#: 12-frame 256x256 clip takes 1.0-1.16 times as long (two threads) (``benchmarks/validation/findings.md``)
+COMMAND_FILTER = {"temporal_radius": 2}
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
 OUTPUT_LAYOUTS = ("input", "plain")
@@ -241,7 +247,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     Args:
         inputs: the frame files, in order.
         out: output folder (new or empty unless ``overwrite``; it must not hold any input).
-        settings: :class:`DenoiseSettings` (default: ``DenoiseSettings(temporal_radius=1)``).
+        settings: :class:`DenoiseSettings` (default: the command's, ``DenoiseSettings(**COMMAND_FILTER)``).
         color_channels: the three colour channels to denoise (``None``: ``R, G, B`` or Blender's
             ``<layer>.Combined.R/G/B``).
         feature_channels: features to read, by any name the feature table knows or a file channel
@@ -275,7 +281,7 @@ def denoise_files(inputs: Sequence[str | os.PathLike], out, settings: DenoiseSet
     from tqdm.auto import tqdm
 
     inputs, outp = _check_inputs(inputs, out, output_layout)
-    settings = (settings or DenoiseSettings(temporal_radius=1)).check()
+    settings = (settings or DenoiseSettings(**COMMAND_FILTER)).check()
     # the first frame fixes the features; fail on it before creating anything
     first = read_render_frame(inputs[0], color_channels, feature_channels, layer)
     fnames = first.feature_names
