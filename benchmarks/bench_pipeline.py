@@ -47,8 +47,8 @@ def _save(name: str, data: dict) -> None:
 
 
 def test_denoise_mitsuba(benchmark, quick):
-    """`denoise` defaults (``COMMAND_FILTER``: +-2 frames in space-time) on the 1-spp frames; per-frame variant
-    beside."""
+    """`denoise` defaults (``COMMAND_FILTER``: +-2 frames in space-time) on the 1-spp frames; per-frame
+    variant beside."""
     frames = [0, 1, 2] if quick else list(range(12))
     c, f = _load("frame", frames)
     ref, _ = _load("reference", frames)

@@ -120,7 +120,8 @@ def _clip_step(kind: str):
     from torchmanifold._threads import InOrder
     from torchmanifold.io.frames import read_render_frame
     from torchmanifold.pipeline.denoise import DenoiseSettings
-    from torchmanifold.pipeline.denoise_files import COMMAND_FILTER, ClipWindow, denoise_files, denoised_frames
+    from torchmanifold.pipeline.denoise_files import (COMMAND_FILTER, ClipWindow, denoise_files,
+                                                      denoised_frames)
 
     paths = sorted(DATA.glob("frame_00*.exr"))
     settings = DenoiseSettings(**COMMAND_FILTER)  # the command's default

@@ -256,11 +256,13 @@ def validation_section(rel: str) -> list:
              f"![validation PSNR]({rel}/validation/psnr.png)", "",
              f"Run {meta.get('date_utc', '?')}, commit `{meta.get('git_commit', '')[:10]}`, "
              f"{meta.get('cpu_count')} cores, torch threads {meta.get('torch_threads')}. PSNR (dB, clamped sRGB, mean "
-             f"over all frames); ours: each frame alone; ours {_WINDOW}: the `denoise` command's default (the frames "
-             f"within {_WINDOW} joined in space-time); best classic: the best of Gaussian, joint bilateral (each at its best setting per "
+             f"over all frames); ours: each frame alone; ours {_WINDOW}: the `denoise` command's default "
+             f"(the frames within {_WINDOW} joined in space-time); best classic: the best of Gaussian, joint "
+             "bilateral (each at its best setting per "
              "scene, an oracle choice) and OpenCV `amFilter`; ms: median per frame of ours and OIDN in the same "
              "process, from 1 spp." + score_earlier_runs(res), "",
-             f"| scene | split | raw 1 spp | best classic | OIDN | ours | ours {_WINDOW} | ours - OIDN | raw 4 spp | "
+             f"| scene | split | raw 1 spp | best classic | OIDN | ours | ours {_WINDOW} | ours - OIDN | "
+             "raw 4 spp | "
              f"best classic | OIDN | ours | ours {_WINDOW} | ms ours / OIDN |", "|---" * 14 + "|"]
     cols = {spp: {k: [] for k in ("raw", "classic", "oidn", "ours", "st")} for spp in ("1", "4")}
     for name, sc in res["scenes"].items():

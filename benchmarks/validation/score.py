@@ -7,7 +7,8 @@ those of ``benchmarks/baselines.py`` run through ``benchmarks/harness.py`` exact
 them: raw input; Gaussian blur (best of sigma 1/2/4/8 per scene); kornia joint bilateral and OpenCV ``amFilter``
 guided by albedo + normal + depth (demodulated colour, the harness' preprocessing); Intel OIDN (``pyoidn``,
 albedo + normal, ``hdr=True``); ours (``torchmanifold.pipeline.denoise_frames``, default settings, each frame
-alone) and ours-spacetime (the ``denoise`` command's default: the frames within +-2 join in space-time). Scores:
+alone) and ours-spacetime (the ``denoise`` command's default: the frames within +-2 join in space-time).
+Scores:
 PSNR (clamped sRGB, mean over frames), relMSE (linear, ``mean((x-r)^2/(r^2+0.01))``), FLIP (LDR sRGB), and
 ms/frame (median, this machine, this run). Where a clip has a mask of moving objects, PSNR inside and outside it;
 where it has a second reference, the PSNR of one reference against the other (a ceiling for every method).
@@ -280,7 +281,8 @@ def markdown(results: dict, split: dict) -> str:
              + earlier_runs(results), "",
              "PSNR: clamped sRGB, mean over frames (dB, higher is better). relMSE: linear. FLIP: LDR sRGB (lower is "
              "better). Gaussian and joint bilateral: the best of their settings on each scene (an oracle choice). "
-             "`ours`: each frame alone; `ours-spacetime`: the `denoise` command's default, +-2 frames joined in "
+             "`ours`: each frame alone; `ours-spacetime`: the `denoise` command's default, +-2 frames joined "
+             "in "
              "space-time. Filters other than OIDN and ours see colour / albedo with an albedo + normal + depth guide "
              "(`benchmarks/harness.py`). `ref agree`: PSNR of a second independent reference against the reference "
              "(a ceiling on every score) where the clip has one.", ""]

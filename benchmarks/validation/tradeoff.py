@@ -33,9 +33,9 @@ import harness  # noqa: E402
 import score  # noqa: E402
 
 OUT = score.OUT
-#: the command's default (``torchmanifold denoise``: +-2 frames space-time, tree height 3 at ``sigma_s`` and one
-#: level more per doubling of a wider candidate), variants of it that change one thing, and the two cheapest
-#: changes that lose least together
+#: the command's default (``torchmanifold denoise``: +-2 frames space-time, tree height 3 at ``sigma_s`` and
+#: one level more per doubling of a wider candidate), variants of it that change one thing, and the two
+#: cheapest changes that lose least together
 VARIANTS = {
     "default": {},
     "bandwidths 0.5 to 8": {"bandwidths": (0.5, 1.0, 2.0, 4.0, 8.0)},

@@ -104,7 +104,7 @@ def _median_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
         H, W = source.shape[-2:]
         pad = max(max(abs(dy), abs(dx)) for dy, dx in offsets)
         padded = F.pad(source[None], (pad, pad, pad, pad), value=float("nan"))[0].flatten(1)
-        off = torch.tensor(offsets)
+        off = torch.tensor(offsets, device=ys.device)
         index = (ys[None] + pad + off[:, :1]) * (W + 2 * pad) + xs[None] + pad + off[:, 1:]
         cost = (to[:, ys, xs][:, None] - padded[:, index]).abs().sum(0)  # (offsets, grid pixels)
         median = torch.nan_to_num(cost.nanmedian(1).values, nan=math.inf)
@@ -158,9 +158,9 @@ def _moved(dy: Tensor, dx: Tensor) -> Flow:
 
 
 def _pooled_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor) -> Tensor:
-    """The L1 position difference of each pixel moved by ``(dy, dx)``, averaged over :data:`_POOL` pixels
-    each way, those whose source lies in the frame: ``(H, W)``, :data:`_OUTSIDE` where the pixel's own
-    does not."""
+    """The L1 difference of each pixel's features and those of its source moved by ``(dy, dx)``, averaged
+    over :data:`_POOL` pixels each way, those whose source lies in the frame: ``(H, W)``, :data:`_OUTSIDE`
+    where the pixel's own does not."""
     flow = _moved(dy, dx)
     inside = flow.inside
     cost, count = torch.where(inside, (to - gather(source, flow)).abs().sum(0), 0.0), inside.to(to.dtype)
@@ -314,6 +314,6 @@ class WindowAlignment:
         return torch.stack([gather(x[j], self.flow(k, j) if j in near else None, weights)
                             for j in range(x.shape[0])])
 
-    def frame(self, x: Tensor, k: int, j: int, weights: bool = False) -> Tensor:
+    def frame(self, x: Tensor, k: int, j: int) -> Tensor:
         """``x`` ``(..., H, W)`` of frame ``j`` at frame ``k``'s pixels (:func:`gather`)."""
-        return gather(x, self.flow(k, j), weights)
+        return gather(x, self.flow(k, j))

@@ -27,11 +27,12 @@ from torchmanifold.timewindow import index_window
 __all__ = ["denoise_files", "clip_summary", "denoised_frames", "denoise_window", "prepared_window",
            "filter_window", "ClipWindow", "OUTPUT_LAYOUTS"]
 
-#: the ``denoise`` command's filter, where it differs from :class:`DenoiseSettings`' defaults: the frames within
-#: +-2 join in space-time (brought to each query's pixels, ``align_frames``). All frames from 1 / 4 spp against
-#: +-1: the validation set +0.11 / +0.11 dB, its clips at 256x256 +0.12 / +0.12 (Mitsuba) and +0.10 / +0.11
-#: (Cycles), the probes +0.13 / +0.14, no clip below -0.01; +-3 the set +0.03 / +0.03 more. The frame step of a
-#: 12-frame 256x256 clip takes 1.0-1.16 times as long (two threads) (``benchmarks/validation/findings.md``)
+#: the ``denoise`` command's filter, where it differs from :class:`DenoiseSettings`' defaults: the frames
+#: within +-2 join in space-time (brought to each query's pixels, ``align_frames``). All frames from 1 / 4 spp
+#: against +-1: the validation set +0.11 / +0.11 dB, its clips at 256x256 +0.12 / +0.12 (Mitsuba) and +0.10 /
+#: +0.11 (Cycles), the probes +0.13 / +0.14, no clip below -0.01; +-3 the set +0.03 / +0.03 more. The frame
+#: step of a 12-frame 256x256 clip takes 1.0-1.16 times as long (two threads)
+#: (``benchmarks/validation/findings.md``)
 COMMAND_FILTER = {"temporal_radius": 2}
 #: ``"input"``: colour written back under the channels it was read from (Blender: ``<layer>.Combined``);
 #: ``"plain"``: ``R, G, B``
