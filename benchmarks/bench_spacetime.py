@@ -1,8 +1,8 @@
 """The space-time mode: C++ kernel against the pure-PyTorch reference, 1 and 2 threads, in one run.
 
 Run: ``.venv/bin/python benchmarks/bench_spacetime.py [--repeats 5]``; writes
-``benchmarks/results/spacetime.json``. One query at the middle of a window of 3 frames (the ``render`` /
-progressive loop's +-1 frame), 3 value channels, a 9-channel guide (albedo, normal, position as
+``benchmarks/results/spacetime.json``. One query at the middle of a window of 3 frames (+-1 frame),
+3 value channels, a 9-channel guide (albedo, normal, position as
 the default guide), float32, sigma_s 5 / sigma_r 0.3 / tree height 2 (the :class:`DenoiseSettings` defaults),
 at 128x96 (the render job) and 256x256. Median of ``--repeats`` calls after a warm-up, backends and thread
 counts alternating call by call in one process with ``OMP_WAIT_POLICY=PASSIVE`` (see bench_threads.py), so

@@ -82,7 +82,7 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
   // the pixel's own does not) is least (the first on a tie): dy, dx, cost.
   m.def("_least_offset_cost(Tensor to, Tensor source, Tensor dy, Tensor dx, int[] offsets, int radius) "
         "-> (Tensor, Tensor, Tensor)");
-  // align._least_median_cost's costs: to and source (C, H, W), grid pixels ys, xs (int64 (N,)), offsets (a
+  // align._median_costs: to and source (C, H, W), grid pixels ys, xs (int64 (N,)), offsets (a
   // flat list of (dy, dx) pairs) -> (O,) the lower median over the grid of each offset's L1
   // differences (those inside the frame; inf where none is).
   m.def("_median_offset_costs(Tensor to, Tensor source, Tensor ys, Tensor xs, int[] offsets) -> Tensor");

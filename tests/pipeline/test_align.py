@@ -1,4 +1,5 @@
-"""The time window brought to the query frame's pixels by world positions (torchmanifold.pipeline.align)."""
+"""The time window brought to the query frame's pixels by matching the samples' features
+(torchmanifold.pipeline.align)."""
 import pytest
 import torch
 from _pipeline_data import validation_clip

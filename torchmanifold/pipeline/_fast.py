@@ -211,7 +211,7 @@ def footprint_samples(p: Tensor, others: Tensor, albedo: Tensor, valid: Tensor, 
 @parallel
 def least_offset_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor, offsets: list[tuple[int, int]],
                       radius: int) -> tuple[Tensor, Tensor, Tensor]:
-    """``align._least_cost``: positions to, source ``(3, H, W)``, offsets dy, dx int64 ``(H, W)`` ->
+    """``align._least_cost``: matched features to, source ``(C, H, W)``, offsets dy, dx int64 ``(H, W)`` ->
     the offset dy, dx and pooled cost ``(H, W)`` of least cost among ``(dy, dx) + offsets``."""
     flat = [int(v) for o in offsets for v in o]
     return torch.ops.torchmanifold._least_offset_cost(to, source, dy, dx, flat, int(radius))
@@ -220,7 +220,7 @@ def least_offset_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor, offset
 @parallel
 def median_offset_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
                         offsets: list[tuple[int, int]]) -> Tensor:
-    """``align._least_median_cost``'s medians: positions to, source ``(3, H, W)``, grid pixels ys, xs int64
+    """``align._median_costs``: matched features to, source ``(C, H, W)``, grid pixels ys, xs int64
     ``(N,)`` -> ``(O,)``."""
     flat = [int(v) for o in offsets for v in o]
     return torch.ops.torchmanifold._median_offset_costs(to, source, ys, xs, flat)

@@ -778,7 +778,7 @@ def _side_by_side(threads: int, color: Tensor, features: Tensor, names: list[str
         return prepare_frames(color[k:k + 1], features[k:k + 1], names, one(emission, k), settings, sigma_s,
                               range_scale, one(pilot, k), firefly_k, samples_per_pixel)
 
-    candidates = ClipCache()  # each query's, filtered once for its blend and its neighbours'
+    candidates = ClipCache()  # each query's candidates and the flows between frames, made once
 
     def filter_query(q: float) -> Tensor:
         ids = window(ft, q, settings.window_radius)

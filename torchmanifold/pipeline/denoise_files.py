@@ -123,7 +123,7 @@ class ClipWindow:
         self.notes = list(first.notes)
         self._window = SlidingFrames(self._read, self._prepare, {0: first})
         self._settings: DenoiseSettings | None = None
-        self.candidates = ClipCache()  # each query's bandwidth candidates, lent to its neighbours
+        self.candidates = ClipCache()  # each query's candidates, lent to its neighbours, and the flows
         self._reader = ThreadPoolExecutor(1, thread_name_prefix="exr-read")
         self._ahead: tuple[int, Future] | None = None
         self._pool = pool or InOrder(1, 1)  # one worker: each frame prepared at once, here

@@ -363,7 +363,7 @@ class ProgressiveRenderer:
             return prepare_frames(color, feats, list(res.feature_names), emis, settings, sig_s, rscale, pilot,
                                   k_ff, own_pixels=True)
 
-        candidates = ClipCache()  # each query's, filtered once for its blend and its neighbours'
+        candidates = ClipCache()  # each query's candidates and the flows between frames, made once
 
         def filter_query(states: list, ft: list[float], q: float, samples: Tensor):
             y, state = denoise_window_states(states, settings, ft, q, sig_s, rscale, candidates)

@@ -1797,11 +1797,7 @@ void check_positions(const at::Tensor& to, const at::Tensor& source, const char*
                     source.scalar_type());
 }
 
-// align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 difference of the C
-// channels) averaged over the (2 radius + 1)^2 box (along x, then along y; the pixels whose source lies in the
-// frame, a mean of the costs over a mean of those pixels) is least, the first on a tie; 1e30 where the pixel's
-// own source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
-// the same for any thread count.
+// align._box along one row: the mean of src over the 2r + 1 pixels around each one that lie in the row.
 template <typename T>
 void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
   std::fill(dst, dst + W, T(0));
@@ -1812,6 +1808,11 @@ void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
   for (int64_t x = 0; x < W; ++x) dst[x] /= T(std::min(W - 1, x + r) - std::max<int64_t>(0, x - r) + 1);
 }
 
+// align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 difference of the C
+// channels) averaged over the (2 radius + 1)^2 box (along x, then along y; the pixels whose source lies in the
+// frame, a mean of the costs over a mean of those pixels) is least, the first on a tie; 1e30 where the pixel's
+// own source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
+// the same for any thread count.
 template <typename T>
 void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64_t* bx,
                        const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H, int64_t W,
@@ -1943,7 +1944,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> least_offset_cost_cpu(
   return {oy, ox, oc};
 }
 
-// align._least_median_cost: for each offset, the lower median of the L1 differences between to at
+// align._median_costs: for each offset, the lower median of the L1 differences between to at
 // the grid pixels (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none
 // do).
 at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& source_, const at::Tensor& ys_,
