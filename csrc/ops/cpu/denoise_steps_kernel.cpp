@@ -1797,15 +1797,37 @@ void check_positions(const at::Tensor& to, const at::Tensor& source, const char*
                     source.scalar_type());
 }
 
-// align._box along one row: the mean of src over the 2r + 1 pixels around each one that lie in the row.
+// The number of pixels of a row within r of each x: box_row_mean's divisors.
 template <typename T>
-void box_row_mean(const T* src, int64_t W, int64_t r, T* dst) {
+std::vector<T> box_row_counts(int64_t W, int64_t r) {
+  std::vector<T> n(W);
+  for (int64_t x = 0; x < W; ++x) n[x] = T(std::min(W - 1, x + r) - std::max<int64_t>(0, x - r) + 1);
+  return n;
+}
+
+// align._box along one row: the mean of src over the 2r + 1 pixels around each one that lie in the row (n:
+// box_row_counts, so that the division runs on whole vectors).
+template <typename T>
+void box_row_mean(const T* src, int64_t W, int64_t r, const T* n, T* dst) {
+  if (r == 3 && W > 6) {  // align._POOL's: each pixel's seven terms in one vector pass, in the same order
+    const T* __restrict s = src;
+    T* __restrict d = dst;
+    for (int64_t x = 3; x < W - 3; ++x)
+      d[x] = (((((s[x - 3] + s[x - 2]) + s[x - 1]) + s[x]) + s[x + 1]) + s[x + 2]) + s[x + 3];
+    for (int64_t x : {int64_t(0), int64_t(1), int64_t(2), W - 3, W - 2, W - 1}) {
+      T sum = T(0);
+      for (int64_t k = std::max<int64_t>(-3, -x); k <= std::min<int64_t>(3, W - 1 - x); ++k) sum += s[x + k];
+      d[x] = sum;
+    }
+    for (int64_t x = 0; x < W; ++x) d[x] /= n[x];
+    return;
+  }
   std::fill(dst, dst + W, T(0));
   for (int64_t k = -r; k <= r; ++k) {  // whole rows at a time, each pixel's terms in order
     const int64_t lo = std::max<int64_t>(0, -k), hi = std::min(W, W - k);
     for (int64_t x = lo; x < hi; ++x) dst[x] += src[x + k];
   }
-  for (int64_t x = 0; x < W; ++x) dst[x] /= T(std::min(W - 1, x + r) - std::max<int64_t>(0, x - r) + 1);
+  for (int64_t x = 0; x < W; ++x) dst[x] /= n[x];
 }
 
 // align._least_cost: per pixel, the offset (dy, dx) + offsets[i] whose cost (the L1 difference of the C
@@ -1818,14 +1840,18 @@ void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64
                        const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H, int64_t W,
                        int64_t r, int64_t* oy, int64_t* ox, T* oc) {
   const int64_t HW = H * W;
-  const T outside = T(1e30);
-  at::parallel_for(0, H, std::max<int64_t>(2 * r + 1, row_grain(W)), [&](int64_t y0, int64_t y1) {
+  const std::vector<T> row_n = box_row_counts<T>(W, r);
+  // a task's box rows beyond its own are done twice: tasks of at least 8 box heights, and at least a task a
+  // thread where the frame has rows enough
+  const int64_t grain = std::max<int64_t>(8 * (2 * r + 1), std::min(row_grain(W), H / at::get_num_threads()));
+  at::parallel_for(0, H, grain, [&](int64_t y0, int64_t y1) {
     const int64_t h0 = std::max<int64_t>(0, y0 - r), h1 = std::min(H, y1 + r);
     std::vector<T> cost(W), count(W), mean((h1 - h0) * W), share((h1 - h0) * W), column(W), in(W);
     std::vector<int64_t> from(W);
     std::vector<char> full(h1 - h0);  // rows whose every source lies in the frame
     std::vector<char> uniform(h1 - h0);  // rows whose pixels all move alike: contiguous sources
-    std::vector<char> inside((h1 - h0) * W);  // each pixel's own source lies in the frame
+    std::vector<T> inside((h1 - h0) * W);  // 1 where each pixel's own source lies in the frame, else 0
+    std::vector<int32_t> pick((y1 - y0) * W);  // each pixel's offset of least cost so far
     for (int64_t y = h0; y < h1; ++y) {
       bool same = true;
       for (int64_t x = 1; x < W; ++x) same = same && by[y * W + x] == by[y * W] && bx[y * W + x] == bx[y * W];
@@ -1872,20 +1898,28 @@ void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64
             cost[x] = count[x] > T(0) ? cost[x] : T(0);
           }
         }
-        for (int64_t x = 0; x < W; ++x) inside[(y - h0) * W + x] = count[x] > T(0);
-        box_row_mean(cost.data(), W, r, mean.data() + (y - h0) * W);
+        std::copy(count.begin(), count.end(), inside.begin() + (y - h0) * W);
+        box_row_mean(cost.data(), W, r, row_n.data(), mean.data() + (y - h0) * W);
         full[y - h0] = all_inside;
-        if (!all_inside) box_row_mean(count.data(), W, r, share.data() + (y - h0) * W);
+        if (!all_inside) box_row_mean(count.data(), W, r, row_n.data(), share.data() + (y - h0) * W);
       }
       for (int64_t y = y0; y < y1; ++y) {
         const int64_t lo = std::max<int64_t>(0, y - r), hi = std::min(H - 1, y + r);
         const T n = T(hi - lo + 1);
         bool every = true;
         for (int64_t k = lo; k <= hi; ++k) every = every && full[k - h0];
-        std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
-        for (int64_t k = lo + 1; k <= hi; ++k) {
-          const T* row = mean.data() + (k - h0) * W;
-          for (int64_t x = 0; x < W; ++x) column[x] += row[x];
+        if (hi - lo == 6) {  // align._POOL's: the seven rows in one vector pass, in the same order
+          const T* __restrict m = mean.data() + (lo - h0) * W;
+          T* __restrict col = column.data();
+          for (int64_t x = 0; x < W; ++x)
+            col[x] = (((((m[x] + m[W + x]) + m[2 * W + x]) + m[3 * W + x]) + m[4 * W + x]) + m[5 * W + x]) +
+                     m[6 * W + x];
+        } else {
+          std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
+          for (int64_t k = lo + 1; k <= hi; ++k) {
+            const T* row = mean.data() + (k - h0) * W;
+            for (int64_t x = 0; x < W; ++x) column[x] += row[x];
+          }
         }
         if (every) {  // the mean of ones, exactly
           std::fill(in.begin(), in.end(), n);
@@ -1898,24 +1932,39 @@ void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64
               for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? row_in[x] : in[x] + row_in[x];
           }
         }
-        const char* own = inside.data() + (y - h0) * W;
+        // whole vectors: each pixel's cost, then the outside ones replaced, then the running least
+        T* __restrict sum = column.data();
+        const T* __restrict own = inside.data() + (y - h0) * W;
+        const T* __restrict share_in = in.data();
         if (every)  // the count's mean is 1, exactly
-          for (int64_t x = 0; x < W; ++x) column[x] = own[x] ? column[x] / n : outside;
+          for (int64_t x = 0; x < W; ++x) sum[x] = sum[x] / n;
         else
-          for (int64_t x = 0; x < W; ++x) column[x] = own[x] ? (column[x] / n) / (in[x] / n) : outside;
+          for (int64_t x = 0; x < W; ++x) sum[x] = (sum[x] / n) / (share_in[x] / n);
+        for (int64_t x = 0; x < W; ++x) sum[x] = own[x] > T(0) ? sum[x] : T(1e30);  // align._OUTSIDE
         T* c = oc + y * W;
-        int64_t* py = oy + y * W;
-        int64_t* px = ox + y * W;
-        const int64_t* qy = by + y * W;
-        const int64_t* qx = bx + y * W;
+        int32_t* p = pick.data() + (y - y0) * W;
+        if (i == 0) {
+          std::copy(column.begin(), column.end(), c);
+          std::fill(p, p + W, 0);
+          continue;
+        }
+        const int32_t here = static_cast<int32_t>(i);
+        const T* __restrict cost_x = column.data();
+        T* __restrict least = c;
+        int32_t* __restrict at = p;
         for (int64_t x = 0; x < W; ++x) {
-          const bool better = i == 0 || column[x] < c[x];
-          c[x] = better ? column[x] : c[x];
-          py[x] = better ? qy[x] + a : py[x];
-          px[x] = better ? qx[x] + b : px[x];
+          const bool better = cost_x[x] < least[x];
+          least[x] = better ? cost_x[x] : least[x];
+          at[x] = better ? here : at[x];
         }
       }
     }
+    for (int64_t y = y0; y < y1; ++y)
+      for (int64_t x = 0; x < W; ++x) {
+        const auto& o = offs[pick[(y - y0) * W + x]];
+        oy[y * W + x] = by[y * W + x] + o.first;
+        ox[y * W + x] = bx[y * W + x] + o.second;
+      }
   });
 }
 
