@@ -311,8 +311,18 @@ class WindowAlignment:
         """``x`` ``(T, ..., H, W)`` with the frames within ``radius`` of frame ``k`` brought to its pixels
         (:func:`gather`; ``weights``: 0 where a source lies outside its frame)."""
         near = set(self._others(k))
-        return torch.stack([gather(x[j], self.flow(k, j) if j in near else None, weights)
-                            for j in range(x.shape[0])])
+        flows = [self.flow(k, j) if j in near else None for j in range(x.shape[0])]
+        if x.requires_grad and torch.is_grad_enabled():
+            return torch.stack([gather(x[j], flow, weights) for j, flow in enumerate(flows)])
+        out = torch.empty(x.shape, dtype=x.dtype, device=x.device)  # each frame written in place
+        for j, flow in enumerate(flows):
+            if flow is None:
+                out[j].copy_(x[j])
+                continue
+            torch.index_select(x[j].flatten(-2), -1, flow.index, out=out[j].flatten(-2))
+            if weights:
+                out[j].mul_(flow.inside.to(out.dtype))
+        return out
 
     def frame(self, x: Tensor, k: int, j: int) -> Tensor:
         """``x`` ``(..., H, W)`` of frame ``j`` at frame ``k``'s pixels (:func:`gather`)."""

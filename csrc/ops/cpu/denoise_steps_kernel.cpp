@@ -1836,39 +1836,62 @@ void box_row_mean(const T* src, int64_t W, int64_t r, const T* n, T* dst) {
 // own source lies outside. Each task takes whole rows and the box rows around them, so every pixel's numbers are
 // the same for any thread count.
 template <typename T>
-void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64_t* bx,
-                       const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H, int64_t W,
-                       int64_t r, int64_t* oy, int64_t* ox, T* oc) {
+void least_offset_cost_rows(const T* to, const T* src, const int64_t* by, const int64_t* bx,
+                            const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H,
+                            int64_t W, int64_t r, const T* row_n, int64_t y0, int64_t y1, int64_t* oy,
+                            int64_t* ox, T* oc) {
+  // a function of its own, not the task's lambda: its sizes are locals, which the loops can keep in
+  // registers and run in whole vectors (a captured reference is read again after every store)
   const int64_t HW = H * W;
-  const std::vector<T> row_n = box_row_counts<T>(W, r);
-  // a task's box rows beyond its own are done twice: tasks of at least 8 box heights, and at least a task a
-  // thread where the frame has rows enough
-  const int64_t grain = std::max<int64_t>(8 * (2 * r + 1), std::min(row_grain(W), H / at::get_num_threads()));
-  at::parallel_for(0, H, grain, [&](int64_t y0, int64_t y1) {
-    const int64_t h0 = std::max<int64_t>(0, y0 - r), h1 = std::min(H, y1 + r);
-    std::vector<T> cost(W), count(W), mean((h1 - h0) * W), share((h1 - h0) * W), column(W), in(W);
-    std::vector<int64_t> from(W);
-    std::vector<char> full(h1 - h0);  // rows whose every source lies in the frame
-    std::vector<char> uniform(h1 - h0);  // rows whose pixels all move alike: contiguous sources
-    std::vector<T> inside((h1 - h0) * W);  // 1 where each pixel's own source lies in the frame, else 0
-    std::vector<int32_t> pick((y1 - y0) * W);  // each pixel's offset of least cost so far
+  const int64_t h0 = std::max<int64_t>(0, y0 - r), h1 = std::min(H, y1 + r);
+  std::vector<T> cost(W), count(W), mean((h1 - h0) * W), share((h1 - h0) * W), column(W), in(W);
+  std::vector<int64_t> from(W);
+  std::vector<char> full(h1 - h0);  // rows whose every source lies in the frame
+  std::vector<T> inside((h1 - h0) * W);  // 1 where each pixel's own source lies in the frame, else 0
+  std::vector<int32_t> pick((y1 - y0) * W);  // each pixel's offset of least cost so far
+  // each row's runs of pixels that move alike, whose sources lie side by side: from runs[first[y - h0] + k]
+  // to the next run's start (or the row's end)
+  std::vector<int64_t> runs, first(h1 - h0 + 1);
+  for (int64_t y = h0; y < h1; ++y) {
+    first[y - h0] = static_cast<int64_t>(runs.size());
+    for (int64_t x = 0; x < W; ++x)
+      if (x == 0 || by[y * W + x] != by[y * W + x - 1] || bx[y * W + x] != bx[y * W + x - 1]) runs.push_back(x);
+  }
+  first[h1 - h0] = static_cast<int64_t>(runs.size());
+  for (size_t i = 0; i < offs.size(); ++i) {
+    const int64_t a = offs[i].first, b = offs[i].second;
     for (int64_t y = h0; y < h1; ++y) {
-      bool same = true;
-      for (int64_t x = 1; x < W; ++x) same = same && by[y * W + x] == by[y * W] && bx[y * W + x] == bx[y * W];
-      uniform[y - h0] = same;
-    }
-    for (size_t i = 0; i < offs.size(); ++i) {
-      const int64_t a = offs[i].first, b = offs[i].second;
-      for (int64_t y = h0; y < h1; ++y) {
-        bool all_inside = true;
-        if (uniform[y - h0]) {
-          const int64_t sy = y + by[y * W] + a, shift = bx[y * W] + b;
-          const int64_t x0 = sy < 0 || sy >= H ? W : std::clamp<int64_t>(-shift, 0, W);
-          const int64_t x1 = sy < 0 || sy >= H ? W : std::clamp<int64_t>(W - shift, x0, W);
-          all_inside = x0 == 0 && x1 == W;
-          std::fill(cost.begin(), cost.begin() + x0, T(0));
-          std::fill(cost.begin() + x1, cost.end(), T(0));
-          std::fill(count.begin(), count.end(), T(0));
+      bool all_inside = true;
+      const int64_t start = first[y - h0], end = first[y - h0 + 1];
+      if (end - start > W / 8) {  // runs too short for whole vectors: each pixel's source
+        const int64_t* qy = by + y * W;
+        const int64_t* qx = bx + y * W;
+        for (int64_t x = 0; x < W; ++x) {
+          const int64_t sy = y + qy[x] + a, sx = x + qx[x] + b;
+          const bool in = sy >= 0 && sy < H && sx >= 0 && sx < W;
+          from[x] = in ? sy * W + sx : y * W + x;  // (outside: any pixel, its cost is not counted)
+          count[x] = in ? T(1) : T(0);
+          all_inside = all_inside && in;
+        }
+        for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
+          const T* t = to + c * HW + y * W;
+          const T* sc = src + c * HW;
+          if (c == 0)
+            for (int64_t x = 0; x < W; ++x) cost[x] = std::abs(t[x] - sc[from[x]]);
+          else
+            for (int64_t x = 0; x < W; ++x) cost[x] += std::abs(t[x] - sc[from[x]]);
+        }
+        for (int64_t x = 0; x < W; ++x) cost[x] = count[x] > T(0) ? cost[x] : T(0);
+      } else {
+        for (int64_t k = start; k < end; ++k) {  // each run's pixels in whole vectors
+          const int64_t s0 = runs[k], s1 = k + 1 < end ? runs[k + 1] : W;
+          const int64_t sy = y + by[y * W + s0] + a, shift = bx[y * W + s0] + b;
+          const int64_t x0 = sy < 0 || sy >= H ? s1 : std::clamp<int64_t>(-shift, s0, s1);
+          const int64_t x1 = sy < 0 || sy >= H ? s1 : std::clamp<int64_t>(W - shift, x0, s1);
+          all_inside = all_inside && x0 == s0 && x1 == s1;
+          std::fill(cost.begin() + s0, cost.begin() + x0, T(0));
+          std::fill(cost.begin() + x1, cost.begin() + s1, T(0));
+          std::fill(count.begin() + s0, count.begin() + s1, T(0));
           std::fill(count.begin() + x0, count.begin() + x1, T(1));
           for (int64_t c = 0; c < C && x0 < x1; ++c) {  // each pixel's terms in channel order
             const T* t = to + c * HW + y * W;
@@ -1878,93 +1901,87 @@ void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64
             else
               for (int64_t x = x0; x < x1; ++x) cost[x] += std::abs(t[x] - sc[x]);
           }
-        } else {
-          for (int64_t x = 0; x < W; ++x) {
-            const int64_t p = y * W + x, sy = y + by[p] + a, sx = x + bx[p] + b;
-            const bool inside = sy >= 0 && sy < H && sx >= 0 && sx < W;
-            from[x] = inside ? sy * W + sx : y * W + x;  // (outside: any pixel, its cost is not counted)
-            count[x] = inside ? T(1) : T(0);
-          }
-          for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
-            const T* t = to + c * HW + y * W;
-            const T* sc = src + c * HW;
-            if (c == 0)
-              for (int64_t x = 0; x < W; ++x) cost[x] = std::abs(t[x] - sc[from[x]]);
-            else
-              for (int64_t x = 0; x < W; ++x) cost[x] += std::abs(t[x] - sc[from[x]]);
-          }
-          for (int64_t x = 0; x < W; ++x) {
-            all_inside = all_inside && count[x] > T(0);
-            cost[x] = count[x] > T(0) ? cost[x] : T(0);
-          }
         }
-        std::copy(count.begin(), count.end(), inside.begin() + (y - h0) * W);
-        box_row_mean(cost.data(), W, r, row_n.data(), mean.data() + (y - h0) * W);
-        full[y - h0] = all_inside;
-        if (!all_inside) box_row_mean(count.data(), W, r, row_n.data(), share.data() + (y - h0) * W);
       }
-      for (int64_t y = y0; y < y1; ++y) {
-        const int64_t lo = std::max<int64_t>(0, y - r), hi = std::min(H - 1, y + r);
-        const T n = T(hi - lo + 1);
-        bool every = true;
-        for (int64_t k = lo; k <= hi; ++k) every = every && full[k - h0];
-        if (hi - lo == 6) {  // align._POOL's: the seven rows in one vector pass, in the same order
-          const T* __restrict m = mean.data() + (lo - h0) * W;
-          T* __restrict col = column.data();
-          for (int64_t x = 0; x < W; ++x)
-            col[x] = (((((m[x] + m[W + x]) + m[2 * W + x]) + m[3 * W + x]) + m[4 * W + x]) + m[5 * W + x]) +
-                     m[6 * W + x];
-        } else {
-          std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
-          for (int64_t k = lo + 1; k <= hi; ++k) {
-            const T* row = mean.data() + (k - h0) * W;
-            for (int64_t x = 0; x < W; ++x) column[x] += row[x];
-          }
+      std::copy(count.begin(), count.end(), inside.begin() + (y - h0) * W);
+      box_row_mean(cost.data(), W, r, row_n, mean.data() + (y - h0) * W);
+      full[y - h0] = all_inside;
+      if (!all_inside) box_row_mean(count.data(), W, r, row_n, share.data() + (y - h0) * W);
+    }
+    for (int64_t y = y0; y < y1; ++y) {
+      const int64_t lo = std::max<int64_t>(0, y - r), hi = std::min(H - 1, y + r);
+      const T n = T(hi - lo + 1);
+      bool every = true;
+      for (int64_t k = lo; k <= hi; ++k) every = every && full[k - h0];
+      if (hi - lo == 6) {  // align._POOL's: the seven rows in one vector pass, in the same order
+        const T* __restrict m = mean.data() + (lo - h0) * W;
+        T* __restrict col = column.data();
+        for (int64_t x = 0; x < W; ++x)
+          col[x] = (((((m[x] + m[W + x]) + m[2 * W + x]) + m[3 * W + x]) + m[4 * W + x]) + m[5 * W + x]) +
+                   m[6 * W + x];
+      } else {
+        std::copy(mean.data() + (lo - h0) * W, mean.data() + (lo - h0 + 1) * W, column.data());
+        for (int64_t k = lo + 1; k <= hi; ++k) {
+          const T* row = mean.data() + (k - h0) * W;
+          for (int64_t x = 0; x < W; ++x) column[x] += row[x];
         }
-        if (every) {  // the mean of ones, exactly
-          std::fill(in.begin(), in.end(), n);
-        } else {
-          for (int64_t k = lo; k <= hi; ++k) {
-            const T* row_in = share.data() + (k - h0) * W;
-            if (full[k - h0])
-              for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? T(1) : in[x] + T(1);
-            else
-              for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? row_in[x] : in[x] + row_in[x];
-          }
+      }
+      if (every) {  // the mean of ones, exactly
+        std::fill(in.begin(), in.end(), n);
+      } else {
+        for (int64_t k = lo; k <= hi; ++k) {
+          const T* row_in = share.data() + (k - h0) * W;
+          if (full[k - h0])
+            for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? T(1) : in[x] + T(1);
+          else
+            for (int64_t x = 0; x < W; ++x) in[x] = k == lo ? row_in[x] : in[x] + row_in[x];
         }
-        // whole vectors: each pixel's cost, then the outside ones replaced, then the running least
-        T* __restrict sum = column.data();
-        const T* __restrict own = inside.data() + (y - h0) * W;
-        const T* __restrict share_in = in.data();
-        if (every)  // the count's mean is 1, exactly
-          for (int64_t x = 0; x < W; ++x) sum[x] = sum[x] / n;
-        else
-          for (int64_t x = 0; x < W; ++x) sum[x] = (sum[x] / n) / (share_in[x] / n);
-        for (int64_t x = 0; x < W; ++x) sum[x] = own[x] > T(0) ? sum[x] : T(1e30);  // align._OUTSIDE
-        T* c = oc + y * W;
-        int32_t* p = pick.data() + (y - y0) * W;
-        if (i == 0) {
-          std::copy(column.begin(), column.end(), c);
-          std::fill(p, p + W, 0);
-          continue;
-        }
-        const int32_t here = static_cast<int32_t>(i);
-        const T* __restrict cost_x = column.data();
-        T* __restrict least = c;
-        int32_t* __restrict at = p;
-        for (int64_t x = 0; x < W; ++x) {
-          const bool better = cost_x[x] < least[x];
-          least[x] = better ? cost_x[x] : least[x];
-          at[x] = better ? here : at[x];
-        }
+      }
+      // whole vectors: each pixel's cost, then the outside ones replaced, then the running least
+      T* __restrict sum = column.data();
+      const T* __restrict own = inside.data() + (y - h0) * W;
+      const T* __restrict share_in = in.data();
+      if (every)  // the count's mean is 1, exactly
+        for (int64_t x = 0; x < W; ++x) sum[x] = sum[x] / n;
+      else
+        for (int64_t x = 0; x < W; ++x) sum[x] = (sum[x] / n) / (share_in[x] / n);
+      for (int64_t x = 0; x < W; ++x) sum[x] = own[x] > T(0) ? sum[x] : T(1e30);  // align._OUTSIDE
+      T* c = oc + y * W;
+      int32_t* p = pick.data() + (y - y0) * W;
+      if (i == 0) {
+        std::copy(column.begin(), column.end(), c);
+        std::fill(p, p + W, 0);
+        continue;
+      }
+      const int32_t here = static_cast<int32_t>(i);
+      const T* __restrict cost_x = column.data();
+      T* __restrict least = c;
+      int32_t* __restrict at = p;
+      for (int64_t x = 0; x < W; ++x) {
+        const bool better = cost_x[x] < least[x];
+        least[x] = better ? cost_x[x] : least[x];
+        at[x] = better ? here : at[x];
       }
     }
-    for (int64_t y = y0; y < y1; ++y)
-      for (int64_t x = 0; x < W; ++x) {
-        const auto& o = offs[pick[(y - y0) * W + x]];
-        oy[y * W + x] = by[y * W + x] + o.first;
-        ox[y * W + x] = bx[y * W + x] + o.second;
-      }
+  }
+  for (int64_t y = y0; y < y1; ++y)
+    for (int64_t x = 0; x < W; ++x) {
+      const auto& o = offs[pick[(y - y0) * W + x]];
+      oy[y * W + x] = by[y * W + x] + o.first;
+      ox[y * W + x] = bx[y * W + x] + o.second;
+    }
+}
+
+template <typename T>
+void least_offset_cost(const T* to, const T* src, const int64_t* by, const int64_t* bx,
+                       const std::vector<std::pair<int64_t, int64_t>>& offs, int64_t C, int64_t H, int64_t W,
+                       int64_t r, int64_t* oy, int64_t* ox, T* oc) {
+  const std::vector<T> row_n = box_row_counts<T>(W, r);
+  // a task's box rows beyond its own are done twice: tasks of at least 8 box heights, and at least a task a
+  // thread where the frame has rows enough
+  const int64_t grain = std::max<int64_t>(8 * (2 * r + 1), std::min(row_grain(W), H / at::get_num_threads()));
+  at::parallel_for(0, H, grain, [&](int64_t y0, int64_t y1) {
+    least_offset_cost_rows(to, src, by, bx, offs, C, H, W, r, row_n.data(), y0, y1, oy, ox, oc);
   });
 }
 
