@@ -12,6 +12,7 @@ object's samples apart, and per-pixel offsets drew a still camera's defocused pi
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -88,8 +89,8 @@ def _least_median_cost(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
     """The offset whose median L1 difference over the grid pixels ``ys, xs`` is least (the first on a tie):
     the :data:`_FINALISTS` best over every fourth grid pixel, then those over all."""
     if len(offsets) > _FINALISTS and len(ys) >= 4 * _FINALISTS:
-        median = _median_costs(to, source, ys[::4], xs[::4], offsets)
-        best = sorted(range(len(offsets)), key=lambda i: (float(median[i]), i))[:_FINALISTS]
+        median = _median_costs(to, source, ys[::4], xs[::4], offsets).tolist()
+        best = sorted(range(len(offsets)), key=lambda i: (median[i], i))[:_FINALISTS]
         offsets = [offsets[i] for i in sorted(best)]
     return offsets[int(_median_costs(to, source, ys, xs, offsets).argmin())]
 
@@ -138,9 +139,8 @@ def _dominant_offset(to: Tensor, source: Tensor, hit: Tensor, distance: int) -> 
         return 0, 0
     ys, xs = grid[:, 0] * step + step // 2, grid[:, 1] * step + step // 2
     steps = min(_REACH * distance, H // 2, W // 2) // distance
-    coarse = [(a * distance, b * distance) for a in range(-steps, steps + 1)
-              for b in range(-steps, steps + 1)]
-    best = _least_median_cost(to, source, ys, xs, _nearest_first(coarse, (0, 0)))
+    coarse = [(a * distance, b * distance) for a, b in _square(steps)]  # nearest first, as the square
+    best = _least_median_cost(to, source, ys, xs, coarse)
     if distance > 1:
         fine = [(best[0] + a, best[1] + b) for a in range(1 - distance, distance)
                 for b in range(1 - distance, distance)]
@@ -187,7 +187,12 @@ def _least_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor,
 
 def _square(r: int) -> list[tuple[int, int]]:
     """The offsets within ``r`` each way, nearest first."""
-    return _nearest_first([(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1)], (0, 0))
+    return list(_square_once(r))
+
+
+@functools.lru_cache(maxsize=None)
+def _square_once(r: int) -> tuple[tuple[int, int], ...]:
+    return tuple(_nearest_first([(a, b) for a in range(-r, r + 1) for b in range(-r, r + 1)], (0, 0)))
 
 
 def _searched(to: Tensor, source: Tensor, distance: int) -> tuple[Tensor, Tensor, Tensor]:
