@@ -107,6 +107,39 @@ def test_the_fused_kernels_match_pytorch():
     assert fused[1][-1] == float("inf")
 
 
+
+@pytest.mark.parametrize("pool", [7, 5])
+def test_the_cost_kernel_matches_pytorch_on_moves_in_runs(monkeypatch, pool):
+    """Offsets that are constant over blocks (a coarse level's upsampled to a finer one), some reaching
+    beyond the frame: the kernel reads rows of long runs run by run and rows of short runs pixel by pixel,
+    and pools 7x7 in one vector pass per row (5x5 in the general one); its offsets match PyTorch's, its
+    costs to rounding, and its bytes are the same on one and two threads (tasks of whole rows)."""
+    monkeypatch.setattr(A, "_POOL", pool)
+    H, W = 96, 160
+    to, source = _room(H, W, seed=12), _room(H, W, (3, -2), seed=13)
+    g = torch.Generator().manual_seed(1)
+    coarse = torch.randint(-6, 7, (2, H // 4, W // 16), generator=g)
+    long_runs = coarse.repeat_interleave(4, 1).repeat_interleave(16, 2)  # rows of 10 runs: run by run
+    short_runs = torch.randint(-3, 4, (2, H, W // 2), generator=g).repeat_interleave(2, 2)  # pixel by pixel
+    rows = (torch.arange(H) % 3 == 0)[:, None]
+    dy, dx = torch.where(rows, short_runs, long_runs)
+    offsets = A._square(1)
+    fused = A._least_cost(to, source, dy, dx, offsets)
+    with _fast.reference():
+        plain = A._least_cost(to, source, dy, dx, offsets)
+    assert torch.equal(fused[0], plain[0]) and torch.equal(fused[1], plain[1])
+    torch.testing.assert_close(fused[2], plain[2], rtol=1e-5, atol=1e-6)
+    assert bool((fused[2] == A._OUTSIDE).any())  # some pixels' every source lies outside the frame
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = A._least_cost(to, source, dy, dx, offsets)
+        torch.set_num_threads(2)
+        two = A._least_cost(to, source, dy, dx, offsets)
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(one, two))
+
 # ------------------------------------------------------------------------------------------ in the denoiser
 NAMES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
 
