@@ -78,6 +78,10 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
                    help="with a time window, bandwidths (multiples of --sigma-s) at which each frame is also "
                         f"filtered alone, blended with the window's; no value: none (default: {alone})")
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
+    g.add_argument("--no-align", action="store_true",
+                   help="leave the time window's frames where they are instead of bringing them to each "
+                        "frame's pixels where the view moves (faster where the camera pans; the trade-off "
+                        "table in docs/benchmarks.md)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")
 
@@ -92,7 +96,7 @@ def _settings(a):
                            temporal_radius=a.temporal_radius, albedo_radius=a.albedo_radius,
                            evidence_radius=a.evidence_radius,
                            frame_alone_bandwidths=None if a.frame_alone is None else tuple(a.frame_alone),
-                           sigma_t=a.sigma_t, mode=a.mode).check()
+                           sigma_t=a.sigma_t, mode=a.mode, align_frames=not a.no_align).check()
 
 
 def _add_threads_arg(p: argparse.ArgumentParser) -> None:

@@ -47,6 +47,7 @@ VARIANTS = {
     "one bandwidth (1)": {"bandwidths": (1.0,)},
     "albedo window +-1": {"albedo_radius": 1},
     "each frame alone": {"temporal_radius": 0, "albedo_radius": 0},
+    "window unaligned": {"align_frames": False},
     "tree height 2, bandwidths 0.5, 1, 2": {"tree_height": 2, "bandwidths": (0.5, 1.0, 2.0)},
 }
 

@@ -256,6 +256,17 @@ def test_filter_sky_flag():
         assert not _settings(sub[command].parse_args(args + ["--filter-sky"])).keep_sky
 
 
+def test_no_align_flag():
+    """--no-align leaves the window's frames unaligned (DenoiseSettings.align_frames), for both commands."""
+    from torchmanifold.cli import _settings, build_parser
+
+    sub = build_parser()._subparsers._group_actions[0].choices
+    for command in ("render", "denoise"):
+        args = (["x"] if command == "denoise" else []) + ["--out", "o"]
+        assert _settings(sub[command].parse_args(args)).align_frames
+        assert not _settings(sub[command].parse_args(args + ["--no-align"])).align_frames
+
+
 def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir):
     """The shared clip's header says 1 spp (footprint 0.7 px); --spp overrides it (16: the log-radiance
     channel narrows); a bad count is named."""
