@@ -80,8 +80,8 @@ def _add_filter_args(p: argparse.ArgumentParser, temporal_radius: int, mode: str
     g.add_argument("--sigma-t", type=float, default=d.sigma_t, help="temporal sigma in frames (%(default)s)")
     g.add_argument("--no-align", action="store_true",
                    help="leave the time window's frames where they are instead of bringing them to each "
-                        "frame's pixels where the view moves (faster where the camera pans; the trade-off "
-                        "table in docs/benchmarks.md)")
+                        "frame's pixels where the view moves (faster, by the flow search between every two "
+                        "frames; less accurate where the camera pans: docs/benchmarks.md's trade-off table)")
     g.add_argument("--mode", choices=["window", "spacetime"], default=mode,
                    help="time window: average then filter, or joint space-time (%(default)s)")
 

@@ -245,26 +245,17 @@ def test_each_command_filters_with_its_engine_defaults():
         assert _settings(args).frame_alone == alone
 
 
-def test_filter_sky_flag():
-    """--filter-sky turns the sky rule off (DenoiseSettings.keep_sky), for both commands."""
+@pytest.mark.parametrize("flag, setting", [("--filter-sky", "keep_sky"), ("--no-align", "align_frames")])
+def test_flags_that_turn_a_rule_off(flag, setting):
+    """--filter-sky turns the sky rule off (DenoiseSettings.keep_sky), --no-align the window's alignment
+    (align_frames), for both commands."""
     from torchmanifold.cli import _settings, build_parser
 
     sub = build_parser()._subparsers._group_actions[0].choices
     for command in ("render", "denoise"):
         args = (["x"] if command == "denoise" else []) + ["--out", "o"]
-        assert _settings(sub[command].parse_args(args)).keep_sky
-        assert not _settings(sub[command].parse_args(args + ["--filter-sky"])).keep_sky
-
-
-def test_no_align_flag():
-    """--no-align leaves the window's frames unaligned (DenoiseSettings.align_frames), for both commands."""
-    from torchmanifold.cli import _settings, build_parser
-
-    sub = build_parser()._subparsers._group_actions[0].choices
-    for command in ("render", "denoise"):
-        args = (["x"] if command == "denoise" else []) + ["--out", "o"]
-        assert _settings(sub[command].parse_args(args)).align_frames
-        assert not _settings(sub[command].parse_args(args + ["--no-align"])).align_frames
+        assert getattr(_settings(sub[command].parse_args(args)), setting)
+        assert not getattr(_settings(sub[command].parse_args(args + [flag])), setting)
 
 
 def test_denoise_sample_count_from_header_or_flag(tmp_path, capsys, mitsuba_dir):
