@@ -84,6 +84,8 @@ TORCH_LIBRARY_FRAGMENT(torchmanifold, m) {
         "-> (Tensor, Tensor, Tensor)");
   // align._median_costs: to and source (C, H, W), grid pixels ys, xs (int64 (N,)), offsets (a
   // flat list of (dy, dx) pairs) -> (O,) the lower median over the grid of each offset's L1
-  // differences (those inside the frame; inf where none is).
-  m.def("_median_offset_costs(Tensor to, Tensor source, Tensor ys, Tensor xs, int[] offsets) -> Tensor");
+  // differences (those inside the frame; inf where none is). keep > 0: inf also for offsets whose median is
+  // certainly above keep others' (the keep least, by median then order, are exact).
+  m.def("_median_offset_costs(Tensor to, Tensor source, Tensor ys, Tensor xs, int[] offsets, int keep=0) "
+        "-> Tensor");
 }

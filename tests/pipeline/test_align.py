@@ -140,6 +140,36 @@ def test_the_cost_kernel_matches_pytorch_on_moves_in_runs(monkeypatch, pool):
         torch.set_num_threads(threads)
     assert all(torch.equal(a, b) for a, b in zip(one, two))
 
+
+def test_the_median_kernel_skips_only_offsets_outside_the_least():
+    """With ``keep``, the median kernel leaves out offsets whose median lies above ``keep`` exact ones: the
+    ``keep`` least (by median, then order) and their medians are those of the exact call, every offset left
+    out (inf) has an exact median above the ``keep``-th least, most of a wide search is left out, and the
+    bytes are the same on one and two threads."""
+    H, W = 64, 64
+    to, source = _room(H, W, seed=20), _room(H, W, (1, 2), seed=21)
+    g = torch.Generator().manual_seed(2)
+    ys, xs = torch.randint(0, H, (600,), generator=g), torch.randint(0, W, (600,), generator=g)
+    offsets = A._square(8)
+    exact = A._median_costs(to, source, ys, xs, offsets)
+    some = A._median_costs(to, source, ys, xs, offsets, keep=9)
+    least = sorted(range(len(offsets)), key=lambda i: (float(exact[i]), i))[:9]
+    assert least == sorted(range(len(offsets)), key=lambda i: (float(some[i]), i))[:9]
+    assert torch.equal(some[least], exact[least])
+    out = torch.isinf(some) & torch.isfinite(exact)
+    assert int(out.sum()) > len(offsets) // 2
+    assert bool((exact[out] > exact[least].max()).all())
+    assert torch.equal(some[~out], exact[~out])
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = A._median_costs(to, source, ys, xs, offsets, keep=9)
+        torch.set_num_threads(2)
+        two = A._median_costs(to, source, ys, xs, offsets, keep=9)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)
+
 # ------------------------------------------------------------------------------------------ in the denoiser
 NAMES = ["albedo.R", "albedo.G", "albedo.B", "N.X", "N.Y", "N.Z", "P.X", "P.Y", "P.Z"]
 

@@ -219,11 +219,11 @@ def least_offset_cost(to: Tensor, source: Tensor, dy: Tensor, dx: Tensor, offset
 
 @parallel
 def median_offset_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
-                        offsets: list[tuple[int, int]]) -> Tensor:
+                        offsets: list[tuple[int, int]], keep: int = 0) -> Tensor:
     """``align._median_costs``: matched features to, source ``(C, H, W)``, grid pixels ys, xs int64
-    ``(N,)`` -> ``(O,)``."""
+    ``(N,)`` -> ``(O,)``; ``keep``: as there."""
     flat = [int(v) for o in offsets for v in o]
-    return torch.ops.torchmanifold._median_offset_costs(to, source, ys, xs, flat)
+    return torch.ops.torchmanifold._median_offset_costs(to, source, ys, xs, flat, int(keep))
 
 
 def _register_fakes() -> None:
@@ -308,7 +308,7 @@ def _register_fakes() -> None:
         return torch.empty_like(dy), torch.empty_like(dx), to.new_empty(to.shape[1:])
 
     @torch.library.register_fake(lib + "_median_offset_costs")
-    def _(to, source, ys, xs, offsets):
+    def _(to, source, ys, xs, offsets, keep=0):
         return to.new_empty((len(offsets) // 2,))
 
     @torch.library.register_fake(lib + "_footprint_samples")

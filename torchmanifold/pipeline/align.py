@@ -89,18 +89,19 @@ def _least_median_cost(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
     """The offset whose median L1 difference over the grid pixels ``ys, xs`` is least (the first on a tie):
     the :data:`_FINALISTS` best over every fourth grid pixel, then those over all."""
     if len(offsets) > _FINALISTS and len(ys) >= 4 * _FINALISTS:
-        median = _median_costs(to, source, ys[::4], xs[::4], offsets).tolist()
+        median = _median_costs(to, source, ys[::4], xs[::4], offsets, keep=_FINALISTS).tolist()
         best = sorted(range(len(offsets)), key=lambda i: (median[i], i))[:_FINALISTS]
         offsets = [offsets[i] for i in sorted(best)]
     return offsets[int(_median_costs(to, source, ys, xs, offsets).argmin())]
 
 
 def _median_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
-                  offsets: list[tuple[int, int]]) -> Tensor:
+                  offsets: list[tuple[int, int]], keep: int = 0) -> Tensor:
     """Each offset's median L1 difference over the grid pixels ``ys, xs`` that it keeps in the frame (inf
-    where none): ``(O,)``."""
+    where none): ``(O,)``. ``keep`` > 0: the C++ kernel may give inf for offsets whose median certainly lies
+    above ``keep`` others' (the ``keep`` least, by median then order, stay exact), skipping their selection."""
     if _fast.enabled(to, source):
-        median = _fast.median_offset_costs(to, source, ys, xs, offsets)
+        median = _fast.median_offset_costs(to, source, ys, xs, offsets, keep)
     else:
         H, W = source.shape[-2:]
         pad = max(max(abs(dy), abs(dx)) for dy, dx in offsets)

@@ -2010,18 +2010,23 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> least_offset_cost_cpu(
   return {oy, ox, oc};
 }
 
-// align._median_costs: for each offset, the lower median of the L1 differences between to at
-// the grid pixels (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none
-// do).
+// align._median_costs: for each offset, the lower median of the L1 differences between to at the grid pixels
+// (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none do). With keep > 0
+// the first offsets (at least 25; the search lists the nearest first) are exact, and the keep-th least of their
+// medians bounds the others: an offset whose costs lie above it for more than half the grid has a median above
+// keep exact ones, so it cannot be among the keep least and comes back inf without its selection. Which offsets
+// do is fixed by the list, not by the threads.
 at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& source_, const at::Tensor& ys_,
-                                   const at::Tensor& xs_, at::IntArrayRef offsets) {
+                                   const at::Tensor& xs_, at::IntArrayRef offsets, int64_t keep) {
   const char* op = "_median_offset_costs";
   check_positions(to_, source_, op);
   TORCH_CHECK_VALUE(ys_.dim() == 1 && ys_.sizes() == xs_.sizes() && ys_.scalar_type() == at::kLong &&
                         xs_.scalar_type() == at::kLong,
                     op, ": ys and xs must be int64 (N,) alike, got ", ys_.sizes(), " and ", xs_.sizes());
+  TORCH_CHECK_VALUE(keep >= 0, op, ": keep must be >= 0, got ", keep);
   const int64_t C = to_.size(0), H = to_.size(1), W = to_.size(2), HW = H * W, N = ys_.size(0);
   const auto offs = offset_pairs(offsets, op);
+  const int64_t O = static_cast<int64_t>(offs.size());
   const at::Tensor to = to_.contiguous(), source = source_.contiguous();
   const at::Tensor ys = ys_.contiguous(), xs = xs_.contiguous();
   const int64_t* py = ys.data_ptr<int64_t>();
@@ -2029,39 +2034,58 @@ at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& sour
   for (int64_t g = 0; g < N; ++g)
     TORCH_CHECK_VALUE(py[g] >= 0 && py[g] < H && px[g] >= 0 && px[g] < W, op, ": grid pixel ", g, " (", py[g],
                       ", ", px[g], ") lies outside the (", H, ", ", W, ") frame");
-  at::Tensor out = at::empty({static_cast<int64_t>(offs.size())}, to.options());
+  at::Tensor out = at::empty({O}, to.options());
   AT_DISPATCH_FLOATING_TYPES(to.scalar_type(), "median_offset_costs_cpu", [&] {
     using T = scalar_t;
     const T *pt = to.data_ptr<T>(), *ps = source.data_ptr<T>();
     T* po = out.data_ptr<T>();
-    at::parallel_for(0, static_cast<int64_t>(offs.size()), 1, [&](int64_t i0, int64_t i1) {
-      std::vector<T> v(N);
-      std::vector<int64_t> at(N), from(N);
-      for (int64_t i = i0; i < i1; ++i) {
-        int64_t n = 0;
-        for (int64_t g = 0; g < N; ++g) {
-          const int64_t sy = py[g] + offs[i].first, sx = px[g] + offs[i].second;
-          if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
-          at[n] = py[g] * W + px[g];
-          from[n++] = sy * W + sx;
+    const T inf = std::numeric_limits<T>::infinity();
+    // offsets i0 .. i1, each median exact, or inf where more than half its costs lie above bound
+    auto medians = [&](int64_t i0, int64_t i1, T bound) {
+      at::parallel_for(i0, i1, 1, [&](int64_t j0, int64_t j1) {
+        std::vector<T> v(N);
+        std::vector<int64_t> at(N), from(N);
+        for (int64_t i = j0; i < j1; ++i) {
+          int64_t n = 0;
+          for (int64_t g = 0; g < N; ++g) {
+            const int64_t sy = py[g] + offs[i].first, sx = px[g] + offs[i].second;
+            if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
+            at[n] = py[g] * W + px[g];
+            from[n++] = sy * W + sx;
+          }
+          for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
+            const T* t = pt + c * HW;
+            const T* sc = ps + c * HW;
+            if (c == 0)
+              for (int64_t g = 0; g < n; ++g) v[g] = std::abs(t[at[g]] - sc[from[g]]);
+            else
+              for (int64_t g = 0; g < n; ++g) v[g] += std::abs(t[at[g]] - sc[from[g]]);
+          }
+          if (n == 0) {
+            po[i] = inf;
+            continue;
+          }
+          if (bound < inf) {
+            int64_t within = 0;
+            for (int64_t g = 0; g < n; ++g) within += v[g] <= bound;
+            if (within <= (n - 1) / 2) {  // the lower median lies above bound
+              po[i] = inf;
+              continue;
+            }
+          }
+          const auto mid = v.begin() + (n - 1) / 2;
+          std::nth_element(v.begin(), mid, v.begin() + n);
+          po[i] = *mid;
         }
-        for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
-          const T* t = pt + c * HW;
-          const T* sc = ps + c * HW;
-          if (c == 0)
-            for (int64_t g = 0; g < n; ++g) v[g] = std::abs(t[at[g]] - sc[from[g]]);
-          else
-            for (int64_t g = 0; g < n; ++g) v[g] += std::abs(t[at[g]] - sc[from[g]]);
-        }
-        if (n == 0) {
-          po[i] = std::numeric_limits<T>::infinity();
-          continue;
-        }
-        const auto mid = v.begin() + (n - 1) / 2;
-        std::nth_element(v.begin(), mid, v.begin() + n);
-        po[i] = *mid;
-      }
-    });
+      });
+    };
+    const int64_t exact = keep > 0 ? std::min(O, std::max<int64_t>(keep, 25)) : O;
+    medians(0, exact, inf);
+    if (exact < O) {
+      std::vector<T> first(po, po + exact);
+      std::nth_element(first.begin(), first.begin() + (keep - 1), first.end());
+      medians(exact, O, first[keep - 1]);
+    }
   });
   return out;
 }
