@@ -89,6 +89,29 @@ def test_piecewise_constant_features_find_the_move_where_they_vary():
     assert float(((dy == 0) & (dx == -5))[:, 5:].float().mean()) > 0.97
 
 
+@pytest.mark.parametrize("varying_only", [False, True])
+def test_a_window_finds_each_pairs_flow_as_alone(monkeypatch, varying_only):
+    """The window's flows, each frame's side made once for all its pairs, are :func:`frame_flow`'s of each pair
+    alone, index for index, in a still window and a panning one."""
+    H, W = 40, 48
+    for pan in (0, 3):
+        frames = [_checker_room(H, W, (0, pan * t)) if varying_only else _room(H, W, (0, pan * t), seed=t)
+                  for t in range(4)]
+        made = []
+        surface = A._surface
+        monkeypatch.setattr(A, "_surface", lambda to, v: made.append(1) or surface(to, v))
+        window = A.WindowAlignment(torch.stack(frames), [0.0, 1.0, 2.0, 3.0], 2, varying_only=varying_only)
+        pairs = [(k, j) for k in range(4) for j in range(4) if 0 < abs(k - j) <= 2]
+        flows = [window.flow(k, j) for k, j in pairs]
+        assert len(made) == 4
+        monkeypatch.setattr(A, "_surface", surface)
+        for (k, j), flow in zip(pairs, flows):
+            alone = A.frame_flow(frames[k], frames[j], abs(k - j), varying_only)
+            assert (flow is None) == (alone is None) == (pan == 0)
+            if flow is not None:
+                assert torch.equal(flow.index, alone.index) and torch.equal(flow.inside, alone.inside)
+
+
 def test_the_fused_kernels_match_pytorch():
     """The C++ cost kernels against the PyTorch steps they mirror: the same offsets, costs to rounding."""
     H, W = 37, 53

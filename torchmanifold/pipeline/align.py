@@ -254,16 +254,38 @@ def frame_flow(to: Tensor, source: Tensor, distance: int = 1, varying_only: bool
         >>> flow.index.view(32, 32)[10, 10].item() == 10 * 32 + 7
         True
     """
-    to, source = to.detach(), source.detach()  # a flow picks pixels: no gradient passes it
+    return _flow_onto(_surface(to, varying_only), source, distance)
+
+
+@dataclass
+class _Surface:
+    """A frame's features as the flows from its pixels match them (:func:`_surface`): ``field`` ``(C, H, W)``
+    centred and averaged over :data:`_BOX` px, ``centre`` what was taken off (``(C, 1, 1)`` or 0), ``pixels``
+    ``(H, W)`` bool, those whose median cost picks the dominant offset."""
+
+    field: Tensor
+    centre: Tensor | float
+    pixels: Tensor
+
+
+def _surface(to: Tensor, varying_only: bool) -> _Surface:
+    """What every flow from the pixels of the frame with features ``to`` ``(C, H, W)`` matches, made once for
+    all of them (:func:`frame_flow`'s arguments)."""
+    to = to.detach()  # a flow picks pixels: no gradient passes it
     hit = to.abs().sum(0) > 0
     # about the surface's middle: float32 keeps the small differences of positions far from the origin
     centre = to[:, hit].mean(1)[:, None, None] if bool(hit.any()) else 0.0
-    to, source = to - centre, source - centre
-    to, source = _box_mean(to, _BOX // 2), _box_mean(source, _BOX // 2)
-    dominant = _dominant_offset(to, source, _varying(to, hit) if varying_only else hit, max(1, int(distance)))
+    field = _box_mean(to - centre, _BOX // 2)
+    return _Surface(field, centre, _varying(field, hit) if varying_only else hit)
+
+
+def _flow_onto(surface: _Surface, source: Tensor, distance: int) -> Flow | None:
+    """:func:`frame_flow` from a frame's :func:`_surface`."""
+    source = _box_mean(source.detach() - surface.centre, _BOX // 2)
+    dominant = _dominant_offset(surface.field, source, surface.pixels, max(1, int(distance)))
     if dominant == (0, 0):
         return None
-    return _moved(*_pixel_offsets(to, source, dominant, max(1, int(distance))))
+    return _moved(*_pixel_offsets(surface.field, source, dominant, max(1, int(distance))))
 
 
 def gather(x: Tensor, flow: Flow | None, weights: bool = False) -> Tensor:
@@ -292,6 +314,7 @@ class WindowAlignment:
         self.field, self.frame_times, self.radius, self.memo = field, list(frame_times), radius, memo
         self.varying_only = varying_only
         self._flows: dict = {}
+        self._own: dict = {}  # without a memo
 
     def flow(self, k: int, j: int) -> Flow | None:
         """The flow from frame ``k``'s pixels into frame ``j``'s (``None``: each pixel keeps its own)."""
@@ -302,9 +325,21 @@ class WindowAlignment:
             distance = max(1, round(abs(key[1] - key[0])))
 
             def find(keys):
-                return [frame_flow(self.field[k], self.field[j], distance, self.varying_only)]
-            self._flows[key] = (self.memo.get([key], find) if self.memo is not None else find([key]))[0]
+                return [_flow_onto(self._surface(k), self.field[j], distance)]
+            self._flows[key] = self._memo(key, find)
         return self._flows[key]
+
+    def _surface(self, k: int) -> _Surface:
+        """Frame ``k``'s side of its flows to the other frames, made once."""
+        return self._memo((self.frame_times[k], "surface"),
+                          lambda keys: [_surface(self.field[k], self.varying_only)])
+
+    def _memo(self, key: tuple, find):
+        if self.memo is not None:
+            return self.memo.get([key], find)[0]
+        if key not in self._own:
+            self._own[key] = find([key])[0]
+        return self._own[key]
 
     def _others(self, k: int) -> list[int]:
         return [j for j in window(self.frame_times, self.frame_times[k], self.radius) if j != k]
