@@ -1055,7 +1055,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     # s: each frame at its own pixels, for what a query takes from its own frame; w: the window brought to
     # the query's pixels where the view moves, for what joins the frames (the filters, the albedo's window)
     s, query = state, frame_at(ft, qt[0])
-    w = _aligned_state(state, align, query) if moving[0] else state
+    w = _AlignedState(state, align, query) if moving[0] else state
 
     def at_queries(x: Tensor) -> Tensor:
         return _Filter.at_frames_to_queries(x, ft, qt)
@@ -1145,13 +1145,23 @@ def _alignment(state: FrameState, settings: DenoiseSettings, ft: list[float], ca
 _JOINED_FIELDS = ("mask", "flat", "albedo", "position", "guide", "level", "clamped", "lone")
 
 
-def _aligned_state(state: FrameState, align: WindowAlignment, k: int) -> FrameState:
-    """``state`` with the frames within ``align``'s radius of frame ``k`` brought to its pixels in the fields
-    a query joins from them (:data:`_JOINED_FIELDS`), the sample weights 0 where a source lies outside its
-    frame; frame ``k`` is as it was."""
-    moved = {name: align.frames(getattr(state, name), k, name == "mask") for name in _JOINED_FIELDS
-             if getattr(state, name) is not None}
-    return replace(state, **moved)
+class _AlignedState:
+    """``state`` (a :class:`FrameState`, read as one) with the frames within ``align``'s radius of frame ``k``
+    brought to its pixels in the fields a query joins from them (:data:`_JOINED_FIELDS`), the sample weights 0
+    where a source lies outside its frame; frame ``k`` is as it was. Each field is gathered when first read:
+    a query reads some of them only, by its settings (the default reads neither the guide nor the level)."""
+
+    def __init__(self, state: FrameState, align: WindowAlignment, k: int):
+        self._state, self._align, self._k = state, align, k
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):  # not a field (and not this object's own, before they are set)
+            raise AttributeError(name)
+        x = getattr(self._state, name)
+        if name in _JOINED_FIELDS and x is not None:
+            x = self._align.frames(x, self._k, name == "mask")
+        setattr(self, name, x)  # read once: later reads find it here
+        return x
 
 
 def _lenders(kinds: list[bool], settings: DenoiseSettings, ft: list[float], qt: list[float]) -> list | None:
