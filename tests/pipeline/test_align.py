@@ -91,8 +91,8 @@ def test_piecewise_constant_features_find_the_move_where_they_vary():
 
 @pytest.mark.parametrize("varying_only", [False, True])
 def test_a_window_finds_each_pairs_flow_as_alone(monkeypatch, varying_only):
-    """The window's flows, each frame's side made once for all its pairs, are :func:`frame_flow`'s of each pair
-    alone, index for index, in a still window and a panning one."""
+    """The window's flows, each frame's side made once for all its pairs, are :func:`frame_flow`'s of each
+    pair alone, index for index, in a still window and a panning one."""
     H, W = 40, 48
     for pan in (0, 3):
         frames = [_checker_room(H, W, (0, pan * t)) if varying_only else _room(H, W, (0, pan * t), seed=t)

@@ -1519,6 +1519,31 @@ def test_streamed_clip_equals_each_window_at_once(tmp_path, mitsuba_dir, threads
                                                 query_times=[3])[0])
 
 
+@pytest.mark.parametrize("still", [True, False])
+def test_a_querys_candidates_read_its_window_alone(mitsuba_dir, still):
+    """The selection filters a query's bandwidth candidates from its window's frames alone, not the clip's:
+    the same bytes, in a still clip and in the shared clip's pan (brought to the query's pixels)."""
+    from torchmanifold.pipeline.align import WindowAlignment
+
+    frames = [4] * 6 if still else list(range(6))
+    c, f = load_clip(mitsuba_dir, "frame", frames, (slice(96, 160), slice(64, 128)))
+    st = DenoiseSettings(temporal_radius=1, mode="spacetime", tree_height=2)
+    s = D.prepare_frames(c, f, FEATURES, None, st, samples_per_pixel=1)
+    ft = [float(t) for t in range(6)]
+    align = WindowAlignment(s.flow_field, ft, 1)
+    assert align.moves(3) != still
+
+    def candidates(r: slice):
+        def at_3(x, weights=False):
+            return x[r] if still else align.frames(x, 3, weights, range(r.start, r.stop))
+        return SEL._bandwidth_candidates(at_3(s.values), at_3(s.mask, True), at_3(s.guide), s.sigmas[r], st,
+                                         ft[r], [3.0], s.sigma_s, 1.0, at_3(s.level), s.pooling[r],
+                                         int(s.cv_cell.max()))
+    whole, alone = candidates(slice(0, 6)), candidates(slice(2, 5))
+    assert torch.equal(whole.residuals(), alone.residuals())
+    assert torch.equal(whole.blend(st.selection_softness), alone.blend(st.selection_softness))
+
+
 @pytest.mark.parametrize("failure", ["late frame unreadable", "write fails"])
 def test_late_failure_leaves_out_empty(tmp_path, mitsuba_dir, monkeypatch, failure):
     """Files are read one ahead and written on a thread beside the filter: a frame that fails after

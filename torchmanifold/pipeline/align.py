@@ -348,21 +348,23 @@ class WindowAlignment:
         """Whether any frame within ``radius`` of frame ``k`` moves against it."""
         return any(self.flow(k, j) is not None for j in self._others(k))
 
-    def frames(self, x: Tensor, k: int, weights: bool = False) -> Tensor:
+    def frames(self, x: Tensor, k: int, weights: bool = False, ids: Sequence[int] | None = None) -> Tensor:
         """``x`` ``(T, ..., H, W)`` with the frames within ``radius`` of frame ``k`` brought to its pixels
-        (:func:`gather`; ``weights``: 0 where a source lies outside its frame)."""
+        (:func:`gather`; ``weights``: 0 where a source lies outside its frame); ``ids``: those frames alone,
+        in that order (``(len(ids), ..., H, W)``), else all."""
         near = set(self._others(k))
-        flows = [self.flow(k, j) if j in near else None for j in range(x.shape[0])]
+        ids = range(x.shape[0]) if ids is None else ids
+        flows = [self.flow(k, j) if j in near else None for j in ids]
         if x.requires_grad and torch.is_grad_enabled():
-            return torch.stack([gather(x[j], flow, weights) for j, flow in enumerate(flows)])
-        out = torch.empty(x.shape, dtype=x.dtype, device=x.device)  # each frame written in place
-        for j, flow in enumerate(flows):
+            return torch.stack([gather(x[j], flow, weights) for j, flow in zip(ids, flows)])
+        out = torch.empty((len(flows), *x.shape[1:]), dtype=x.dtype, device=x.device)  # each frame in place
+        for i, (j, flow) in enumerate(zip(ids, flows)):
             if flow is None:
-                out[j].copy_(x[j])
+                out[i].copy_(x[j])
                 continue
-            torch.index_select(x[j].flatten(-2), -1, flow.index, out=out[j].flatten(-2))
+            torch.index_select(x[j].flatten(-2), -1, flow.index, out=out[i].flatten(-2))
             if weights:
-                out[j].mul_(flow.inside.to(out.dtype))
+                out[i].mul_(flow.inside.to(out.dtype))
         return out
 
     def frame(self, x: Tensor, k: int, j: int) -> Tensor:

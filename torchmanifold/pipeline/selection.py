@@ -352,17 +352,31 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
         planes = c.residuals()
         return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(planes.shape[1])]
 
+    def frames_read(times: list) -> slice:
+        # the frames the queries' filters read (as a view: the frames between two windows come along, whose
+        # bytes no query's depend on); all where a query lies between frames (its errors come from the frames
+        # around it, each cross-validated over its own window)
+        if any(frame_at(ft, t) is None for t in times):
+            return slice(0, len(ft))
+        ids = [j for t in times for j in window(ft, t, settings.temporal_radius)]
+        return slice(min(ids), max(ids) + 1)
+
     def compute(times: list) -> list:
         if align is None or not any(align.moves(frame_at(ft, t)) for t in times):
-            return lent(_bandwidth_candidates(e, mask, guide, sigmas, settings, ft, times, sigma_s,
-                                              range_scale, level, pooling, cell))
+            r = frames_read(times)
+            return lent(_bandwidth_candidates(e[r], mask[r], guide[r], sigmas[r], settings, ft[r], times,
+                                              sigma_s, range_scale, None if level is None else level[r],
+                                              None if pooling is None else pooling[r], cell))
         out = []
         for t in times:  # each query's window at its own pixels
-            k = frame_at(ft, t)
-            out += lent(_bandwidth_candidates(align.frames(e, k), align.frames(mask, k, True),
-                                              align.frames(guide, k), sigmas, settings, ft, [t], sigma_s,
-                                              range_scale, None if level is None else align.frames(level, k),
-                                              pooling, cell))
+            k, r = frame_at(ft, t), frames_read([t])
+
+            def moved(x: Tensor, weights: bool = False) -> Tensor:
+                return align.frames(x, k, weights, range(r.start, r.stop))
+            out += lent(_bandwidth_candidates(moved(e), moved(mask, True), moved(guide), sigmas[r], settings,
+                                              ft[r], [t], sigma_s, range_scale,
+                                              None if level is None else moved(level),
+                                              None if pooling is None else pooling[r], cell))
         return out
 
     keys = [(ft[k], tuple(ft[j] for j in window(ft, ft[k], settings.temporal_radius)), *key) for k in need]
