@@ -304,8 +304,8 @@ class WindowAlignment:
         field: ``(T, C, H, W)`` what the flows match (world positions, or features).
         frame_times: ``(T,)`` their times.
         radius: the frames on each side of a frame that are brought to its pixels (others stay as they are).
-        memo: a store shared by a clip's calls (a :class:`~torchmanifold.pipeline.selection.ClipCache`), or
-            ``None`` (this object's own).
+        memo: a store shared by a clip's calls (a :class:`~torchmanifold.pipeline.selection.ClipCache`) for
+            the flows and each frame's side of them (:func:`_surface`), or ``None`` (this object's own).
         varying_only: as :func:`frame_flow` (features without positions).
     """
 

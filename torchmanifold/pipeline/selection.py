@@ -353,9 +353,9 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
         return [_Lent(c.query(i), planes[:, i:i + 1], c.units[i]) for i in range(planes.shape[1])]
 
     def frames_read(times: list) -> slice:
-        # the frames the queries' filters read (as a view: the frames between two windows come along, whose
-        # bytes no query's depend on); all where a query lies between frames (its errors come from the frames
-        # around it, each cross-validated over its own window)
+        # the frames the queries' filters read (as a view: frames between two queries' windows come along, and
+        # no query's bytes depend on them); all where a query lies between frames (its errors come from the
+        # frames around it, each cross-validated over its own window)
         if any(frame_at(ft, t) is None for t in times):
             return slice(0, len(ft))
         ids = [j for t in times for j in window(ft, t, settings.temporal_radius)]
