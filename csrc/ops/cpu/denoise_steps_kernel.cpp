@@ -2010,6 +2010,31 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> least_offset_cost_cpu(
   return {oy, ox, oc};
 }
 
+// One offset's costs over the grid: the L1 differences, summed channel by channel in channel order, between to at
+// the grid pixels (tg: (C, N), gathered once for every offset) and source moved by (dy, dx), for the grid pixels
+// whose source lies in the frame, into v; their count.
+template <typename T>
+int64_t offset_costs(const T* __restrict tg, const int64_t* __restrict py, const int64_t* __restrict px, int64_t N,
+                     const T* __restrict src, int64_t C, int64_t H, int64_t W, int64_t dy, int64_t dx,
+                     T* __restrict v, int64_t* __restrict at, int64_t* __restrict from) {
+  int64_t n = 0;
+  for (int64_t g = 0; g < N; ++g) {
+    const int64_t sy = py[g] + dy, sx = px[g] + dx;
+    if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
+    at[n] = g;
+    from[n++] = sy * W + sx;
+  }
+  for (int64_t c = 0; c < C; ++c) {
+    const T* __restrict t = tg + c * N;
+    const T* __restrict sc = src + c * H * W;
+    if (c == 0)
+      for (int64_t g = 0; g < n; ++g) v[g] = std::abs(t[at[g]] - sc[from[g]]);
+    else
+      for (int64_t g = 0; g < n; ++g) v[g] += std::abs(t[at[g]] - sc[from[g]]);
+  }
+  return n;
+}
+
 // align._median_costs: for each offset, the lower median of the L1 differences between to at the grid pixels
 // (ys, xs) and source moved by the offset, over those that stay in the frame (inf where none do). With keep > 0
 // the first offsets (at least 25; the search lists the nearest first) are exact, and the keep-th least of their
@@ -2040,27 +2065,17 @@ at::Tensor median_offset_costs_cpu(const at::Tensor& to_, const at::Tensor& sour
     const T *pt = to.data_ptr<T>(), *ps = source.data_ptr<T>();
     T* po = out.data_ptr<T>();
     const T inf = std::numeric_limits<T>::infinity();
+    std::vector<T> tg(C * N);  // to at the grid, gathered once for every offset
+    for (int64_t c = 0; c < C; ++c)
+      for (int64_t g = 0; g < N; ++g) tg[c * N + g] = pt[c * HW + py[g] * W + px[g]];
     // offsets i0 .. i1, each median exact, or inf where more than half its costs lie above bound
     auto medians = [&](int64_t i0, int64_t i1, T bound) {
       at::parallel_for(i0, i1, 1, [&](int64_t j0, int64_t j1) {
         std::vector<T> v(N);
         std::vector<int64_t> at(N), from(N);
         for (int64_t i = j0; i < j1; ++i) {
-          int64_t n = 0;
-          for (int64_t g = 0; g < N; ++g) {
-            const int64_t sy = py[g] + offs[i].first, sx = px[g] + offs[i].second;
-            if (sy < 0 || sy >= H || sx < 0 || sx >= W) continue;
-            at[n] = py[g] * W + px[g];
-            from[n++] = sy * W + sx;
-          }
-          for (int64_t c = 0; c < C; ++c) {  // channel by channel, each pixel's terms in channel order
-            const T* t = pt + c * HW;
-            const T* sc = ps + c * HW;
-            if (c == 0)
-              for (int64_t g = 0; g < n; ++g) v[g] = std::abs(t[at[g]] - sc[from[g]]);
-            else
-              for (int64_t g = 0; g < n; ++g) v[g] += std::abs(t[at[g]] - sc[from[g]]);
-          }
+          const int64_t n = offset_costs(tg.data(), py, px, N, ps, C, H, W, offs[i].first, offs[i].second,
+                                         v.data(), at.data(), from.data());
           if (n == 0) {
             po[i] = inf;
             continue;
