@@ -874,7 +874,11 @@ class FrameState:
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
                    "position", "flow_field", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone",
                    "mixed")
-        return FrameState(*(join(n) for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
+        joined = {n: join(n) for n in tensors if n != "flow_field"}
+        # the flows match the positions themselves where there are any: joined once
+        same = all(s.flow_field is s.position for s in states)
+        joined["flow_field"] = joined["position"] if same else join("flow_field")
+        return FrameState(*(joined[n] for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
                           states[0].footprint, states[0].sigma_s)
 
     def stats(self) -> dict:
