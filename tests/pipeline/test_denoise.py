@@ -1544,6 +1544,22 @@ def test_a_querys_candidates_read_its_window_alone(mitsuba_dir, still):
     assert torch.equal(whole.blend(st.selection_softness), alone.blend(st.selection_softness))
 
 
+def test_flat_pixels_widths_read_their_window_alone(mitsuba_dir):
+    """Flat pixels' widths, guided by their colour and joined in time, are selected from their window's frames
+    alone, not the clip's: the same bytes."""
+    c, f = load_clip(mitsuba_dir, "frame", list(range(6)), (slice(96, 160), slice(64, 128)))
+    st = DenoiseSettings(temporal_radius=1, mode="spacetime")
+    s = D.prepare_frames(c, f, FEATURES, None, st, samples_per_pixel=1)
+    weight = s.mask * (torch.rand(s.mask.shape, generator=torch.Generator().manual_seed(5)) < 0.3)
+    ft = [float(t) for t in range(6)]
+
+    def widths(r: slice, at: list[int]):
+        guided = D._flat_filters(s.values[r], s.mask[r], st, ft[r], [ft[r][k] for k in at], 1.0)
+        return SEL._select_flat_width(s.values[r], weight[r], 1.5, 1, st.selection_blur, st.selection_softness,
+                                      guided, at)
+    assert torch.equal(widths(slice(0, 6), [2, 3]), widths(slice(1, 5), [1, 2]))
+
+
 @pytest.mark.parametrize("failure", ["late frame unreadable", "write fails"])
 def test_late_failure_leaves_out_empty(tmp_path, mitsuba_dir, monkeypatch, failure):
     """Files are read one ahead and written on a thread beside the filter: a frame that fails after

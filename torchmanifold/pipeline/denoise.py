@@ -878,8 +878,9 @@ class FrameState:
         # the flows match the positions themselves where there are any: joined once
         same = all(s.flow_field is s.position for s in states)
         joined["flow_field"] = joined["position"] if same else join("flow_field")
-        return FrameState(*(joined[n] for n in tensors), states[0].pilot_only, states[0].point_samples, counts,
-                          states[0].footprint, states[0].sigma_s)
+        first = states[0]
+        return FrameState(*(joined[n] for n in tensors), first.pilot_only, first.point_samples, counts,
+                          first.footprint, first.sigma_s)
 
     def stats(self) -> dict:
         """Non-finite samples, masked pixels, clamped samples, the fraction of energy clamped, the frames
@@ -1064,8 +1065,11 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
     def at_queries(x: Tensor) -> Tensor:
         return _Filter.at_frames_to_queries(x, ft, qt)
 
-    def joined(x: Tensor, weights: bool = False) -> Tensor:  # a tensor of s's frames as w's
-        return align.frames(x, query, weights) if moving[0] else x
+    def joined(x: Tensor, weights: bool = False, ids: range | None = None) -> Tensor:
+        # a tensor of s's frames as w's (``ids``: those frames alone)
+        if moving[0]:
+            return align.frames(x, query, weights, ids)
+        return x if ids is None else x[ids.start:ids.stop]
 
     if s.pilot_only:
         out = at_queries(s.level)
@@ -1091,17 +1095,25 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                                          align if any(moving) else None)
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
-            # blended at the frames the queries take it from (all where a query lies between frames) that
-            # hold enough flat pixels that keep no samples (a clear sky does); the other frames are not read
-            out = _flat_average(e, weight, sigma)
+            # averaged, or blended where they hold enough flat pixels that keep no samples (a clear sky does),
+            # at the frames the queries take it from (all where a query lies between frames); the other
+            # frames are not read
             at = [frame_at(ft, q) for q in qt]
-            ids = [k for k in (sorted(set(at)) if None not in at else range(len(ft)))
-                   if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
-            if ids:
-                e, weight = joined(e), joined(weight, True)
-                guided = _flat_filters(e, w.mask, settings, ft, [ft[k] for k in ids], range_scale)
+            read = sorted(set(at)) if None not in at else list(range(len(ft)))
+            if len(read) == len(ft):
+                out = _flat_average(e, weight, sigma)
+            else:
+                out = e.new_zeros(e.shape)
+                out[read] = _flat_average(e[read], weight[read], sigma)
+            ids = [k for k in read if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
+            if ids:  # from the frames their filters read alone
+                near = [j for k in ids for j in window(ft, ft[k], settings.temporal_radius)]
+                r = range(min(near), max(near) + 1)
+                e, weight = joined(e, ids=r), joined(weight, True, r)
+                guided = _flat_filters(e, w.mask[r.start:r.stop], settings, ft[r.start:r.stop],
+                                       [ft[k] for k in ids], range_scale)
                 out[ids] = _select_flat_width(e, weight, sigma, int(s.cv_cell.max()), settings.selection_blur,
-                                              settings.selection_softness, guided, ids)
+                                              settings.selection_softness, guided, [k - r.start for k in ids])
             return out
         out = _filter_flat_apart(filt, s.values, s.mask, s.flat, base * min(settings.bandwidths), at_queries,
                                  flat_widths)
