@@ -21,7 +21,8 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-__all__ = ["TIME_TOL", "frame_at", "bracket", "interpolate", "window", "index_window", "time_weights"]
+__all__ = ["TIME_TOL", "frame_at", "bracket", "interpolate", "window", "windows_span", "index_window",
+           "time_weights"]
 
 #: Two times closer than this (in frame units) are the same time. Times are built by sums such as
 #: ``t + k / (n + 1)`` (the render job's in-between frames) or ``round(4 t) / 4`` (the demo's scrub);
@@ -112,6 +113,20 @@ def window(frame_times: Sequence[float] | Tensor, t: float, radius: float) -> li
         raise ValueError(f"radius: expected a number >= 0, got {radius!r}")
     i0, i1, _ = bracket(ft, t)
     return sorted({k for k in range(len(ft)) if abs(ft[k] - t) <= radius + TIME_TOL} | {i0, i1})
+
+
+def windows_span(frame_times: Sequence[float] | Tensor, times: Sequence[float], radius: float) -> range:
+    """The frames from the first to the last that the windows (:func:`window`) of ``times`` hold: what the
+    filters of those times read, as one run of frames (a slice of a clip's frames is a view).
+
+    Example:
+        >>> windows_span([0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [2.0, 3.0], 1)
+        range(1, 5)
+    """
+    held = [k for t in times for k in window(frame_times, t, radius)]
+    if not held:
+        raise ValueError("times: expected at least one time")
+    return range(min(held), max(held) + 1)
 
 
 def index_window(count: int, k: int, radius: int) -> range:

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchmanifold.timewindow import (TIME_TOL, bracket, frame_at, index_window, interpolate, time_weights,
-                                      window)
+                                      window, windows_span)
 
 
 def brute_bracket(ft: list[float], t: float) -> tuple[int, int, float]:
@@ -120,6 +120,16 @@ def test_index_window_is_the_window_of_a_clip_numbered_by_frame(count):
     for bad in ((count, count, 1), (count, -1, 1), (count, 0, -1)):
         with pytest.raises(ValueError, match="index_window"):
             index_window(*bad)
+
+
+def test_windows_span_runs_from_the_first_to_the_last_frame_any_window_holds():
+    ft = [0.0, 0.5, 1.0, 2.0, 3.0, 4.0]
+    for times, radius in itertools.product([[1.0], [0.0, 4.0], [2.5], [1.0, 3.0]], [0, 0.5, 1]):
+        held = {k for t in times for k in window(ft, t, radius)}
+        assert windows_span(ft, times, radius) == range(min(held), max(held) + 1), (times, radius)
+    assert windows_span(ft, [0.0, 4.0], 0) == range(0, 6)  # the frames between two windows come along
+    with pytest.raises(ValueError, match="times"):
+        windows_span(ft, [], 1)
 
 
 def test_time_weights_are_gaussian_up_to_a_row_factor():

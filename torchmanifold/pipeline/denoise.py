@@ -89,7 +89,7 @@ from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, 
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
 from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, ClipCache, _cv_cell, _pooled_selection,
                                              _select_bandwidth, _select_flat_width)
-from torchmanifold.timewindow import frame_at, index_window, window
+from torchmanifold.timewindow import frame_at, index_window, window, windows_span
 
 __all__ = [
     "DenoiseSettings",
@@ -1107,8 +1107,7 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                 out[read] = _flat_average(e[read], weight[read], sigma)
             ids = [k for k in read if int(((weight[k] > 0) & ~s.keep_samples[k]).sum()) >= _MIN_FLAT_PIXELS]
             if ids:  # from the frames their filters read alone
-                near = [j for k in ids for j in window(ft, ft[k], settings.temporal_radius)]
-                r = range(min(near), max(near) + 1)
+                r = windows_span(ft, [ft[k] for k in ids], settings.temporal_radius)
                 e, weight = joined(e, ids=r), joined(weight, True, r)
                 guided = _flat_filters(e, w.mask[r.start:r.stop], settings, ft[r.start:r.stop],
                                        [ft[k] for k in ids], range_scale)

@@ -20,7 +20,7 @@ from torchmanifold.pipeline.filter import (_Filter, _frames, _halves, _halves_st
 from torchmanifold.pipeline.footprint import _normalised_blur
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _frame_mean, _gaussian_taps, footprint_blur,
                                           luminance)
-from torchmanifold.timewindow import frame_at, window
+from torchmanifold.timewindow import frame_at, window, windows_span
 
 if TYPE_CHECKING:
     from torchmanifold.pipeline.align import WindowAlignment
@@ -358,8 +358,8 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
         # frames around it, each cross-validated over its own window)
         if any(frame_at(ft, t) is None for t in times):
             return slice(0, len(ft))
-        ids = [j for t in times for j in window(ft, t, settings.temporal_radius)]
-        return slice(min(ids), max(ids) + 1)
+        r = windows_span(ft, times, settings.temporal_radius)
+        return slice(r.start, r.stop)
 
     def compute(times: list) -> list:
         if align is None or not any(align.moves(frame_at(ft, t)) for t in times):
