@@ -36,8 +36,8 @@ ISSUE_15_FILED = "0ea1ee1"
 
 def _run(tree: Path, frames: list[Path], out: Path, threads: int) -> float:
     """Seconds of one ``torchmanifold denoise`` run of ``tree``'s code, start-up included."""
-    cmd = [sys.executable, "-m", "torchmanifold.cli", "denoise", *map(str, frames), "--out", str(out), "--quiet",
-           "--threads", str(threads), "--overwrite"]
+    cmd = [sys.executable, "-m", "torchmanifold.cli", "denoise", *map(str, frames), "--out", str(out),
+           "--quiet", "--threads", str(threads), "--overwrite"]
     t0 = time.perf_counter()
     done = subprocess.run(cmd, cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)}, capture_output=True,
                           text=True)
@@ -62,15 +62,14 @@ def _psnr(out: Path, frames: list[Path]) -> float:
     return float(metrics.psnr(outs.float(), refs.float()))
 
 
-def _earlier_tree(commit: str, folder: Path) -> Path:
-    """``commit`` checked out in ``folder`` with its extension built."""
+def _build_earlier_tree(commit: str, folder: Path) -> None:
+    """``commit`` checked out in ``folder`` (a git worktree) with its extension built."""
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "--force", str(folder), commit],
                    check=True, capture_output=True)
     built = subprocess.run([sys.executable, "setup.py", "build_ext", "--inplace"], cwd=folder,
                            capture_output=True, text=True)
     if built.returncode != 0:
         raise RuntimeError(f"building {commit}'s extension failed:\n{built.stderr[-2000:]}")
-    return folder
 
 
 def main(argv=None) -> dict:
@@ -83,17 +82,21 @@ def main(argv=None) -> dict:
     frames = sorted(a.clip.glob("frame_0*.exr"))
     if len(frames) < 4:
         raise SystemExit(f"--clip {a.clip}: expected at least 4 frame_XXXX.exr, found {len(frames)}")
+    missing = [f.name for f in frames if not (a.clip / f"reference_{f.stem.split('_')[-1]}.exr").exists()]
+    if missing:
+        raise SystemExit(f"--clip {a.clip}: expected a reference_XXXX.exr for each frame; none for {missing}")
     from tqdm import tqdm
 
     runs: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        earlier = _earlier_tree(a.commit, Path(tmp) / "earlier")
+        earlier = Path(tmp) / "earlier"
         trees = {a.commit: earlier, "this tree": ROOT}
         try:
+            _build_earlier_tree(a.commit, earlier)
             steps = [(r, th, name, n) for r in range(a.rounds) for th in a.threads for name in trees
                      for n in (2, len(frames))]
             outs = {name: Path(tmp) / f"out_{i}" for i, name in enumerate(trees)}
-            for r, th, name, n in tqdm(steps, desc="runs"):
+            for _, th, name, n in tqdm(steps, desc="runs"):
                 runs.setdefault((name, th), {}).setdefault(n, []).append(
                     _run(trees[name], frames[:n], outs[name], th))
             psnr = {name: _psnr(out, frames) for name, out in outs.items()}  # the last run wrote all N
@@ -105,8 +108,8 @@ def main(argv=None) -> dict:
     for (name, th), t in runs.items():
         per_frame = [(tn - t2) / (len(frames) - 2) for t2, tn in zip(t[2], t[len(frames)])]
         res["trees"].setdefault(name, {"psnr": psnr[name]})[f"{th} threads"] = {
-            "ms_per_frame": 1e3 * statistics.median(per_frame), "ms_per_frame_rounds": [1e3 * x for x in per_frame],
-            "two_frame_run_s": statistics.median(t[2])}
+            "ms_per_frame": 1e3 * statistics.median(per_frame),
+            "ms_per_frame_rounds": [1e3 * x for x in per_frame], "two_frame_run_s": statistics.median(t[2])}
     res["this_over_earlier"] = {f"{th} threads": res["trees"]["this tree"][f"{th} threads"]["ms_per_frame"]
                                 / res["trees"][a.commit][f"{th} threads"]["ms_per_frame"] for th in a.threads}
     RESULTS.mkdir(exist_ok=True)
