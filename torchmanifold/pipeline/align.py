@@ -99,7 +99,8 @@ def _median_costs(to: Tensor, source: Tensor, ys: Tensor, xs: Tensor,
                   offsets: list[tuple[int, int]], keep: int = 0) -> Tensor:
     """Each offset's median L1 difference over the grid pixels ``ys, xs`` that it keeps in the frame (inf
     where none): ``(O,)``. ``keep`` > 0: the C++ kernel may give inf for offsets whose median certainly lies
-    above ``keep`` others' (the ``keep`` least, by median then order, stay exact), skipping their selection."""
+    above ``keep`` others' (the ``keep`` least, by median then order, stay exact), skipping their
+    selection."""
     if _fast.enabled(to, source):
         median = _fast.median_offset_costs(to, source, ys, xs, offsets, keep)
     else:
@@ -313,33 +314,26 @@ class WindowAlignment:
                  varying_only: bool = False):
         self.field, self.frame_times, self.radius, self.memo = field, list(frame_times), radius, memo
         self.varying_only = varying_only
-        self._flows: dict = {}
-        self._own: dict = {}  # without a memo
+        self._made: dict = {}  # what this object has made or taken from the memo: flows and surfaces
 
     def flow(self, k: int, j: int) -> Flow | None:
         """The flow from frame ``k``'s pixels into frame ``j``'s (``None``: each pixel keeps its own)."""
         if j == k:
             return None
         key = (self.frame_times[k], self.frame_times[j])
-        if key not in self._flows:
-            distance = max(1, round(abs(key[1] - key[0])))
-
-            def find(keys):
-                return [_flow_onto(self._surface(k), self.field[j], distance)]
-            self._flows[key] = self._memo(key, find)
-        return self._flows[key]
+        distance = max(1, round(abs(key[1] - key[0])))
+        return self._once(key, lambda: _flow_onto(self._surface(k), self.field[j], distance))
 
     def _surface(self, k: int) -> _Surface:
         """Frame ``k``'s side of its flows to the other frames, made once."""
-        return self._memo((self.frame_times[k], "surface"),
-                          lambda keys: [_surface(self.field[k], self.varying_only)])
+        return self._once((self.frame_times[k], "surface"),
+                          lambda: _surface(self.field[k], self.varying_only))
 
-    def _memo(self, key: tuple, find):
-        if self.memo is not None:
-            return self.memo.get([key], find)[0]
-        if key not in self._own:
-            self._own[key] = find([key])[0]
-        return self._own[key]
+    def _once(self, key: tuple, make):
+        """``make()`` for ``key``, made once: here, or by whichever call of the clip's memo came first."""
+        if key not in self._made:
+            self._made[key] = make() if self.memo is None else self.memo.get([key], lambda keys: [make()])[0]
+        return self._made[key]
 
     def _others(self, k: int) -> list[int]:
         return [j for j in window(self.frame_times, self.frame_times[k], self.radius) if j != k]
