@@ -11,7 +11,7 @@ scored against the first seed's reference, and the equal-error spp is read off t
 interpolation), not extrapolated: on this scene clamped-sRGB error falls more slowly than 1/spp (about 2 dB
 per doubling between 32 and 128 spp, not 3), so extrapolating from 10 spp undercounts by about 3x. The
 caustic under the glass ball is a few dozen pixels lit by a few samples each at 10 spp: one seed's energy
-ratio swings by more than the 10% the issue allows (0.76-1.01 for ours, 0.76-1.23 for raw over eight), so
+ratio swings by more than the 10% the issue allows (0.69-1.04 for ours, 0.74-1.10 for raw over eight), so
 the figures are means over seeds with their range. Writes ``results/progressive_schemes.json`` and ``.png``.
 
     .venv/bin/python benchmarks/bench_progressive_schemes.py [--size 96 --frames 4 --iterations 10 --seeds 8]
