@@ -11,10 +11,11 @@ scored against the first seed's reference, and the equal-error spp is read off t
 interpolation), not extrapolated: on this scene clamped-sRGB error falls more slowly than 1/spp (about 2 dB
 per doubling between 32 and 128 spp, not 3), so extrapolating from 10 spp undercounts by about 3x. The
 caustic under the glass ball is a few dozen pixels lit by a few samples each at 10 spp: one seed's energy
-ratio swings by more than the 10% the issue allows (0.69-1.04 for ours, 0.74-1.10 for raw over eight), so
-the figures are means over seeds with their range. Writes ``results/progressive_schemes.json`` and ``.png``.
+ratio swings by more than the 10% the issue allows (0.67-1.06 for ours, 0.67-1.32 for raw over 32), so
+the figures are means over seeds with their standard errors and ranges. Writes
+``results/progressive_schemes.json`` and ``.png``.
 
-    .venv/bin/python benchmarks/bench_progressive_schemes.py [--size 96 --frames 4 --iterations 10 --seeds 8]
+    .venv/bin/python benchmarks/bench_progressive_schemes.py [--size 96 --frames 4 --iterations 10 --seeds 32]
 """
 from __future__ import annotations
 
@@ -81,12 +82,14 @@ SEED_STEP = 1000
 
 
 def summary(values: list) -> dict:
-    return {"mean": float(np.mean(values)), "min": float(min(values)), "max": float(max(values)),
+    """Mean, its standard error over the seeds, range and count."""
+    se = float(np.std(values, ddof=1) / np.sqrt(len(values))) if len(values) > 1 else float("nan")
+    return {"mean": float(np.mean(values)), "se": se, "min": float(min(values)), "max": float(max(values)),
             "n": len(values)}
 
 
 def spread(s: dict) -> str:
-    return f"{s['mean']:.3f} [{s['min']:.2f}-{s['max']:.2f}]"
+    return f"{s['mean']:.3f} +-{s['se']:.3f} [{s['min']:.2f}-{s['max']:.2f}]"
 
 
 def main(argv=None) -> dict:
@@ -104,7 +107,7 @@ def main(argv=None) -> dict:
     p.add_argument("--frames", type=int, default=4)
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--reference-spp", type=int, default=512)
-    p.add_argument("--seeds", type=int, default=8,
+    p.add_argument("--seeds", type=int, default=32,
                    help="loop seeds per scheme: one run's caustic swings by more than the issue's 10%%")
     p.add_argument("--threads", type=int, default=1)
     a = p.parse_args(argv)
@@ -161,8 +164,8 @@ def main(argv=None) -> dict:
         e = r["final_energy"]
         kept = ", ".join(f"{k[5:-7]} {spread(e[k])} ({spread(e['raw_' + k[5:]])})"
                          for k in e if k.startswith("ours_"))
-        print(f"{scheme}, {a.seeds} seeds, mean [range]: after {a.iterations} iterations ours "
-              f"{spread(r['psnr_ours_final'])} dB, which plain path tracing matches at "
+        print(f"{scheme}, {a.seeds} seeds, mean +-standard error [range]: after {a.iterations} iterations "
+              f"ours {spread(r['psnr_ours_final'])} dB, which plain path tracing matches at "
               f"{r['spp_plain_to_match_final']} spp; energy kept by ours (raw): {kept or 'no region'}; "
               f"inside the moving mask ours {spread(r['psnr_moving']['ours'])} dB, "
               f"raw {spread(r['psnr_moving']['raw'])}")
