@@ -162,8 +162,8 @@ def main(argv=None) -> dict:
         }
         r = out["schemes"][scheme]
         e = r["final_energy"]
-        kept = ", ".join(f"{k[5:-7]} {spread(e[k])} ({spread(e['raw_' + k[5:]])})"
-                         for k in e if k.startswith("ours_"))
+        kept = ", ".join(f"{k.removesuffix('_energy')} {spread(e['ours_' + k])} ({spread(e['raw_' + k])})"
+                         for k in regions)
         print(f"{scheme}, {a.seeds} seeds, mean +-standard error [range]: after {a.iterations} iterations "
               f"ours {spread(r['psnr_ours_final'])} dB, which plain path tracing matches at "
               f"{r['spp_plain_to_match_final']} spp; energy kept by ours (raw): {kept or 'no region'}; "
