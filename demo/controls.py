@@ -21,7 +21,7 @@ FEATURE_GROUPS = {g: feature_table.tracer_channels(g) for g in feature_table.gro
 #: Selectable guides (which channels steer the filter). The engine has no colour-guided mode: "colour"
 #: guides by every feature the scene provides (see :func:`demo.session.guide_channels`).
 FEATURE_SETS = {
-    "all": tuple(FEATURE_GROUPS),
+    "all": tuple(g for g in FEATURE_GROUPS if feature_table.feature(g).sigma is not None),  # all that can guide
     "albedo+normal+depth": ("Z", "albedo", "N"),
     "albedo+normal": ("albedo", "N"),
     "normal+depth": ("Z", "N"),

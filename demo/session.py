@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from demo.controls import FEATURE_GROUPS, FEATURE_SETS, SIGMA_R_UNSCALED, FilterParams
+from torchmanifold import features as feature_table
 from torchmanifold._threads import torch_threads
 from torchmanifold.metrics import psnr
 from torchmanifold.pipeline import DenoiseSettings
@@ -24,10 +25,11 @@ from torchmanifold.timewindow import frame_at, interpolate
 
 
 def guide_channels(feature_set: str, feature_names) -> list[str]:
-    """The channels of ``feature_set`` the scene provides, without time ``T`` (the engine has no range
-    sigma for it); the ``"colour"`` set (no channels) guides by every feature but ``T``."""
-    names = [c for g in FEATURE_SETS[feature_set] for c in FEATURE_GROUPS[g] if c in feature_names and c != "T"]
-    return names or [c for c in feature_names if c != "T"]
+    """The channels of ``feature_set`` the scene provides that have a range sigma (not time ``T`` nor the
+    ``caustic`` share); the ``"colour"`` set (no channels) guides by every such feature."""
+    can_guide = [c for c in feature_names if feature_table.default_sigma(c) is not None]
+    names = [c for g in FEATURE_SETS[feature_set] for c in FEATURE_GROUPS[g] if c in can_guide]
+    return names or can_guide
 
 
 def engine_settings(p: FilterParams, feature_names) -> dict:

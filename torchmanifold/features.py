@@ -25,7 +25,10 @@ probe); ``N`` the world-space normal facing the ray; ``Ncam`` the camera-space n
 up, +Z forward: surfaces facing the camera have Z < 0) that Blender's denoising data gives, looking
 through near-specular surfaces like its albedo; ``P`` the world-space position; ``D`` the
 direction the path leaves the first hit (one random draw per sample); ``S`` the shadow-ray direction
-at the first hit (one random draw per sample).
+at the first hit (one random draw per sample); ``caustic`` the share of the sample's radiance (luminance)
+that reached a diffuse surface from a light or the sky through mirrors or glass, in [0, 1]: caustic light,
+which only our tracer tells apart (it does not guide: per sample it is as sparse as the light it marks; the
+bandwidth selection reads it, :func:`~torchmanifold.pipeline.selection._caustic_light`).
 
 Adding a feature is one entry in :data:`FEATURES` (plus the shader code that writes it when our tracer
 makes it: the shader's slots ``FEAT_<TRACER NAME>`` and ``N_FEAT`` are generated from this table, see
@@ -156,6 +159,7 @@ FEATURES: tuple[Feature, ...] = (
             preferred_names=("ns",)),
     Feature("D", _xyz("D"), tracer=("Dx", "Dy", "Dz"), sigma=0.6, sigma_source=_BY_HAND),
     Feature("S", _xyz("S"), tracer=("Sx", "Sy", "Sz"), sigma=0.6, sigma_source=_BY_HAND),
+    Feature("caustic", ("caustic",), tracer=("C",), may_be_all_zero=True),
     Feature("P", _xyz("P"), mitsuba=_xyz("P"), blender=_xyz("Position"), half=False, sigma=0.1,
             sigma_source=_P_VALIDATED, sigma_of_extent=True, guides=True,
             other_names=("p", "position", "positions", "world_position")),

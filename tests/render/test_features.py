@@ -245,7 +245,8 @@ def test_frames_split_over_buffer_batches(ctx):
 
     scene, times = default_scene(), [0.0, 1.0, 2.5, 3.0, 7.0]
     one = PathTracer(scene, 16, 12, ctx=ctx)
-    split = PathTracer(scene, 16, 12, ctx=ctx, max_buffer_bytes=2 * 16 * 12 * 14 * 4)  # 2 frames per batch
+    n_feat = len(scene.needed_features())
+    split = PathTracer(scene, 16, 12, ctx=ctx, max_buffer_bytes=2 * 16 * 12 * n_feat * 4)  # 2 frames a batch
     assert one.frames_per_batch >= 5 and split.frames_per_batch == 2
     a, b = one.render(times, spp=2, seed=1), split.render(times, spp=2, seed=1)
     assert [(f0, n) for f0, n, _ in split.buffers] == [(0, 2), (2, 2), (4, 1)]
@@ -271,3 +272,33 @@ def test_camera_motion_moves_static_points_the_other_way(ctx):
     # at 9.5 the next frame (10.5) is past the last key: the camera holds still
     torch.testing.assert_close(res.motion[1, 0], torch.full((H, W), -0.5 * speed * focal / dist), atol=1e-3, rtol=1e-4)
     assert res.motion[:, 1].abs().max() < 1e-3
+
+
+def _panel_lit_floor(panel: str):
+    """The plane lit only through a panel above it: a lamp between them faces the panel, away from the plane
+    (quads emit from their front face), so no light reaches the plane directly."""
+    d = plane_scene_dict(light=False, max_depth=4)
+    d["materials"]["lamp"] = {"type": "diffuse", "color": [0, 0, 0], "emission": [20.0, 20.0, 20.0]}
+    d["materials"]["panel"] = {"type": panel, "color": [0.9, 0.9, 0.9]}
+    d["objects"] += [
+        {"type": "quad", "origin": [0.7, 0.7, 1.0], "u": [0.4, 0, 0], "v": [0, 0.4, 0], "material": "lamp"},
+        {"type": "quad", "origin": [0.2, 0.2, 1.5], "u": [0, 1.6, 0], "v": [1.6, 0, 0], "material": "panel"}]
+    return scene_from_dict(d)
+
+
+@pytest.mark.parametrize("panel", ["mirror", "diffuse"])
+def test_caustic_share_is_the_light_through_a_mirror(ctx, panel):
+    """Under a mirror panel every sample that sees light got it through the mirror: its caustic share is
+    exactly 1, and 0 where it saw none; under a diffuse panel the plane is lit as brightly, by bounce light,
+    and no sample's share is above 0. A scene with no specular surface does not make the feature."""
+    scene = _panel_lit_floor(panel)
+    assert ("C" in scene.needed_features()) == (panel != "diffuse")
+    tr = PathTracer(scene, W, H, ctx=ctx, features=["Z", "C"])  # the camera sees only the plane
+    lit = 0
+    for offset in range(8):
+        res = tr.render([0.0], spp=1, seed=1, sample_offset=offset)
+        seen = (res.color.sum(1)[0] > 0).float()
+        lit += int(seen.sum())
+        expected = seen if panel != "diffuse" else torch.zeros_like(seen)
+        assert torch.equal(res.feature("C")[0], expected)
+    assert lit >= 20

@@ -167,9 +167,13 @@ class Scene:
         """The tracer's feature channels this scene carries information in (shader-slot order).
 
         ``T`` only when something moves, ``S*`` only when lights are sampled, ``D*`` only when
-        paths go past the first hit; every other feature the tracer makes always.
+        paths go past the first hit, ``caustic`` only when a mirror or glass can bring light to a diffuse
+        surface (a light or a sky, paths of three vertices); every other feature the tracer makes always.
         """
-        skip = {"T": not self.is_dynamic, "D": self.max_depth <= 1, "S": not self.has_lights}
+        specular = any(m.type != "diffuse" for m in self.materials.values())
+        lit = self.has_lights or max(self.background) > 0
+        skip = {"T": not self.is_dynamic, "D": self.max_depth <= 1, "S": not self.has_lights,
+                "caustic": not (specular and lit and self.max_depth >= 3)}
         return [n for n in feature_table.tracer_names() if not skip.get(feature_table.group_of(n), False)]
 
 

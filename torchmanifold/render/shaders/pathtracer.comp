@@ -311,6 +311,8 @@ vec3 cosine_dir(vec3 n, float u1, float u2) {
 }
 float ray_eps(vec3 p) { return 1e-4 * max(1.0, max(abs(p.x), max(abs(p.y), abs(p.z)))); }
 
+float luminance(vec3 c) { return dot(c, vec3(0.2126, 0.7152, 0.0722)); }  // Rec. 709, as the Python side's
+
 // next-event estimation: one light chosen uniformly (by u.x); a sphere light samples the cone of directions
 // it subtends, a quad a point uniform on its area (by u.yz). Returns the radiance contribution (already /
 // pdf) and the unit shadow-ray direction.
@@ -428,6 +430,10 @@ void main() {
         vec3 d = camera_dir(cam, vec2(pix) + jitter);
         vec3 L = vec3(0.0), beta = vec3(1.0);
         bool count_light = true;  // emission of sampled lights counts unless NEE already did
+        // caustic light: what reaches a diffuse vertex from a light or the sky through mirrors or glass
+        // (after a diffuse vertex, only a specular one sets count_light)
+        bool diffuse_seen = false;
+        vec3 Lc = vec3(0.0);
         feat[FEAT_T] += time;
         // the first vertex's features, added to the sums after the path: accumulating them inside the bounce
         // loop would cost at every vertex (llvmpipe executes the depth == 0 branches at every one)
@@ -439,12 +445,17 @@ void main() {
             // reflect-or-refract, Russian roulette
             vec4 ra = rnd4(), rb = rnd4();
             Hit h;
-            if (!intersect(o, d, 0.0, INF, time, h)) { L += beta * u_background; break; }
+            if (!intersect(o, d, 0.0, INF, time, h)) {
+                L += beta * u_background;
+                if (count_light && diffuse_seen) Lc += beta * u_background;
+                break;
+            }
             Material m = h.m;
             vec3 x = o + h.t * d;
             vec3 nf = dot(h.n, d) < 0.0 ? h.n : -h.n;   // facing the incoming ray
             vec3 le = dot(h.n, d) < 0.0 ? m.emission_ior.rgb : vec3(0.0);  // emitters: outward / front face
             if (count_light || !h.light) L += beta * le;
+            if (count_light && diffuse_seen) Lc += beta * le;
             int mtype = int(m.color_type.w);
             vec3 albedo = m.color_type.rgb;
             if (depth == 0) { z1 = h.t; albedo1 = albedo; emission1 = m.emission_ior.rgb; le1 = le; n1 = nf; }
@@ -458,6 +469,7 @@ void main() {
                 nd = cosine_dir(nf, ra.z, ra.w);
                 beta *= albedo;
                 count_light = false;
+                diffuse_seen = true;
             } else if (mtype == MAT_MIRROR) {
                 nd = reflect(d, nf);
                 beta *= albedo;
@@ -490,6 +502,8 @@ void main() {
         sum_e += le1;
         vec3 a = albedo1, e = emission1;  // emitters with black colour: emission / max as albedo
         if (max(a.r, max(a.g, a.b)) <= 0.0 && max(e.r, max(e.g, e.b)) > 0.0) a = e / max(e.r, max(e.g, e.b));
+        float lum = luminance(L);
+        feat[FEAT_C] += lum > 0.0 ? clamp(luminance(Lc) / lum, 0.0, 1.0) : 0.0;
         feat[FEAT_Z] += z1; feat[FEAT_MR] += a.r; feat[FEAT_MG] += a.g; feat[FEAT_MB] += a.b;
         feat[FEAT_NX] += n1.x; feat[FEAT_NY] += n1.y; feat[FEAT_NZ] += n1.z;
         feat[FEAT_SX] += s1.x; feat[FEAT_SY] += s1.y; feat[FEAT_SZ] += s1.z;
