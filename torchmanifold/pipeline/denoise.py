@@ -87,8 +87,8 @@ from torchmanifold.pipeline.footprint import (_UNSEEN_BORDER, _along_edges, _any
 from torchmanifold.pipeline.filter import _Filter, tree_height_at
 from torchmanifold.pipeline.image import (_LOG_RADIANCE_OFFSET, _channel_means, _eight_neighbours_max,
                                           _four_neighbours, _frame_mean, _gaussian_taps, luminance)
-from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, ClipCache, _cv_cell, _pooled_selection,
-                                             _select_bandwidth, _select_flat_width)
+from torchmanifold.pipeline.selection import (_PLAIN_GROUPS, ClipCache, _caustic_light, _cv_cell,
+                                             _pooled_selection, _select_bandwidth, _select_flat_width)
 from torchmanifold.timewindow import frame_at, index_window, window, windows_span
 
 __all__ = [
@@ -831,6 +831,8 @@ class FrameState:
         mixed: ``(T, 1, H, W)`` in [0, 1], how surely a pixel's samples mix two surfaces at random (a lens's
             or a shutter's, :func:`~torchmanifold.pipeline.footprint._mixed_layers`), or ``None`` without
             depth.
+        caustic: ``(T, 1, H, W)`` in [0, 1], how surely caustic light lands around a pixel, the weight of the
+            narrowest bandwidth there (:func:`_caustic_light`), or ``None`` without the ``caustic`` feature.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other
@@ -858,6 +860,7 @@ class FrameState:
     clamped: Tensor
     lone: Tensor
     mixed: Tensor | None
+    caustic: Tensor | None
     pilot_only: bool
     point_samples: bool
     counts: dict
@@ -873,7 +876,7 @@ class FrameState:
         counts = {k: sum(s.counts[k] for s in states) for k in states[0].counts}
         tensors = ("values", "level", "mask", "flat", "albedo", "smooth", "keep_samples", "emission",
                    "position", "flow_field", "guide", "sigmas", "pooling", "cv_cell", "clamped", "lone",
-                   "mixed")
+                   "mixed", "caustic")
         joined = {n: join(n) for n in tensors if n != "flow_field"}
         # the flows match the positions themselves where there are any: joined once
         same = all(s.flow_field is s.position for s in states)
@@ -971,8 +974,8 @@ def prepare_frames(color: Tensor, features: Tensor, feature_names: Sequence[str]
     keep_samples = (kept & (mask > 0)) | kept_flat
     pooling = torch.ones(c.shape[0], dtype=torch.float64)
     state = FrameState(e, None, mask, flat, alb, smooth, keep_samples, em, position, flow_field, guide, sig,
-                       pooling, cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed, False, point,
-                       counts, fp, base)
+                       pooling, cell, torch.zeros_like(mask), torch.zeros_like(mask), mixed,
+                       _caustic_light(f, names, mask), False, point, counts, fp, base)
     if settings.firefly == "none":
         return state
     ft = [float(t) for t in range(c.shape[0])]
@@ -1083,16 +1086,17 @@ def denoise_prepared(state: FrameState, settings: DenoiseSettings, frame_times: 
                 return op(joined(values), joined(mask, True))
         else:
             neighbours = _lenders(kinds, settings, ft, qt)
+            caustic = None if s.caustic is None else at_queries(s.caustic)
 
             def filt(values, mask):
                 if neighbours is None:
                     return _select_bandwidth(joined(values), joined(mask, True), w.guide, w.sigmas, settings,
                                              ft, qt, base, range_scale, w.level, w.pooling,
-                                             int(w.cv_cell.max()))
+                                             int(w.cv_cell.max()), caustic)
                 # each query's window and its neighbours' brought to their own pixels there
                 return _pooled_selection(values, mask, s.guide, s.sigmas, settings, ft, qt, base, range_scale,
                                          s.level, s.pooling, int(s.cv_cell.max()), neighbours, cache,
-                                         align if any(moving) else None)
+                                         align if any(moving) else None, caustic)
 
         def flat_widths(e: Tensor, weight: Tensor, sigma: float) -> Tensor:
             # averaged, or blended where they hold enough flat pixels that keep no samples (a clear sky does),

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import torch
 from torch import Tensor
 
+from torchmanifold import features as feature_table
 from torchmanifold.pipeline import _fast
 from torchmanifold.pipeline.filter import (_Filter, _frames, _halves, _halves_stack, _split_halves,
                                            tree_height_at)
@@ -161,10 +162,53 @@ def _sign_pairs(x: Tensor, valid: Tensor, plain_guide: Tensor | None = None) -> 
     return agree, total
 
 
+#: Caustic light (our tracer's ``caustic`` feature: the share of a sample's light that came from a light
+#: through mirrors or glass after a diffuse vertex) is too sparse for the cross-validation to see a wide
+#: bandwidth's bias: at 10 spp the caustic under the built-in scene's glass ball is lit by one to three
+#: samples a pixel, and the blend took the wide candidates there. Where the share, pooled under a Gaussian of
+#: ``_CAUSTIC_POOL`` pixels, reaches the first of ``_CAUSTIC_SHARES``, the narrowest candidate takes over,
+#: wholly from the second. Set on the progressive loop (built-in scene, 4 frames, after 10 iterations, over
+#: loop seeds; benchmarks/validation/findings.md): caustic energy 0.865 -> 0.917 at 96x96 and 0.786 -> 0.881
+#: at 128x128, +0.020 / +0.008 dB, no iteration of 1-16 worse; shares of (0, 0.05): the caustic alike and
+#: -0.011 / -0.024 dB (the speckle mirrors and glass scatter over the walls took the narrow candidate)
+_CAUSTIC_POOL = 3.0
+_CAUSTIC_SHARES = (0.01, 0.04)
+
+
+def _caustic_light(features: Tensor, names: Sequence[str], mask: Tensor) -> Tensor | None:
+    """How surely caustic light lands around each pixel, ``(T, 1, H, W)`` in [0, 1]: the ``caustic``
+    feature's share pooled over the finite samples (``mask`` ``(T, 1, H, W)`` above 0), ramped between
+    :data:`_CAUSTIC_SHARES`; ``None`` where ``names`` hold no ``caustic`` channel."""
+    k = [i for i, n in enumerate(names) if feature_table.group_of(n) == "caustic"]
+    if not k:
+        return None
+    share = torch.nan_to_num(features[:, k[0]:k[0] + 1], 0.0, 0.0, 0.0).clamp(0.0, 1.0)
+    valid = (mask > 0).to(share.dtype)
+    lo, hi = _CAUSTIC_SHARES
+    w = ((_normalised_blur(share, valid, _CAUSTIC_POOL) - lo) / (hi - lo)).clamp(0.0, 1.0)
+    # a wide kernel's bias lies where the caustic is narrower than the kernel: there the weight stands above
+    # its own mean over the pool, and the excess (doubled, at most the weight) is what it keeps; inside a
+    # caustic wider than the pool (all light through a window, say) the wide candidates average caustic light
+    # with caustic light
+    return (2.0 * (w - _normalised_blur(w, valid, _CAUSTIC_POOL))).clamp_min(0.0).minimum(w)
+
+
+def _narrowest_where(out: Tensor, candidates: "_Candidates", bandwidths: Sequence[float],
+                     weight: Tensor | None) -> Tensor:
+    """The blend ``out`` ``(Q, 3, H, W)`` moved toward the candidate of the narrowest of ``bandwidths`` (the
+    window's) by ``weight`` ``(Q, 1, H, W)`` (:func:`_caustic_light` at the queries); ``out`` where it is
+    0."""
+    if weight is None or not bool((weight > 0).any()):
+        return out
+    narrowest = candidates.fulls[min(range(len(bandwidths)), key=lambda k: float(bandwidths[k]))]
+    weight = weight.to(out.dtype)
+    return torch.where(weight > 0, torch.lerp(out, narrowest, weight), out)
+
+
 def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
                       settings: DenoiseSettings, ft: list[float], qt: list[float], sigma_s: float,
                       range_scale: float, level: Tensor | None, pooling: Tensor | None = None,
-                      cell: int = 1) -> Tensor:
+                      cell: int = 1, caustic: Tensor | None = None) -> Tensor:
     """Filter ``e`` at every bandwidth of ``settings.bandwidths`` (and each query's frame alone at those of
     ``settings.frame_alone``) and blend them per pixel by their error.
 
@@ -184,13 +228,16 @@ def _select_bandwidth(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor,
         pooling: ``(T,)`` the factor on ``selection_blur`` at each frame (``FrameState.pooling``), or
             ``None`` (1).
         cell: the halves' checkerboard squares, in pixels (:func:`_cv_cell`).
+        caustic: ``(Q, 1, H, W)`` the narrowest bandwidth's weight at the queries where caustic light lands
+            (:func:`_caustic_light`), or ``None``.
 
     Returns:
         ``(Q, 3, H, W)`` at the query times.
     """
     candidates = _bandwidth_candidates(e, mask, guide, sigmas, settings, ft, qt, sigma_s, range_scale, level,
                                        pooling, cell)
-    return candidates.blend(settings.selection_softness)
+    return _narrowest_where(candidates.blend(settings.selection_softness), candidates, settings.bandwidths,
+                            caustic)
 
 
 @dataclass
@@ -333,13 +380,14 @@ class ClipCache:
 def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, settings: DenoiseSettings,
                       ft: list[float], qt: list[float], sigma_s: float, range_scale: float,
                       level: Tensor | None, pooling: Tensor | None, cell: int, neighbours: list[list[int]],
-                      cache: ClipCache | None, align: WindowAlignment | None = None) -> Tensor:
+                      cache: ClipCache | None, align: WindowAlignment | None = None,
+                      caustic: Tensor | None = None) -> Tensor:
     """:func:`_select_bandwidth` at queries that are frames, each blending with its neighbouring frames'
     cross-validated residuals as evidence (``neighbours``: per query, the frame indices whose queries lend
     theirs). A neighbour's residuals weigh ``exp(-d^2 / 2)`` at a pixel, ``d`` the distance of its guide there
     from the query's in range sigmas: where the same surface under the same light shows, a candidate's bias
     is the same and the noise independent. With ``align``, each query filters its window brought to its own
-    pixels, and a neighbour's residuals and guide are brought to the query's pixels."""
+    pixels, and a neighbour's residuals and guide are brought to the query's pixels. ``caustic`` as there."""
     idx = [frame_at(ft, q) for q in qt]
     need = sorted(set(idx) | {n for ns in neighbours for n in ns})
     # an entry's key: the frames its window holds in this call's state (a call whose state cuts a neighbour's
@@ -393,7 +441,7 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
             got[k].candidates = None
     J = max((len(ns) for ns in neighbours), default=0)
     if J == 0:
-        return cands.blend(settings.selection_softness)
+        return _narrowest_where(cands.blend(settings.selection_softness), cands, settings.bandwidths, caustic)
     planes = got[idx[0]].residuals
     others = planes.new_zeros((J, planes.shape[0], len(qt), 1, *guide.shape[2:]))
     weights = planes.new_zeros((J, len(qt), 1, *guide.shape[2:]))
@@ -412,7 +460,8 @@ def _pooled_selection(e: Tensor, mask: Tensor, guide: Tensor, sigmas: Tensor, se
             weights[j, i, 0] = torch.exp(-0.5 * (((their_guide - guide[k]) / ranges) ** 2).sum(0))
             if align is not None and align.flow(k, n) is not None:  # no evidence from outside their frame
                 weights[j, i, 0] *= align.flow(k, n).inside
-    return cands.blend(settings.selection_softness, others, weights)
+    blend = cands.blend(settings.selection_softness, others, weights)
+    return _narrowest_where(blend, cands, settings.bandwidths, caustic)
 
 
 class _Lent:
