@@ -167,18 +167,22 @@ def _sign_pairs(x: Tensor, valid: Tensor, plain_guide: Tensor | None = None) -> 
 #: bandwidth's bias: at 10 spp the caustic under the built-in scene's glass ball is lit by one to three
 #: samples a pixel, and the blend took the wide candidates there. Where the share, pooled under a Gaussian of
 #: ``_CAUSTIC_POOL`` pixels, reaches the first of ``_CAUSTIC_SHARES``, the narrowest candidate takes over,
-#: wholly from the second. Set on the progressive loop (built-in scene, 4 frames, after 10 iterations, over
-#: loop seeds; benchmarks/validation/findings.md): caustic energy 0.865 -> 0.917 at 96x96 and 0.786 -> 0.881
-#: at 128x128, +0.020 / +0.008 dB, no iteration of 1-16 worse; shares of (0, 0.05): the caustic alike and
-#: -0.011 / -0.024 dB (the speckle mirrors and glass scatter over the walls took the narrow candidate)
+#: wholly from the second, as far as the caustic is narrower than the pool (:func:`_caustic_light`). Set on
+#: the progressive loop over loop seeds (benchmarks/validation/findings.md): after 10 iterations caustic
+#: energy 0.854 -> 0.904 at 96x96 (4 frames), 0.827 -> 0.888 at 128x128, after 16 on the render job's 256x256
+#: with 8 frames 0.918 -> 0.948, +0.04 / +0.01 / +0.01 dB, no iteration of 1-16 worse; without the test of
+#: width, -0.04 / -0.05 dB at 256x256 after 10 / 16 (the narrowest candidate inside a caustic wider than it),
+#: and with shares of (0, 0.05) as well -0.01 / -0.02 dB at 96x96 / 128x128 (the speckle that mirrors and
+#: glass scatter over the walls)
 _CAUSTIC_POOL = 3.0
 _CAUSTIC_SHARES = (0.01, 0.04)
 
 
 def _caustic_light(features: Tensor, names: Sequence[str], mask: Tensor) -> Tensor | None:
-    """How surely caustic light lands around each pixel, ``(T, 1, H, W)`` in [0, 1]: the ``caustic``
+    """The narrowest candidate's weight for caustic light, ``(T, 1, H, W)`` in [0, 1]: the ``caustic``
     feature's share pooled over the finite samples (``mask`` ``(T, 1, H, W)`` above 0), ramped between
-    :data:`_CAUSTIC_SHARES`; ``None`` where ``names`` hold no ``caustic`` channel."""
+    :data:`_CAUSTIC_SHARES`, where it stands above its own mean over the pool (a caustic narrower than the
+    pool); ``None`` where ``names`` hold no ``caustic`` channel."""
     k = [i for i, n in enumerate(names) if feature_table.group_of(n) == "caustic"]
     if not k:
         return None
