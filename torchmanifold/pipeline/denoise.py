@@ -831,8 +831,8 @@ class FrameState:
         mixed: ``(T, 1, H, W)`` in [0, 1], how surely a pixel's samples mix two surfaces at random (a lens's
             or a shutter's, :func:`~torchmanifold.pipeline.footprint._mixed_layers`), or ``None`` without
             depth.
-        caustic: ``(T, 1, H, W)`` in [0, 1], how surely caustic light lands around a pixel, the weight of the
-            narrowest bandwidth there (:func:`_caustic_light`), or ``None`` without the ``caustic`` feature.
+        caustic: ``(T, 1, H, W)`` in [0, 1], the narrowest bandwidth's weight where caustic light lands
+            (:func:`_caustic_light`), or ``None`` without the ``caustic`` feature.
         pilot_only: the output is the pilot itself (``firefly="log"`` without a caller's pilot).
         point_samples: each pixel holds one sample (a known count of 1), so its features are one point of the
             pixel's footprint (:func:`~torchmanifold.pipeline.footprint._window_albedo` looks for other

@@ -169,11 +169,11 @@ def _sign_pairs(x: Tensor, valid: Tensor, plain_guide: Tensor | None = None) -> 
 #: ``_CAUSTIC_POOL`` pixels, reaches the first of ``_CAUSTIC_SHARES``, the narrowest candidate takes over,
 #: wholly from the second, as far as the caustic is narrower than the pool (:func:`_caustic_light`). Set on
 #: the progressive loop over loop seeds (benchmarks/validation/findings.md): after 10 iterations caustic
-#: energy 0.854 -> 0.904 at 96x96 (4 frames), 0.827 -> 0.888 at 128x128, after 16 on the render job's 256x256
-#: with 8 frames 0.918 -> 0.948, +0.04 / +0.01 / +0.01 dB, no iteration of 1-16 worse; without the test of
-#: width, -0.04 / -0.05 dB at 256x256 after 10 / 16 (the narrowest candidate inside a caustic wider than it),
-#: and with shares of (0, 0.05) as well -0.01 / -0.02 dB at 96x96 / 128x128 (the speckle that mirrors and
-#: glass scatter over the walls)
+#: energy 0.853 -> 0.900 at 96x96 (4 frames, 32 seeds), 0.827 -> 0.888 at 128x128, after 16 on the render
+#: job's 256x256 with 8 frames 0.918 -> 0.948, +0.02 / +0.01 / +0.01 dB, no iteration of 1-16 worse; without
+#: the test of width, -0.04 / -0.05 dB at 256x256 after 10 / 16 (the narrowest candidate inside a caustic
+#: wider than it), and with shares of (0, 0.05) as well -0.01 / -0.02 dB at 96x96 / 128x128 (the speckle that
+#: mirrors and glass scatter over the walls)
 _CAUSTIC_POOL = 3.0
 _CAUSTIC_SHARES = (0.01, 0.04)
 
