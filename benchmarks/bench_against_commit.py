@@ -15,7 +15,6 @@ this tree's time over the earlier one's.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
@@ -29,7 +28,6 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 import harness  # noqa: E402
 
-RESULTS = HERE / "results"
 #: the code when issue 15 was filed (31.00 dB on the shared clip, as the issue says)
 ISSUE_15_FILED = "0ea1ee1"
 
@@ -103,7 +101,7 @@ def main(argv=None) -> dict:
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(earlier)],
                            capture_output=True)
-    res = {"meta": harness.metadata(), "commit": a.commit, "clip": str(a.clip), "frames": len(frames),
+    res = {"commit": a.commit, "clip": str(a.clip), "frames": len(frames),
            "rounds": a.rounds, "trees": {}}
     for (name, th), t in runs.items():
         per_frame = [(tn - t2) / (len(frames) - 2) for t2, tn in zip(t[2], t[len(frames)])]
@@ -112,8 +110,7 @@ def main(argv=None) -> dict:
             "ms_per_frame_rounds": [1e3 * x for x in per_frame], "two_frame_run_s": statistics.median(t[2])}
     res["this_over_earlier"] = {f"{th} threads": res["trees"]["this tree"][f"{th} threads"]["ms_per_frame"]
                                 / res["trees"][a.commit][f"{th} threads"]["ms_per_frame"] for th in a.threads}
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "against_commit.json").write_text(json.dumps(res, indent=1))
+    harness.write_json("against_commit", res)
     for name, r in res["trees"].items():
         print(f"{name}: {r['psnr']:.2f} dB; " + ", ".join(
             f"{k} {v['ms_per_frame']:.0f} ms a frame" for k, v in r.items() if k != "psnr"))
